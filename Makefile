@@ -1,0 +1,26 @@
+# Two entry points (see README.md): `make demo` runs the main job, `make test` runs the tests.
+# Both create .venv on first use and install the pinned dependencies from setup.cfg and
+# constraints.txt; the stamp makes later runs skip the install until those files change.
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.clsplat-installed
+OUT    ?= out
+
+.PHONY: demo test bench info
+
+$(STAMP): setup.cfg pyproject.toml constraints.txt
+	test -x $(PY) || python3 -m venv $(VENV)
+	$(PY) -m pip install -q --disable-pip-version-check -c constraints.txt -e ".[test]"
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/clsplat demo --out $(OUT)
+
+test: $(STAMP)
+	POCL_MAX_WORK_GROUP_SIZE=256 $(VENV)/bin/pytest -q tests
+
+bench: $(STAMP)
+	$(PY) bench/bench_stages.py
+
+info: $(STAMP)
+	$(VENV)/bin/clsplat info

@@ -1,0 +1,69 @@
+"""Build-time configuration of the pipeline: precision, tiling and the accuracy knobs.
+
+A :class:`RenderConfig` becomes the ``-D`` options every stage is specialised with, so each
+distinct configuration is its own cached set of programs.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import torch
+
+from . import constants as K
+
+__all__ = ["RenderConfig"]
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    """Accuracy and layout knobs (DESIGN.md §6). Defaults reproduce gsplat's semantics.
+
+    precision:    "float32" or "float64" (the latter needs cl_khr_fp64).
+    alpha_min:    samples with alpha below it are skipped.
+    t_min:        a pixel stops before the sample that would take its transmittance to <= t_min.
+    radius_rule:  "3.33sigma" (default), "opacity" (sigma extent where alpha reaches
+                  alpha_min) or "4sigma".
+    fast_math:    build with -cl-fast-relaxed-math.
+    pix:          pixels per work-item in compositing (None: 8 on CPUs, 1 on GPUs).
+    sort_local:   keys sorted in local memory per work-group (None: from device limits).
+    """
+
+    precision: str = "float32"
+    alpha_min: float = K.ALPHA_MIN
+    t_min: float = K.T_MIN
+    radius_rule: str = "3.33sigma"
+    fast_math: bool = False
+    pix: int | None = None
+    sort_local: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.precision not in ("float32", "float64"):
+            raise ValueError(f"precision: expected 'float32' or 'float64', got {self.precision!r}")
+        if not 0.0 <= self.alpha_min < K.ALPHA_MAX:
+            raise ValueError(f"alpha_min: must lie in [0, {K.ALPHA_MAX}), got {self.alpha_min}")
+        if not 0.0 <= self.t_min < 1.0:
+            raise ValueError(f"t_min: must lie in [0, 1), got {self.t_min}")
+        if self.radius_rule not in K.RADIUS_RULES:
+            raise ValueError(f"radius_rule: expected one of {K.RADIUS_RULES}, got {self.radius_rule!r}")
+        if self.pix is not None and self.pix not in (1, 2, 4, 8, 16):
+            raise ValueError(f"pix: expected 1, 2, 4, 8 or 16, got {self.pix}")
+        if self.sort_local is not None and (self.sort_local < 2 or self.sort_local & (self.sort_local - 1)):
+            raise ValueError(f"sort_local: must be a power of two >= 2, got {self.sort_local}")
+
+    def with_(self, **changes) -> "RenderConfig":
+        return replace(self, **changes)
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return torch.float64 if self.precision == "float64" else torch.float32
+
+    def defines(self, tile_size: int) -> dict[str, object]:
+        """The -D options shared by every stage."""
+        return {
+            "REAL_DOUBLE": self.precision == "float64",
+            "TILE": tile_size,
+            "ALPHA_MIN": float(self.alpha_min),
+            "T_MIN": float(self.t_min),
+            "RADIUS_SIGMA": 4.0 if self.radius_rule == "4sigma" else K.RADIUS_SIGMA,
+            "OPACITY_AWARE_RADIUS": self.radius_rule == "opacity",
+        }

@@ -1,0 +1,291 @@
+"""PandaSet sequence loader and writer (devkit folder layout, no devkit dependency).
+
+Layout of one sequence folder (as in the PandaSet devkit)::
+
+    <seq>/camera/<name>_camera/NN.jpg            images, NN = 00, 01, ...
+    <seq>/camera/<name>_camera/intrinsics.json   {"fx", "fy", "cx", "cy"}
+    <seq>/camera/<name>_camera/poses.json        [{"position": {x,y,z}, "heading": {w,x,y,z}}, ...]
+                                                 camera-to-world, OpenCV camera axes
+    <seq>/camera/<name>_camera/timestamps.json   [seconds, ...]
+    <seq>/lidar/NN.pkl.gz                        pandas DataFrame x, y, z (world), i, t, d
+    <seq>/lidar/poses.json, timestamps.json      LiDAR (= our ego) pose per frame
+    <seq>/annotations/cuboids/NN.pkl.gz          pandas DataFrame, one row per box
+
+Mapping to :class:`~clsplat.data.scene.DrivingSequence`:
+
+* The ego frame is the LiDAR frame of ``lidar/poses.json``; ``Frame.ego_to_world`` is that
+  pose and ``Frame.timestamp`` its timestamp.  (For real PandaSet data the LiDAR axes are the
+  sensor's, not x-forward; our writer stores the x-forward ego pose there.)
+* Each camera's exact per-frame pose goes to ``Frame.camera_poses``; ``Camera.cam_to_ego`` is
+  the frame-0 relative pose.
+* Camera folders map to nuScenes names: front -> CAM_FRONT, front_left -> CAM_FRONT_LEFT,
+  front_right -> CAM_FRONT_RIGHT, left -> CAM_BACK_LEFT, right -> CAM_BACK_RIGHT,
+  back -> CAM_BACK.  Other ``*_camera`` folders keep their folder name.
+* LiDAR points are loaded in the world frame; intensity ``i`` (0..255) is divided by 255;
+  ``d`` is the device id (0 = spinning LiDAR); the loader keeps ``lidar_device`` only.
+* Cuboids: ``position.*`` is the box centre in world, ``dimensions.x/y/z`` the extents along the
+  box's local x/y/z axes and ``yaw`` the rotation about world z (devkit ``center_box_to_corners``
+  geometry), so ``Box3D.size = (dimensions.x, dimensions.y, dimensions.z)``.  Track ids are the
+  ``uuid`` strings numbered 1.. in order of first appearance; ``Box3D.uuid`` keeps the string.
+
+Pickled DataFrames execute code on load: only read sequences from sources you trust.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .scene import (
+    Box3D,
+    Camera,
+    DrivingSequence,
+    Frame,
+    LidarPoints,
+    invert_transform,
+    make_transform,
+    quat_to_rotmat,
+    rotmat_to_quat,
+)
+
+__all__ = ["load_pandaset", "write_pandaset", "PANDASET_TO_NUSCENES"]
+
+PANDASET_TO_NUSCENES = {
+    "front_camera": "CAM_FRONT",
+    "front_left_camera": "CAM_FRONT_LEFT",
+    "front_right_camera": "CAM_FRONT_RIGHT",
+    "left_camera": "CAM_BACK_LEFT",
+    "right_camera": "CAM_BACK_RIGHT",
+    "back_camera": "CAM_BACK",
+}
+_NUSCENES_TO_PANDASET = {v: k for k, v in PANDASET_TO_NUSCENES.items()}
+_CUBOID_COLUMNS = ["uuid", "label", "yaw", "stationary", "camera_used", "position.x", "position.y", "position.z",
+                   "dimensions.x", "dimensions.y", "dimensions.z", "attributes.object_motion",
+                   "cuboids.sibling_id", "cuboids.sensor_id"]
+
+
+def _pd():
+    import pandas as pd
+
+    return pd
+
+
+def _read_json(path: Path):
+    if not path.is_file():
+        raise FileNotFoundError(f"PandaSet file not found: {str(path)!r}")
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{str(path)!r} is not valid JSON: {exc}") from None
+
+
+def _pose_from_json(entry, where: str) -> np.ndarray:
+    try:
+        pos = entry["position"]
+        hd = entry["heading"]
+        t = [float(pos["x"]), float(pos["y"]), float(pos["z"])]
+        q = [float(hd["w"]), float(hd["x"]), float(hd["y"]), float(hd["z"])]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"{where}: pose must be {{position{{x,y,z}}, heading{{w,x,y,z}}}}, problem: {exc!r}") from None
+    if not all(math.isfinite(v) for v in t + q) or np.linalg.norm(q) < 1e-9:
+        raise ValueError(f"{where}: pose has non-finite values or a zero quaternion")
+    return make_transform(quat=q, t=t)
+
+
+def _pose_to_json(T: np.ndarray) -> dict:
+    q = rotmat_to_quat(T[:3, :3])
+    return {"position": {"x": float(T[0, 3]), "y": float(T[1, 3]), "z": float(T[2, 3])},
+            "heading": {"w": float(q[0]), "x": float(q[1]), "y": float(q[2]), "z": float(q[3])}}
+
+
+def _read_pickle(path: Path):
+    if not path.is_file():
+        raise FileNotFoundError(f"PandaSet file not found: {str(path)!r}")
+    try:
+        return _pd().read_pickle(path, compression="gzip")
+    except Exception as exc:  # corrupt gzip / pickle
+        raise ValueError(f"cannot read pickled DataFrame {str(path)!r}: {type(exc).__name__}: {exc}") from None
+
+
+def _list_len(obj, where: str, n: int | None) -> list:
+    if not isinstance(obj, list):
+        raise ValueError(f"{where} must hold a JSON list, got {type(obj).__name__}")
+    if n is not None and len(obj) < n:
+        raise ValueError(f"{where} has {len(obj)} entries, need at least {n}")
+    return obj
+
+
+def load_pandaset(
+    seq_dir: str | Path,
+    cameras: Sequence[str] | None = None,
+    frames: Sequence[int] | None = None,
+    load_lidar: bool = True,
+    load_cuboids: bool = True,
+    lidar_device: int = 0,
+) -> DrivingSequence:
+    """Load one PandaSet sequence folder.
+
+    Args:
+        seq_dir: the sequence folder (contains ``camera/``, ``lidar/``).
+        cameras: camera names to load (nuScenes names such as ``"CAM_FRONT"`` or folder names
+            such as ``"front_camera"``); default all camera folders, nuScenes order first.
+        frames: frame indices to load (default all frames with an image in every camera).
+        load_lidar: read ``lidar/NN.pkl.gz`` into ``Frame.lidar`` (world frame).
+        load_cuboids: read ``annotations/cuboids/NN.pkl.gz`` into ``Frame.boxes`` when present.
+        lidar_device: keep LiDAR points with this ``d`` value.
+    Returns:
+        a :class:`DrivingSequence`.
+    """
+    from ..io.images import read_image
+
+    root = Path(seq_dir)
+    if not root.is_dir():
+        raise FileNotFoundError(f"PandaSet sequence folder not found: {str(root)!r}")
+    cam_root = root / "camera"
+    if not cam_root.is_dir():
+        raise FileNotFoundError(f"PandaSet sequence {str(root)!r} has no 'camera' folder")
+    dirs = sorted(p.name for p in cam_root.iterdir() if p.is_dir() and p.name.endswith("_camera"))
+    if not dirs:
+        raise ValueError(f"{str(cam_root)!r} has no '<name>_camera' folders")
+    known = [d for d in PANDASET_TO_NUSCENES if d in dirs]
+    ordered = known + [d for d in dirs if d not in PANDASET_TO_NUSCENES]
+    if cameras is not None:
+        sel = []
+        for c in cameras:
+            d = _NUSCENES_TO_PANDASET.get(c, c)
+            if d not in dirs:
+                raise ValueError(f"cameras: {c!r} not found in {str(cam_root)!r}; available {dirs}")
+            sel.append(d)
+        ordered = sel
+    lid_root = root / "lidar"
+    ego_poses = [_pose_from_json(e, f"{lid_root / 'poses.json'}[{i}]")
+                 for i, e in enumerate(_list_len(_read_json(lid_root / "poses.json"), str(lid_root / "poses.json"), 1))]
+    ego_ts = _list_len(_read_json(lid_root / "timestamps.json"), str(lid_root / "timestamps.json"), len(ego_poses))
+    n_avail = len(ego_poses)
+    cam_data = {}
+    for d in ordered:
+        cdir = cam_root / d
+        intr = _read_json(cdir / "intrinsics.json")
+        try:
+            fx, fy, cx, cy = (float(intr[k]) for k in ("fx", "fy", "cx", "cy"))
+        except (KeyError, TypeError, ValueError):
+            raise ValueError(f"{str(cdir / 'intrinsics.json')!r} must hold numbers fx, fy, cx, cy") from None
+        poses_json = _list_len(_read_json(cdir / "poses.json"), str(cdir / "poses.json"), 1)
+        poses = [_pose_from_json(e, f"{cdir / 'poses.json'}[{i}]") for i, e in enumerate(poses_json)]
+        _list_len(_read_json(cdir / "timestamps.json"), str(cdir / "timestamps.json"), len(poses))
+        n_img = 0
+        while (cdir / f"{n_img:02d}.jpg").is_file():
+            n_img += 1
+        if n_img == 0:
+            raise FileNotFoundError(f"no images 00.jpg, 01.jpg, ... in {str(cdir)!r}")
+        n_avail = min(n_avail, len(poses), n_img)
+        cam_data[d] = (np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]), poses)
+    idx = list(range(n_avail)) if frames is None else [int(i) for i in frames]
+    for i in idx:
+        if not 0 <= i < n_avail:
+            raise ValueError(f"frames: index {i} out of range, sequence {str(root)!r} has {n_avail} complete frames")
+    if not idx:
+        raise ValueError("frames must select at least one frame")
+    out_frames = []
+    cams: list[Camera] = []
+    uuids: dict[str, int] = {}
+    for k, i in enumerate(idx):
+        E = ego_poses[i]
+        imgs, cposes = {}, {}
+        for d in ordered:
+            name = PANDASET_TO_NUSCENES.get(d, d)
+            img = read_image(cam_root / d / f"{i:02d}.jpg", channels=3)
+            imgs[name] = np.clip(img, 0.0, 1.0)
+            cposes[name] = cam_data[d][1][i]
+            if k == 0:
+                cams.append(Camera(name, cam_data[d][0], invert_transform(E) @ cposes[name], img.shape[1], img.shape[0]))
+        lidar = None
+        if load_lidar:
+            df = _read_pickle(lid_root / f"{i:02d}.pkl.gz")
+            miss = [c for c in ("x", "y", "z", "i") if c not in df.columns]
+            if miss:
+                raise ValueError(f"{str(lid_root / f'{i:02d}.pkl.gz')!r} lacks columns {miss}")
+            if "d" in df.columns:
+                df = df[df["d"] == lidar_device]
+            pts = df[["x", "y", "z"]].to_numpy(np.float32)
+            lidar = LidarPoints(pts, np.clip(df["i"].to_numpy(np.float32) / 255.0, 0, 1), "world")
+        boxes = []
+        cub = root / "annotations" / "cuboids" / f"{i:02d}.pkl.gz"
+        if load_cuboids and cub.is_file():
+            df = _read_pickle(cub)
+            need = ["uuid", "label", "yaw", "position.x", "position.y", "position.z",
+                    "dimensions.x", "dimensions.y", "dimensions.z"]
+            miss = [c for c in need if c not in df.columns]
+            if miss:
+                raise ValueError(f"{str(cub)!r} lacks columns {miss}")
+            for row in df.itertuples(index=False):
+                r = dict(zip(df.columns, row))
+                u = str(r["uuid"])
+                tid = uuids.setdefault(u, len(uuids) + 1)
+                yaw = float(r["yaw"])
+                q = [math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)]
+                boxes.append(Box3D(tid, str(r["label"]), [r["dimensions.x"], r["dimensions.y"], r["dimensions.z"]],
+                                   [r["position.x"], r["position.y"], r["position.z"]], q, uuid=u))
+        out_frames.append(Frame(float(ego_ts[i]), E, imgs, lidar=lidar, boxes=boxes, camera_poses=cposes))
+    return DrivingSequence(cams, out_frames, name=root.name, metadata={"source": "pandaset", "path": str(root)})
+
+
+def write_pandaset(seq: DrivingSequence, out_dir: str | Path, jpeg_quality: int = 95) -> Path:
+    """Write ``seq`` as a PandaSet sequence folder (see module docstring); returns ``out_dir``.
+
+    Cameras with nuScenes names are written to the matching PandaSet folders, other cameras to
+    ``<lowercase name>_camera``.  LiDAR is written in world frame with ``i = 255 * intensity``,
+    ``t = frame timestamp``, ``d = 0``.  Boxes must be yaw-only rotations (about z).
+    """
+    from ..io.images import write_image
+
+    pd = _pd()
+    if not isinstance(seq, DrivingSequence):
+        raise ValueError(f"seq must be a DrivingSequence, got {type(seq).__name__}")
+    root = Path(out_dir)
+    if root.exists() and not root.is_dir():
+        raise ValueError(f"out_dir {str(root)!r} exists and is not a folder")
+    if len(seq.frames) > 100:
+        raise ValueError(f"PandaSet file names NN hold at most 100 frames, sequence has {len(seq.frames)}")
+    (root / "lidar").mkdir(parents=True, exist_ok=True)
+    (root / "annotations" / "cuboids").mkdir(parents=True, exist_ok=True)
+    for cam in seq.cameras:
+        d = _NUSCENES_TO_PANDASET.get(cam.name, cam.name.lower() + "_camera")
+        cdir = root / "camera" / d
+        cdir.mkdir(parents=True, exist_ok=True)
+        K = cam.K
+        (cdir / "intrinsics.json").write_text(json.dumps(
+            {"fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2])}))
+        (cdir / "poses.json").write_text(json.dumps([_pose_to_json(seq.cam_to_world(i, cam.name))
+                                                      for i in range(len(seq.frames))]))
+        (cdir / "timestamps.json").write_text(json.dumps([f.timestamp for f in seq.frames]))
+        for i, f in enumerate(seq.frames):
+            write_image(cdir / f"{i:02d}.jpg", f.images[cam.name], quality=jpeg_quality)
+    (root / "lidar" / "poses.json").write_text(json.dumps([_pose_to_json(f.ego_to_world) for f in seq.frames]))
+    (root / "lidar" / "timestamps.json").write_text(json.dumps([f.timestamp for f in seq.frames]))
+    for i, f in enumerate(seq.frames):
+        if f.lidar is not None:
+            lw = f.lidar.to_world(f.ego_to_world)
+            m = lw.points.shape[0]
+            df = pd.DataFrame({"x": lw.points[:, 0].astype(np.float64), "y": lw.points[:, 1].astype(np.float64),
+                               "z": lw.points[:, 2].astype(np.float64),
+                               "i": (lw.intensity * 255.0).astype(np.float64),
+                               "t": np.full(m, f.timestamp), "d": np.zeros(m, dtype=np.int64)})
+            df.to_pickle(root / "lidar" / f"{i:02d}.pkl.gz", compression="gzip")
+        rows = []
+        for b in f.boxes:
+            R = quat_to_rotmat(b.quat)
+            if not (abs(R[2, 2] - 1.0) < 1e-6):
+                raise ValueError(f"frame {i} box {b.track_id}: PandaSet cuboids hold yaw only; box has roll/pitch")
+            rows.append({"uuid": b.uuid or f"track-{b.track_id}", "label": b.label,
+                         "yaw": float(math.atan2(R[1, 0], R[0, 0])), "stationary": False, "camera_used": -1,
+                         "position.x": float(b.center[0]), "position.y": float(b.center[1]),
+                         "position.z": float(b.center[2]), "dimensions.x": float(b.size[0]),
+                         "dimensions.y": float(b.size[1]), "dimensions.z": float(b.size[2]),
+                         "attributes.object_motion": None, "cuboids.sibling_id": "-", "cuboids.sensor_id": -1})
+        pd.DataFrame(rows, columns=_CUBOID_COLUMNS).to_pickle(root / "annotations" / "cuboids" / f"{i:02d}.pkl.gz",
+                                                              compression="gzip")
+    return root

@@ -1,0 +1,150 @@
+"""Image and depth-map I/O through OpenImageIO.
+
+* ``read_image`` / ``write_image``: PNG (8 or 16 bit), JPEG (8 bit) and OpenEXR (float32).
+  In memory images are float32 ``[H, W, C]``; integer formats are scaled to ``[0, 1]``.
+* ``read_depth`` / ``write_depth``: float32 ``[H, W]`` z-depth maps (metres, ``inf`` allowed)
+  stored as single-channel float32 OpenEXR, which keeps them bit-exact.
+
+Every failure raises ``FileNotFoundError`` (missing file or folder) or ``ValueError`` (bad
+argument, unsupported extension, corrupt or truncated file), naming the path.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import OpenImageIO as oiio
+
+__all__ = ["read_image", "write_image", "read_depth", "write_depth", "SUPPORTED_EXTENSIONS"]
+
+SUPPORTED_EXTENSIONS = (".png", ".jpg", ".jpeg", ".exr")
+
+
+def _ext(path: Path, arg: str = "path") -> str:
+    ext = path.suffix.lower()
+    if ext not in SUPPORTED_EXTENSIONS:
+        raise ValueError(f"{arg} {str(path)!r}: unsupported extension {ext!r}; use one of {SUPPORTED_EXTENSIONS}")
+    return ext
+
+
+def _read(path: str | Path) -> np.ndarray:
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"image file not found: {str(p)!r}")
+    inp = oiio.ImageInput.open(str(p))
+    if inp is None:
+        raise ValueError(f"cannot read image {str(p)!r}: {oiio.geterror() or 'unknown format or corrupt file'}")
+    try:
+        spec = inp.spec()
+        px = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
+        if px is None:
+            raise ValueError(f"cannot read image {str(p)!r} (corrupt or truncated): {inp.geterror().strip()}")
+    finally:
+        inp.close()
+    px = np.asarray(px, dtype=np.float32)
+    if px.ndim == 2:
+        px = px[..., None]
+    return px
+
+
+def read_image(path: str | Path, channels: int | None = 3) -> np.ndarray:
+    """Read an image as float32 ``[H, W, C]``.
+
+    Args:
+        path: PNG/JPEG/EXR file.
+        channels: keep the first ``channels`` channels (grey is replicated to 3); None keeps all.
+    Returns:
+        float32 ``[H, W, C]``; PNG/JPEG values in ``[0, 1]``, EXR values as stored.
+    """
+    if channels is not None and channels not in (1, 3, 4):
+        raise ValueError(f"channels must be 1, 3, 4 or None, got {channels!r}")
+    p = Path(path)
+    _ext(p)
+    px = _read(p)
+    if channels is None or px.shape[2] == channels:
+        return px
+    if px.shape[2] == 1:
+        return np.repeat(px, channels, axis=2)
+    if px.shape[2] < channels:
+        raise ValueError(f"image {str(p)!r} has {px.shape[2]} channels, {channels} requested")
+    return np.ascontiguousarray(px[..., :channels])
+
+
+def write_image(path: str | Path, image, quality: int = 95, bits: int = 8) -> Path:
+    """Write float ``[H, W, C]`` (C in 1, 3, 4) or ``[H, W]`` image.
+
+    Args:
+        path: destination; the extension picks the format (``.png``, ``.jpg``/``.jpeg``, ``.exr``).
+            The parent folder must exist.
+        image: array-like; values outside ``[0, 1]`` are clipped for PNG/JPEG, kept for EXR.
+        quality: JPEG quality 1..100.
+        bits: PNG bit depth, 8 or 16.
+    Returns:
+        the path written.
+    """
+    p = Path(path)
+    ext = _ext(p)
+    if not p.parent.is_dir():
+        raise FileNotFoundError(f"output folder does not exist: {str(p.parent)!r}")
+    img = np.asarray(image, dtype=np.float32)
+    if img.ndim == 2:
+        img = img[..., None]
+    if img.ndim != 3 or img.shape[2] not in (1, 3, 4) or img.shape[0] == 0 or img.shape[1] == 0:
+        raise ValueError(f"image must have shape [H, W], [H, W, 1], [H, W, 3] or [H, W, 4], got {list(np.shape(image))}")
+    if not (isinstance(quality, int) and 1 <= quality <= 100):
+        raise ValueError(f"quality must be an int in 1..100, got {quality!r}")
+    if bits not in (8, 16):
+        raise ValueError(f"bits must be 8 or 16, got {bits!r}")
+    h, w, c = img.shape
+    if ext == ".exr":
+        spec = oiio.ImageSpec(w, h, c, oiio.FLOAT)
+        spec.attribute("compression", "zip")
+        data = np.ascontiguousarray(img)
+    else:
+        if np.isnan(img).any():
+            raise ValueError(f"image for {str(p)!r} contains NaN")
+        if ext in (".jpg", ".jpeg") and c == 4:
+            raise ValueError(f"JPEG cannot store 4 channels ({str(p)!r}); drop alpha or use PNG")
+        b = 16 if (ext == ".png" and bits == 16) else 8
+        scale = 65535.0 if b == 16 else 255.0
+        dtype = np.uint16 if b == 16 else np.uint8
+        data = np.ascontiguousarray(np.round(np.clip(img, 0.0, 1.0) * scale).astype(dtype))
+        spec = oiio.ImageSpec(w, h, c, oiio.UINT16 if b == 16 else oiio.UINT8)
+        if ext in (".jpg", ".jpeg"):
+            spec.attribute("Compression", f"jpeg:{quality}")
+            spec.attribute("jpeg:subsampling", "4:4:4")  # no chroma subsampling
+    out = oiio.ImageOutput.create(str(p))
+    if out is None:
+        raise ValueError(f"cannot create writer for {str(p)!r}: {oiio.geterror()}")
+    try:
+        if not out.open(str(p), spec):
+            raise ValueError(f"cannot open {str(p)!r} for writing: {out.geterror()}")
+        if not out.write_image(data):
+            raise ValueError(f"cannot write {str(p)!r}: {out.geterror()}")
+    finally:
+        out.close()
+    return p
+
+
+def read_depth(path: str | Path) -> np.ndarray:
+    """Read a float32 ``[H, W]`` depth map from a single-channel EXR written by :func:`write_depth`."""
+    p = Path(path)
+    if p.suffix.lower() != ".exr":
+        raise ValueError(f"depth path {str(p)!r} must end in .exr")
+    px = _read(p)
+    if px.shape[2] != 1:
+        raise ValueError(f"depth file {str(p)!r} must have 1 channel, has {px.shape[2]}")
+    return px[..., 0]
+
+
+def write_depth(path: str | Path, depth) -> Path:
+    """Write a float32 ``[H, W]`` z-depth map (metres; ``inf`` allowed, NaN and negatives are not) as EXR."""
+    p = Path(path)
+    if p.suffix.lower() != ".exr":
+        raise ValueError(f"depth path {str(p)!r} must end in .exr (float depth needs EXR)")
+    d = np.asarray(depth, dtype=np.float32)
+    if d.ndim != 2:
+        raise ValueError(f"depth must have shape [H, W], got {list(d.shape)}")
+    if np.isnan(d).any() or (d < 0).any():
+        raise ValueError("depth must be >= 0 or inf, got NaN or negative values")
+    return write_image(p, d[..., None])

@@ -1,0 +1,277 @@
+"""OpenCL runtime: device choice, specialised program builds, and host/device arrays.
+
+This module owns the only global mutable state of clsplat: the runtime cache (one context and
+queue per device) and, inside each runtime, the program and kernel caches.
+
+* Device choice: an argument, else ``CLSPLAT_DEVICE``, else the first GPU, else PoCL's CPU.
+  A device is named by ``"P:D"`` (platform and device indices), or by a case-insensitive
+  substring of ``"<platform> <device> <type>"`` such as ``"pocl"``, ``"nvidia"`` or ``"gpu"``.
+* Programs are ``kernels/common.h`` + one stage file, specialised with ``-D`` options and
+  cached by (source hash, options, device). Kernel objects are created once per program.
+* :class:`DeviceArray` pairs a torch CPU tensor with an OpenCL buffer. On devices that share
+  host memory (PoCL's CPU device) the two are the same memory, so nothing is copied.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import dataclass, field
+from importlib import resources
+from typing import Iterable, Mapping
+
+import numpy as np
+import pyopencl as cl
+import torch
+
+__all__ = [
+    "BuildError", "DeviceError", "Runtime", "DeviceArray", "get_runtime", "list_devices",
+    "describe_devices",
+]
+
+_BASE_OPTIONS = ("-cl-std=CL1.2", "-cl-denorms-are-zero")
+_DEVICE_ENV = "CLSPLAT_DEVICE"
+
+
+class DeviceError(ValueError):
+    """The requested OpenCL device does not exist or lacks a feature clsplat needs."""
+
+
+class BuildError(RuntimeError):
+    """An OpenCL program failed to build; carries the compiler log and the options used."""
+
+    def __init__(self, stage: str, options: Iterable[str], log: str, device: str) -> None:
+        self.stage, self.options, self.log, self.device = stage, list(options), log, device
+        super().__init__(
+            f"building kernels/{stage}.cl for {device} failed\n"
+            f"options: {' '.join(self.options)}\ncompiler log:\n{log}")
+
+
+def _kernel_source(name: str) -> str:
+    return resources.files("clsplat.kernels").joinpath(name).read_text()
+
+
+def list_devices() -> list[tuple[int, int, cl.Device]]:
+    """Every OpenCL device as (platform index, device index, device)."""
+    out = []
+    try:
+        platforms = cl.get_platforms()
+    except cl.Error:  # no ICD at all
+        return out
+    for pi, p in enumerate(platforms):
+        try:
+            devs = p.get_devices()
+        except cl.Error:
+            continue
+        out.extend((pi, di, d) for di, d in enumerate(devs))
+    return out
+
+
+def _label(d: cl.Device) -> str:
+    return f"{d.platform.name} {d.name} {cl.device_type.to_string(d.type)}"
+
+
+def _choose(spec: str | None) -> cl.Device:
+    devices = list_devices()
+    if not devices:
+        raise DeviceError("device: no OpenCL platform found; install pocl-binary-distribution")
+    if spec is None or spec == "":
+        gpus = [d for _, _, d in devices if d.type & cl.device_type.GPU]
+        if gpus:
+            return gpus[0]
+        pocl = [d for _, _, d in devices if "portable" in d.platform.name.lower()]
+        return (pocl or [devices[0][2]])[0]
+    if ":" in spec and all(part.isdigit() for part in spec.split(":", 1)):
+        pi, di = (int(x) for x in spec.split(":", 1))
+        for p, i, d in devices:
+            if (p, i) == (pi, di):
+                return d
+    else:
+        for _, _, d in devices:
+            if spec.lower() in _label(d).lower():
+                return d
+    known = "; ".join(f"{p}:{i} {_label(d)}" for p, i, d in devices)
+    raise DeviceError(f"device: no OpenCL device matches {spec!r}; available: {known}")
+
+
+@dataclass
+class Runtime:
+    """One OpenCL device with its context, profiling queue and program cache."""
+
+    device: cl.Device
+    context: cl.Context = field(init=False)
+    queue: cl.CommandQueue = field(init=False)
+    _programs: dict = field(default_factory=dict, init=False, repr=False)
+    _kernels: dict = field(default_factory=dict, init=False, repr=False)
+    _scans: dict = field(default_factory=dict, init=False, repr=False)
+    # Arrays that queued commands may still touch. A released pyopencl Buffer drops its host
+    # memory at once, even while a kernel is queued on it, so arrays live here until finish().
+    _in_flight: list = field(default_factory=list, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self.context = cl.Context([self.device])
+        self.queue = cl.CommandQueue(
+            self.context, properties=cl.command_queue_properties.PROFILING_ENABLE)
+
+    # -- facts the drivers specialise on -------------------------------------------------
+    @property
+    def name(self) -> str:
+        return _label(self.device)
+
+    @property
+    def has_fp64(self) -> bool:
+        return "cl_khr_fp64" in self.device.extensions
+
+    @property
+    def shares_host_memory(self) -> bool:
+        """True where a USE_HOST_PTR buffer is the tensor's own memory (CPU devices)."""
+        return bool(self.device.type & cl.device_type.CPU)
+
+    @property
+    def is_cpu(self) -> bool:
+        return bool(self.device.type & cl.device_type.CPU)
+
+    @property
+    def max_group(self) -> int:
+        return int(self.device.max_work_group_size)
+
+    @property
+    def local_mem(self) -> int:
+        return int(self.device.local_mem_size)
+
+    # -- programs -----------------------------------------------------------------------
+    def program(self, stage: str, defines: Mapping[str, object], fast_math: bool = False) -> cl.Program:
+        """Build (or fetch) ``kernels/<stage>.cl`` specialised by ``defines``."""
+        source = _kernel_source("common.h") + f'\n#line 1 "{stage}.cl"\n' + _kernel_source(f"{stage}.cl")
+        options = list(_BASE_OPTIONS) + [f"-D{k}={_define(v)}" for k, v in sorted(defines.items())]
+        if fast_math:
+            options.append("-cl-fast-relaxed-math")
+        key = (hashlib.sha256(source.encode()).hexdigest(), tuple(options))
+        prog = self._programs.get(key)
+        if prog is None:
+            try:
+                prog = cl.Program(self.context, source).build(options=options)
+            except (cl.RuntimeError, cl.LogicError) as exc:
+                # pyopencl puts the device's build log into the message.
+                raise BuildError(stage, options, str(exc), self.name) from None
+            self._programs[key] = prog
+        return prog
+
+    def kernel(self, stage: str, name: str, defines: Mapping[str, object],
+               fast_math: bool = False) -> cl.Kernel:
+        """A kernel object of a specialised program, created once."""
+        prog = self.program(stage, defines, fast_math)
+        key = (id(prog), name)
+        k = self._kernels.get(key)
+        if k is None:
+            k = self._kernels[key] = getattr(prog, name)
+        return k
+
+    def exclusive_scan_int32(self):
+        """pyopencl's exclusive prefix-sum kernel over int32, built once per runtime."""
+        if "int32" not in self._scans:
+            from pyopencl.scan import ExclusiveScanKernel
+            self._scans["int32"] = ExclusiveScanKernel(self.context, np.int32, "a+b", neutral="0")
+        return self._scans["int32"]
+
+    # -- launches -----------------------------------------------------------------------
+    def launch(self, kernel: cl.Kernel, n_items: int, local: int, *args,
+               wait_for=None) -> cl.Event:
+        """Enqueue over ``n_items`` work-items padded up to a multiple of ``local``."""
+        global_size = max(local, -(-n_items // local) * local)
+        return kernel(self.queue, (global_size,), (local,), *args, wait_for=wait_for)
+
+    def finish(self) -> None:
+        """Wait for every queued command, then let go of the arrays they used."""
+        self.queue.finish()
+        self._in_flight.clear()
+
+    def array(self, tensor: torch.Tensor) -> "DeviceArray":
+        return DeviceArray(self, tensor)
+
+    def empty(self, shape, dtype: torch.dtype, zero: bool = True) -> "DeviceArray":
+        t = torch.zeros(shape, dtype=dtype) if zero else torch.empty(shape, dtype=dtype)
+        return DeviceArray(self, t)
+
+
+def _define(v: object) -> str:
+    if isinstance(v, bool):
+        return "1" if v else "0"
+    if isinstance(v, float):
+        return repr(v)
+    return str(v)
+
+
+class DeviceArray:
+    """A contiguous torch CPU tensor and the OpenCL buffer that holds its data on the device.
+
+    Shares the tensor's memory where the device allows it; elsewhere the data are copied in
+    at creation and back by :meth:`host`.
+    """
+
+    def __init__(self, rt: Runtime, tensor: torch.Tensor) -> None:
+        if tensor.device.type != "cpu":
+            raise ValueError(f"DeviceArray: tensor must live on the CPU, got {tensor.device}")
+        self.rt = rt
+        self.tensor = tensor.contiguous()
+        self.zero_copy = rt.shares_host_memory and self.tensor.numel() > 0
+        mf = cl.mem_flags
+        if self.tensor.numel() == 0:  # OpenCL has no empty buffers; kernels never read it
+            self.buffer = cl.Buffer(rt.context, mf.READ_WRITE, 16)
+        elif self.zero_copy:
+            self.buffer = cl.Buffer(rt.context, mf.READ_WRITE | mf.USE_HOST_PTR,
+                                    hostbuf=self.tensor.numpy())
+        else:
+            self.buffer = cl.Buffer(rt.context, mf.READ_WRITE | mf.COPY_HOST_PTR,
+                                    hostbuf=self.tensor.numpy())
+        rt._in_flight.append(self)
+
+    def host(self) -> torch.Tensor:
+        """The tensor, with every queued command finished and device data copied back."""
+        if self.tensor.numel() == 0:
+            return self.tensor
+        if not self.zero_copy:
+            cl.enqueue_copy(self.rt.queue, self.tensor.numpy(), self.buffer)
+        self.rt.finish()
+        return self.tensor
+
+
+_RUNTIMES: dict[str, Runtime] = {}
+
+
+def get_runtime(device: "str | Runtime | None" = None) -> Runtime:
+    """The cached runtime for ``device`` (see the module docstring for how it is named)."""
+    if isinstance(device, Runtime):
+        return device
+    if device is not None and not isinstance(device, str):
+        raise DeviceError(f"device: expected a string such as 'pocl' or '0:0', got {type(device).__name__}")
+    spec = device if device is not None else os.environ.get(_DEVICE_ENV)
+    rt = _RUNTIMES.get(spec or "")
+    if rt is None:
+        rt = _RUNTIMES[spec or ""] = Runtime(_choose(spec))
+    return rt
+
+
+def describe_devices() -> str:
+    """A text listing of platforms, devices and the features clsplat uses."""
+    lines = []
+    devices = list_devices()
+    if not devices:
+        return "no OpenCL platforms found"
+    default = _choose(os.environ.get(_DEVICE_ENV) or None)
+    for pi, di, d in devices:
+        ext = d.extensions
+        feats = {
+            "fp64": "cl_khr_fp64" in ext,
+            "int64 atomics": "cl_khr_int64_base_atomics" in ext,
+            "float atomics": "cl_ext_float_atomics" in ext,
+            "subgroups": "cl_khr_subgroups" in ext,
+        }
+        mark = "*" if d.int_ptr == default.int_ptr else " "
+        lines.append(f"{mark} {pi}:{di}  {d.platform.name} | {d.name} | "
+                     f"{cl.device_type.to_string(d.type)} | {d.version}")
+        lines.append(f"      compute units {d.max_compute_units}, max work-group {d.max_work_group_size}, "
+                     f"local mem {d.local_mem_size // 1024} KiB, global mem {d.global_mem_size >> 20} MiB, "
+                     f"max alloc {d.max_mem_alloc_size >> 20} MiB")
+        lines.append("      " + ", ".join(f"{k}: {'yes' if v else 'no'}" for k, v in feats.items()))
+    lines.append(f"(* = default; choose with {_DEVICE_ENV} or device=)")
+    return "\n".join(lines)

@@ -1,0 +1,252 @@
+"""Thin drivers, one per kernel stage: they specialise, launch and return device arrays.
+
+Shapes use C cameras, N Gaussians, T = tiles_x * tiles_y tiles per camera, M intersections
+(camera, Gaussian, tile) and CH composited channels. Every driver takes ``events``, a list to
+which it appends ``(stage, cl.Event)`` pairs for profiling (the bench reads them).
+Nothing here validates user input: :mod:`clsplat.validate` has done that.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pyopencl as cl
+import pyopencl.array as cl_array
+import torch
+
+from .config import RenderConfig
+from .runtime import DeviceArray, Runtime
+
+__all__ = ["Projection", "project", "sh_colors", "bin_tiles", "sort_segments", "tile_ranges",
+           "composite", "LOCAL_1D"]
+
+LOCAL_1D = 64  # work-group size of the per-Gaussian stages; any size works, 64 suits both kinds
+
+
+def _np_real(cfg: RenderConfig):
+    return np.float64 if cfg.precision == "float64" else np.float32
+
+
+def _record(events, name: str, ev: cl.Event) -> None:
+    if events is not None:
+        events.append((name, ev))
+
+
+@dataclass
+class Projection:
+    """Per (camera, Gaussian) results of :func:`project`.
+
+    means2d [C,N,2], conics [C,N,3], depths [C,N], radii [C,N,2] int32 (0 = culled),
+    opacities [C,N] (times the antialiasing compensation when enabled), rects [C,N,4] int32
+    tile rectangle (x0, y0, x1, y1), half-open.
+    """
+
+    means2d: DeviceArray
+    conics: DeviceArray
+    depths: DeviceArray
+    radii: DeviceArray
+    opacities: DeviceArray
+    rects: DeviceArray
+
+
+def project(rt: Runtime, cfg: RenderConfig, means: DeviceArray, quats: DeviceArray,
+            scales: DeviceArray, opacities: DeviceArray, viewmats: DeviceArray, Ks: DeviceArray,
+            width: int, height: int, tile_size: int, *, near_plane: float, far_plane: float,
+            eps2d: float, radius_clip: float, antialiased: bool,
+            feats: DeviceArray | None = None, depth_channel: int = -1, channels: int = 0,
+            events: list | None = None) -> Projection:
+    """World to screen for every (camera, Gaussian).
+
+    means [N,3], quats [N,4] wxyz, scales [N,3], opacities [N], viewmats [C,4,4], Ks [C,3,3].
+    With ``depth_channel >= 0`` the camera depth is also written into
+    ``feats[C,N,channels][..., depth_channel]``.
+    """
+    C, N = viewmats.tensor.shape[0], means.tensor.shape[0]
+    dt = cfg.dtype
+    tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
+    out = Projection(
+        means2d=rt.empty((C, N, 2), dt), conics=rt.empty((C, N, 3), dt), depths=rt.empty((C, N), dt),
+        radii=rt.empty((C, N, 2), torch.int32), opacities=rt.empty((C, N), dt),
+        rects=rt.empty((C, N, 4), torch.int32))
+    defines = cfg.defines(tile_size) | {"ANTIALIASED": antialiased, "DEPTH_CHANNEL": depth_channel,
+                                         "CHANNELS": max(channels, 1)}
+    k = rt.kernel("project", "project", defines, cfg.fast_math)
+    R = _np_real(cfg)
+    args = [np.int32(C), np.int32(N), means.buffer, quats.buffer, scales.buffer, opacities.buffer,
+            viewmats.buffer, Ks.buffer, np.int32(width), np.int32(height), R(near_plane),
+            R(far_plane), R(eps2d), R(radius_clip), np.int32(tiles_x), np.int32(tiles_y),
+            out.means2d.buffer, out.conics.buffer, out.depths.buffer, out.radii.buffer,
+            out.opacities.buffer, out.rects.buffer]
+    if depth_channel >= 0:
+        assert feats is not None
+        args.append(feats.buffer)
+    _record(events, "project", rt.launch(k, C * N, LOCAL_1D, *args))
+    return out
+
+
+def sh_colors(rt: Runtime, cfg: RenderConfig, means: DeviceArray, viewmats: DeviceArray,
+              coeffs: DeviceArray, radii: DeviceArray, feats: DeviceArray, sh_degree: int,
+              channels: int, events: list | None = None) -> None:
+    """Evaluate SH of degree ``sh_degree`` into ``feats[C,N,channels][..., :3]``.
+
+    coeffs [N,K,3] with K >= (sh_degree+1)^2; radii [C,N,2] (culled pairs are skipped).
+    """
+    C, N = viewmats.tensor.shape[0], means.tensor.shape[0]
+    defines = cfg.defines(16) | {"SH_DEGREE": sh_degree, "SH_COEFFS": coeffs.tensor.shape[1],
+                                  "CHANNELS": channels}
+    k = rt.kernel("sh", "sh_colors", defines, cfg.fast_math)
+    _record(events, "sh", rt.launch(k, C * N, LOCAL_1D, np.int32(C), np.int32(N), means.buffer,
+                                    viewmats.buffer, coeffs.buffer, radii.buffer, feats.buffer))
+
+
+def _scan_exclusive(rt: Runtime, src: DeviceArray, dst: DeviceArray, events) -> None:
+    n = src.tensor.numel()
+    a = cl_array.Array(rt.queue, (n,), np.int32, data=src.buffer)
+    b = cl_array.Array(rt.queue, (n,), np.int32, data=dst.buffer)
+    _record(events, "scan", rt.exclusive_scan_int32()(a, b, queue=rt.queue))
+
+
+def bin_tiles(rt: Runtime, cfg: RenderConfig, proj: Projection, width: int, height: int,
+              tile_size: int, events: list | None = None) -> tuple[DeviceArray, DeviceArray]:
+    """Count, scan and scatter (camera, Gaussian, tile) intersections into tile segments.
+
+    Returns ``tile_offsets`` [C*T+1] int32 (segment of tile t is offsets[t]:offsets[t+1]) and
+    ``keys`` [M] int64 holding ulong keys (float32 depth bits << 32 | c*N+g), unsorted within
+    each segment.
+    """
+    C, N = proj.depths.tensor.shape
+    tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
+    tpc = tiles_x * tiles_y
+    counts = rt.empty((C * tpc + 1,), torch.int32)
+    offsets = rt.empty((C * tpc + 1,), torch.int32)
+    defines = cfg.defines(tile_size)
+    common = (np.int32(C * N), np.int32(tiles_x), np.int32(tpc), np.int32(N), proj.rects.buffer)
+    _record(events, "bin_count", rt.launch(rt.kernel("bin", "count_tiles", defines), C * N, LOCAL_1D,
+                                           *common, counts.buffer))
+    _scan_exclusive(rt, counts, offsets, events)
+    total = int(offsets.host()[-1])
+    if total >= 2**31 - 1:
+        raise ValueError(f"means: {total} tile intersections exceed the int32 index range; "
+                         "render fewer cameras or Gaussians per call")
+    keys = rt.empty((total,), torch.int64, zero=False)
+    cursor = rt.empty((C * tpc,), torch.int32)
+    if total:
+        _record(events, "bin_scatter", rt.launch(
+            rt.kernel("bin", "scatter_keys", defines), C * N, LOCAL_1D, *common,
+            proj.depths.buffer, offsets.buffer, cursor.buffer, keys.buffer))
+    return offsets, keys
+
+
+def _sort_local_size(rt: Runtime, cfg: RenderConfig) -> tuple[int, int]:
+    """(keys per local sort, work-group size) that fit this device."""
+    budget = rt.local_mem // 2 // 8  # half the local memory, 8-byte keys
+    sl = cfg.sort_local or min(4096, 1 << (budget.bit_length() - 1))
+    return sl, max(1, min(sl // 2, rt.max_group, 256))
+
+
+def sort_segments(rt: Runtime, cfg: RenderConfig, keys: DeviceArray, offsets: DeviceArray,
+                  events: list | None = None) -> None:
+    """Sort each tile segment of ``keys`` [M] ascending, in place.
+
+    Segments up to SORT_LOCAL keys are sorted by one work-group in local memory; longer
+    ones are cut into SORT_LOCAL chunks, sorted likewise, then merged by ``merge_runs``
+    passes until one run remains.
+    """
+    M = keys.tensor.numel()
+    if M < 2:
+        return
+    sl, ls = _sort_local_size(rt, cfg)
+    off = offsets.host().numpy().astype(np.int64)
+    starts, lens = off[:-1], np.diff(off)
+    seg = lens >= 2
+    starts, lens = starts[seg], lens[seg]
+    if len(lens) == 0:
+        return
+    n_chunks = -(-lens // sl)
+    chunk_seg = np.repeat(np.arange(len(lens)), n_chunks)
+    chunk_idx = np.arange(len(chunk_seg)) - np.repeat(np.cumsum(n_chunks) - n_chunks, n_chunks)
+    c_start = starts[chunk_seg] + chunk_idx * sl
+    c_len = np.minimum(sl, lens[chunk_seg] - chunk_idx * sl)
+    c_start_a = rt.array(torch.from_numpy(c_start.astype(np.int32)))
+    c_len_a = rt.array(torch.from_numpy(c_len.astype(np.int32)))
+    k = rt.kernel("sort", "sort_local", {"SORT_LOCAL": sl})
+    ev = k(rt.queue, (len(c_start) * ls,), (ls,), keys.buffer, c_start_a.buffer, c_len_a.buffer)
+    _record(events, "sort_local", ev)
+    big = lens > sl
+    if not big.any():
+        return
+    b_start, b_len = starts[big], lens[big]
+    prefix = np.concatenate([[0], np.cumsum(b_len)])
+    total = int(prefix[-1])
+    b_start_a = rt.array(torch.from_numpy(b_start.astype(np.int32)))
+    prefix_a = rt.array(torch.from_numpy(prefix.astype(np.int32)))
+    tmp = rt.empty((M,), torch.int64, zero=False)
+    merge = rt.kernel("sort", "merge_runs", {"SORT_LOCAL": sl})
+    src, dst = keys, tmp
+    width = sl
+    widths = []
+    while width < int(b_len.max()):
+        widths.append(width)
+        width *= 2
+    if len(widths) % 2:  # one extra pass that only copies, so the result lands in ``keys``
+        widths.append(width)
+    for w in widths:
+        _record(events, "sort_merge", rt.launch(
+            merge, total, 256 if rt.max_group >= 256 else rt.max_group, src.buffer, dst.buffer,
+            np.int32(total), b_start_a.buffer, prefix_a.buffer, np.int32(len(b_len)), np.int32(w)))
+        src, dst = dst, src
+
+
+def tile_ranges(offsets: DeviceArray, n_cameras: int, tiles_y: int, tiles_x: int) -> torch.Tensor:
+    """[C, tiles_y, tiles_x, 2] (start, end) of each tile's segment in the sorted keys.
+
+    The ranges come straight from the scan of per-tile counts: binning scatters each key into
+    its tile's segment, so no pass over the sorted keys is needed to find the boundaries.
+    """
+    off = offsets.host()
+    return torch.stack([off[:-1], off[1:]], -1).reshape(n_cameras, tiles_y, tiles_x, 2)
+
+
+def composite_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: int) -> tuple[int, int]:
+    """(pixels per work-item, batch size) for compositing on this device."""
+    # 8 floats or 4 doubles fill one 256-bit AVX register; PoCL rejects wider double vectors
+    # on CPUs without AVX-512 (no kernel is produced).
+    pix = cfg.pix or ((4 if cfg.precision == "float64" else 8) if rt.is_cpu else 1)
+    pix = min(pix, tile_size)
+    group = tile_size * tile_size // pix
+    if group > rt.max_group:
+        raise ValueError(f"tile_size: {tile_size}x{tile_size} tiles need work-groups of {group} "
+                         f"items with {pix} pixel(s) per item; the device allows {rt.max_group}")
+    real = 8 if cfg.precision == "float64" else 4
+    per = (6 + channels) * real
+    batch = max(1, min(group, rt.local_mem // 2 // per))
+    return pix, batch
+
+
+def composite(rt: Runtime, cfg: RenderConfig, proj: Projection, feats: DeviceArray,
+              offsets: DeviceArray, keys: DeviceArray, width: int, height: int, tile_size: int,
+              save_last: bool, events: list | None = None
+              ) -> tuple[DeviceArray, DeviceArray, DeviceArray | None]:
+    """Front-to-back compositing of every tile.
+
+    feats [C,N,CH] -> (out_feats [C,H,W,CH], out_T [C,H,W], last [C,H,W] int32 or None).
+    """
+    C = proj.depths.tensor.shape[0]
+    CH = feats.tensor.shape[-1]
+    tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
+    pix, batch = composite_layout(rt, cfg, tile_size, CH)
+    out = rt.empty((C, height, width, CH), cfg.dtype)
+    T = rt.empty((C, height, width), cfg.dtype)
+    last = rt.empty((C, height, width), torch.int32) if save_last else None
+    defines = cfg.defines(tile_size) | {"PIX": pix, "BATCH": batch, "CHANNELS": CH,
+                                         "SAVE_LAST": save_last}
+    k = rt.kernel("composite", "composite_fwd", defines, cfg.fast_math)
+    group = tile_size * tile_size // pix
+    args = [np.int32(width), np.int32(height), np.int32(tiles_x), np.int32(tiles_x * tiles_y),
+            offsets.buffer, keys.buffer, proj.means2d.buffer, proj.conics.buffer,
+            proj.opacities.buffer, feats.buffer, out.buffer, T.buffer]
+    if save_last:
+        args.append(last.buffer)
+    ev = k(rt.queue, (C * tiles_x * tiles_y * group,), (group,), *args)
+    _record(events, "composite", ev)
+    return out, T, last

@@ -1,0 +1,174 @@
+/* clsplat/kernels/common.h — shared maths, types and the named constants of every stage.
+ *
+ * The Python side prepends this header to each stage's source (it never relies on the
+ * compiler's include path, so that the program cache key covers the header's text too).
+ * clsplat/constants.py parses the CLS_* defaults below: they are named here, once.
+ *
+ * Compile-time parameters (all optional unless stated; the builder passes them with -D):
+ *   REAL_DOUBLE      1 to compute in double (needs cl_khr_fp64), else float
+ *   CHANNELS         feature channels composited per Gaussian (colour and maybe depth)
+ *   SH_DEGREE, SH_COEFFS   degree evaluated, and coefficients stored per Gaussian
+ *   TILE             tile side in pixels
+ *   PIX              pixels per work-item along a tile row in compositing (1 = GPU layout)
+ *   ALPHA_MIN, ALPHA_MAX, T_MIN, RADIUS_SIGMA, OPACITY_AWARE_RADIUS   accuracy knobs
+ */
+#ifndef CLSPLAT_COMMON_H
+#define CLSPLAT_COMMON_H
+
+/* ---- named defaults (parsed by clsplat/constants.py) -------------------------------- */
+#define CLS_DEFAULT_ALPHA_MIN (1.0 / 255.0)
+#define CLS_DEFAULT_ALPHA_MAX 0.99
+#define CLS_DEFAULT_T_MIN 1e-4
+#define CLS_DEFAULT_RADIUS_SIGMA 3.33
+#define CLS_DEFAULT_EPS2D 0.3
+/* The Jacobian is evaluated at a mean clamped to the view frustum widened by this fraction of
+ * tan(fov/2): far off-axis means would otherwise give an exploding, badly conditioned J. */
+#define CLS_FRUSTUM_MARGIN 0.3
+#define CLS_PIXEL_CENTRE 0.5
+
+#ifndef ALPHA_MIN
+#define ALPHA_MIN CLS_DEFAULT_ALPHA_MIN
+#endif
+#ifndef ALPHA_MAX
+#define ALPHA_MAX CLS_DEFAULT_ALPHA_MAX
+#endif
+#ifndef T_MIN
+#define T_MIN CLS_DEFAULT_T_MIN
+#endif
+#ifndef RADIUS_SIGMA
+#define RADIUS_SIGMA CLS_DEFAULT_RADIUS_SIGMA
+#endif
+#ifndef OPACITY_AWARE_RADIUS
+#define OPACITY_AWARE_RADIUS 0
+#endif
+#ifndef PIX
+#define PIX 1
+#endif
+
+/* ---- scalar type ------------------------------------------------------------------- */
+#if REAL_DOUBLE
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#define REAL double
+#define REAL2 double2
+#define REAL3 double3
+#define REAL4 double4
+/* A vector comparison on doubles yields longN, so masks follow the scalar width. */
+#define MASK_SCALAR long
+#else
+#define REAL float
+#define REAL2 float2
+#define REAL3 float3
+#define REAL4 float4
+#define MASK_SCALAR int
+#endif
+
+#define CAT_(a, b) a##b
+#define CAT(a, b) CAT_(a, b)
+
+/* ---- PIX-wide vectors for compositing: PIX pixels of one tile row per work-item ------- */
+/* PoCL does not vectorise work-item loops that call exp, so the CPU layout spells the
+ * vectors out; PIX=1 is the one-pixel-per-work-item layout that suits GPUs. */
+#if PIX == 1
+#define VREAL REAL
+#define VMASK MASK_SCALAR
+#define VRAMP ((REAL)0)
+#define VANY(m) (m)
+#define VALL(m) (m)
+#define VSTORE(v, p) ((p)[0] = (v))
+#else
+#define VREAL CAT(REAL, PIX)
+#define VMASK CAT(MASK_SCALAR, PIX)
+#define VANY(m) any(m)
+#define VSTORE(v, p) CAT(vstore, PIX)(v, 0, p)
+#define VALL(m) all(m)
+#if PIX == 2
+#define VRAMP ((VREAL)(0, 1))
+#elif PIX == 4
+#define VRAMP ((VREAL)(0, 1, 2, 3))
+#elif PIX == 8
+#define VRAMP ((VREAL)(0, 1, 2, 3, 4, 5, 6, 7))
+#elif PIX == 16
+#define VRAMP ((VREAL)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15))
+#else
+#error "PIX must be 1, 2, 4, 8 or 16"
+#endif
+#endif
+/* Comparisons give 1 for a true scalar but -1 for a true vector lane; masks therefore only
+ * ever pass through &&, ||, ! and ?:, which treat both the same way. */
+
+/* ---- small linear algebra (row-major 3x3 as REAL[9]) -------------------------------- */
+inline void quat_to_rotmat(REAL4 q, REAL *R) {
+    /* Unnormalised input is allowed; a zero quaternion is rejected on the host. */
+    REAL inv = rsqrt(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w);
+    REAL w = q.x * inv, x = q.y * inv, y = q.z * inv, z = q.w * inv;
+    R[0] = 1 - 2 * (y * y + z * z); R[1] = 2 * (x * y - w * z);     R[2] = 2 * (x * z + w * y);
+    R[3] = 2 * (x * y + w * z);     R[4] = 1 - 2 * (x * x + z * z); R[5] = 2 * (y * z - w * x);
+    R[6] = 2 * (x * z - w * y);     R[7] = 2 * (y * z + w * x);     R[8] = 1 - 2 * (x * x + y * y);
+}
+
+/* Depth ordering key: positive float bits sort like the floats. The low word is the
+ * (camera, Gaussian) index, so equal depths are ordered by id and the sort is total. */
+inline ulong depth_key(REAL depth, uint cg) {
+    return ((ulong)as_uint((float)depth) << 32) | (ulong)cg;
+}
+
+inline uint key_id(ulong key) { return (uint)(key & 0xffffffffUL); }
+
+#ifdef TILE
+/* Tile rectangle [x0, x1) x [y0, y1) touched by a screen-space box of half-size radius. */
+inline int4 tile_rect(REAL2 mean2d, int2 radius, int tiles_x, int tiles_y) {
+    REAL tx = mean2d.x / TILE, ty = mean2d.y / TILE;
+    REAL rx = (REAL)radius.x / TILE, ry = (REAL)radius.y / TILE;
+    /* Clamp before converting: a far off-screen mean would overflow int. */
+    int4 r;
+    r.x = (int)clamp(floor(tx - rx), (REAL)0, (REAL)tiles_x);
+    r.y = (int)clamp(floor(ty - ry), (REAL)0, (REAL)tiles_y);
+    r.z = (int)clamp(ceil(tx + rx), (REAL)0, (REAL)tiles_x);
+    r.w = (int)clamp(ceil(ty + ry), (REAL)0, (REAL)tiles_y);
+    return r;
+}
+#endif
+
+/* ---- real spherical harmonics up to degree 3 (gsplat's constants and sign convention) --- */
+#ifdef SH_DEGREE
+#define SH_BASIS_LEN ((SH_DEGREE + 1) * (SH_DEGREE + 1))
+inline void sh_basis(REAL3 d, REAL *b) {
+    b[0] = (REAL)0.2820947917738781;
+#if SH_DEGREE >= 1
+    b[1] = (REAL)-0.48860251190292 * d.y;
+    b[2] = (REAL)0.48860251190292 * d.z;
+    b[3] = (REAL)-0.48860251190292 * d.x;
+#endif
+#if SH_DEGREE >= 2
+    REAL z2 = d.z * d.z, fC1 = d.x * d.x - d.y * d.y, fS1 = 2 * d.x * d.y;
+    REAL fTmp0B = (REAL)-1.092548430592079 * d.z;
+    b[4] = (REAL)0.5462742152960395 * fS1;
+    b[5] = fTmp0B * d.y;
+    b[6] = (REAL)0.9461746957575601 * z2 - (REAL)0.3153915652525201;
+    b[7] = fTmp0B * d.x;
+    b[8] = (REAL)0.5462742152960395 * fC1;
+#endif
+#if SH_DEGREE >= 3
+    REAL fTmp0C = (REAL)-2.285228997322329 * z2 + (REAL)0.4570457994644658;
+    REAL fTmp1B = (REAL)1.445305721320277 * d.z;
+    REAL fC2 = d.x * fC1 - d.y * fS1, fS2 = d.x * fS1 + d.y * fC1;
+    b[9] = (REAL)-0.5900435899266435 * fS2;
+    b[10] = fTmp1B * fS1;
+    b[11] = fTmp0C * d.y;
+    b[12] = d.z * ((REAL)1.865881662950577 * z2 - (REAL)1.119528997770346);
+    b[13] = fTmp0C * d.x;
+    b[14] = fTmp1B * fC1;
+    b[15] = (REAL)-0.5900435899266435 * fC2;
+#endif
+}
+#endif
+
+/* Camera centre in world coordinates from a row-major world-to-camera matrix: -R^T t. */
+inline REAL3 camera_centre(__global const REAL *vm) {
+    REAL3 t = (REAL3)(vm[3], vm[7], vm[11]);
+    return -(REAL3)(vm[0] * t.x + vm[4] * t.y + vm[8] * t.z,
+                    vm[1] * t.x + vm[5] * t.y + vm[9] * t.z,
+                    vm[2] * t.x + vm[6] * t.y + vm[10] * t.z);
+}
+
+#endif /* CLSPLAT_COMMON_H */
