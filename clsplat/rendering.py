@@ -5,35 +5,16 @@ mode), runs the stage drivers of :mod:`clsplat.stages` and assembles gsplat's re
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Optional
 
 import torch
 
-from . import stages
+from .autograd import ProjectFn, RasterizeFn, Settings, ShFn
 from .config import RenderConfig
-from .runtime import DeviceArray, Runtime, get_runtime
+from .runtime import Runtime, get_runtime
 from .validate import check_rasterization_inputs
 
-__all__ = ["rasterization", "ForwardState", "forward_pipeline"]
-
-
-@dataclass
-class ForwardState:
-    """What a forward pass leaves on the device for the backward pass and for ``meta``."""
-
-    rt: Runtime
-    cfg: RenderConfig
-    proj: stages.Projection
-    feats: DeviceArray
-    offsets: DeviceArray
-    keys: DeviceArray
-    out_feats: DeviceArray
-    out_T: DeviceArray
-    last: Optional[DeviceArray]
-    tile_size: int
-    width: int
-    height: int
+__all__ = ["rasterization"]
 
 
 def _channels(render_mode: str, D: int) -> tuple[int, int]:
@@ -43,42 +24,6 @@ def _channels(render_mode: str, D: int) -> tuple[int, int]:
     if render_mode in ("RGB+D", "RGB+ED"):
         return D, D
     return D, -1
-
-
-def forward_pipeline(rt: Runtime, cfg: RenderConfig, means, quats, scales, opacities, colors,
-                     viewmats, Ks, width: int, height: int, *, near_plane: float, far_plane: float,
-                     radius_clip: float, eps2d: float, sh_degree: Optional[int], tile_size: int,
-                     render_mode: str, antialiased: bool, save_last: bool,
-                     events: list | None = None) -> ForwardState:
-    """Run project, sh, bin, sort and composite on validated tensors of dtype ``cfg.dtype``.
-
-    colors: [N,D] or [C,N,D], or SH [N,K,3] when ``sh_degree`` is set.
-    Returns the :class:`ForwardState`; ``out_feats`` is [C,H,W,CH] with the colour channels
-    first and the depth column (if the mode has one) last, without background.
-    """
-    C, N = viewmats.shape[0], means.shape[0]
-    D = 3 if sh_degree is not None else colors.shape[-1]
-    n_col, depth_col = _channels(render_mode, D)
-    CH = n_col + (depth_col >= 0)
-    feats_t = torch.zeros((C, N, CH), dtype=cfg.dtype)
-    if n_col and sh_degree is None:
-        feats_t[..., :n_col] = colors
-    feats = rt.array(feats_t)
-    arr = rt.array
-    means_a, viewmats_a = arr(means), arr(viewmats)
-    proj = stages.project(rt, cfg, means_a, arr(quats), arr(scales), arr(opacities), viewmats_a,
-                          arr(Ks), width, height, tile_size, near_plane=near_plane,
-                          far_plane=far_plane, eps2d=eps2d, radius_clip=radius_clip,
-                          antialiased=antialiased, feats=feats, depth_channel=depth_col,
-                          channels=CH, events=events)
-    if n_col and sh_degree is not None:
-        stages.sh_colors(rt, cfg, means_a, viewmats_a, arr(colors), proj.radii, feats, sh_degree,
-                         CH, events=events)
-    offsets, keys = stages.bin_tiles(rt, cfg, proj, width, height, tile_size, events=events)
-    stages.sort_segments(rt, cfg, keys, offsets, events=events)
-    out, T, last = stages.composite(rt, cfg, proj, feats, offsets, keys, width, height, tile_size,
-                                    save_last, events=events)
-    return ForwardState(rt, cfg, proj, feats, offsets, keys, out, T, last, tile_size, width, height)
 
 
 def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
@@ -92,6 +37,7 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
                   distributed: bool = False, camera_model: str = "pinhole",
                   covars: Optional[torch.Tensor] = None, *, device: str | Runtime | None = None,
                   precision: Optional[str] = None, config: Optional[RenderConfig] = None,
+                  bwd_divide: bool = False, events: Optional[list] = None,
                   ) -> tuple[torch.Tensor, torch.Tensor, dict]:
     """Rasterise 3D Gaussians into C images, with gsplat's arguments and return values.
 
@@ -118,6 +64,15 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
         device: OpenCL device (see :mod:`clsplat.runtime`), default ``CLSPLAT_DEVICE``.
         precision: "float32" or "float64"; default: float64 for float64 means, else float32.
         config: accuracy knobs (:class:`RenderConfig`); ``precision`` overrides its precision.
+        absgrad: after backward, ``meta["means2d"].absgrad`` holds the per-pair sum of
+            absolute screen-space gradients (gsplat's densification criterion).
+        bwd_divide: recover transmittance in backward by division instead of forward replay
+            (see kernels/composite_bwd.cl for the trade-off).
+        events: a list that receives ``(stage, pyopencl.Event)`` for every kernel launched,
+            forward and (later) backward, for profiling.
+
+    Differentiable with respect to means, quats, scales, opacities, colors (or SH),
+    backgrounds and viewmats; ``meta["means2d"]`` accepts ``retain_grad()``.
 
     Returns:
         render_colors [C, H, W, X] (X = D, 1 or D+1 by mode), render_alphas [C, H, W, 1], and
@@ -153,43 +108,48 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
                          f"over the device's {rt.device.max_mem_alloc_size >> 20} MiB allocation limit")
 
     dt = cfg.dtype
-    cast = lambda x: x.detach().to(dt).contiguous()  # noqa: E731  (autograd arrives in the Function)
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
+    st = Settings(rt, cfg, width, height, tile_size, float(near_plane), float(far_plane),
+                  float(eps2d), float(radius_clip), rasterize_mode == "antialiased",
+                  absgrad=absgrad, sh_degree=sh_degree, bwd_divide=bwd_divide, events=events)
+    cast = lambda x: x.to(dt).contiguous()  # noqa: E731  (differentiable: grads come back cast)
+    means_r, viewmats_r = cast(means), cast(viewmats)
+    means2d, conics, depths, opac, radii, rects = ProjectFn.apply(
+        means_r, cast(quats), cast(scales), cast(opacities), viewmats_r, cast(Ks).detach(), st)
+    parts = []
+    if n_col:
+        if sh_degree is not None:
+            parts.append(ShFn.apply(cast(colors), means_r, viewmats_r, radii, st))
+        else:
+            c = cast(colors)
+            parts.append(c.expand(C, N, D) if c.dim() == 2 else c)
+    if depth_col >= 0:
+        parts.append(depths[..., None])
+    feats = parts[0] if len(parts) == 1 else torch.cat(parts, -1)
     if N == 0:
         render = torch.zeros((C, height, width, CH), dtype=dt)
         T = torch.ones((C, height, width), dtype=dt)
-        meta_extra = {"isect_offsets": torch.zeros((C, tiles_y, tiles_x), dtype=torch.int32),
-                      "flatten_ids": torch.zeros((0,), dtype=torch.int32)}
-        proj_t = {"means2d": torch.zeros((C, 0, 2), dtype=dt), "radii": torch.zeros((C, 0, 2), dtype=torch.int32),
-                  "depths": torch.zeros((C, 0), dtype=dt), "conics": torch.zeros((C, 0, 3), dtype=dt),
-                  "opacities": torch.zeros((C, 0), dtype=dt), "rects": torch.zeros((C, 0, 4), dtype=torch.int32)}
+        isect_offsets = torch.zeros((C * tiles_y * tiles_x + 1,), dtype=torch.int32)
+        keys = torch.zeros((0,), dtype=torch.int64)
     else:
-        st = forward_pipeline(rt, cfg, cast(means), cast(quats), cast(scales), cast(opacities),
-                              cast(colors), cast(viewmats), cast(Ks), width, height,
-                              near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip,
-                              eps2d=eps2d, sh_degree=sh_degree, tile_size=tile_size,
-                              render_mode=render_mode, antialiased=rasterize_mode == "antialiased",
-                              save_last=False)
-        render, T = st.out_feats.host().clone(), st.out_T.host()
-        keys = st.keys.host()
-        meta_extra = {"isect_offsets": st.offsets.host()[:-1].reshape(C, tiles_y, tiles_x).clone(),
-                      "flatten_ids": (keys & 0xFFFFFFFF).to(torch.int32)}
-        p = st.proj
-        proj_t = {k: getattr(p, k).host() for k in ("means2d", "radii", "depths", "conics", "opacities", "rects")}
+        render, T = RasterizeFn.apply(means2d, conics, opac, feats.contiguous(), rects,
+                                      depths.detach(), st)
+        isect_offsets, keys = st.isect
 
     alphas = (1 - T).unsqueeze(-1)
     if backgrounds is not None and n_col:
-        render[..., :n_col] += T.unsqueeze(-1) * backgrounds.detach().to(dt)[:, None, None, :]
+        bg = cast(backgrounds)[:, None, None, :]
+        render = torch.cat([render[..., :n_col] + T.unsqueeze(-1) * bg, render[..., n_col:]], -1)
     if render_mode in ("ED", "RGB+ED"):
-        render[..., -1:] = render[..., -1:] / alphas.clamp_min(1e-10)
-    rects = proj_t.pop("rects")
-    meta = dict(proj_t)
-    meta.update(meta_extra)
-    meta.update({
+        render = torch.cat([render[..., :-1], render[..., -1:] / alphas.clamp_min(1e-10)], -1)
+    meta = {
+        "means2d": means2d, "radii": radii, "depths": depths, "conics": conics, "opacities": opac,
         "tiles_per_gauss": ((rects[..., 2] - rects[..., 0]) * (rects[..., 3] - rects[..., 1])).to(torch.int32),
+        "isect_offsets": isect_offsets[:-1].reshape(C, tiles_y, tiles_x),
+        "flatten_ids": (keys & 0xFFFFFFFF).to(torch.int32),
         "tile_width": tiles_x, "tile_height": tiles_y, "tile_size": tile_size,
         "width": width, "height": height, "n_cameras": C,
         "gaussian_ids": None, "camera_ids": None,
-    })
+    }
     out_dt = means.dtype
     return render.to(out_dt), alphas.to(out_dt), meta

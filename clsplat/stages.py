@@ -53,13 +53,10 @@ def project(rt: Runtime, cfg: RenderConfig, means: DeviceArray, quats: DeviceArr
             scales: DeviceArray, opacities: DeviceArray, viewmats: DeviceArray, Ks: DeviceArray,
             width: int, height: int, tile_size: int, *, near_plane: float, far_plane: float,
             eps2d: float, radius_clip: float, antialiased: bool,
-            feats: DeviceArray | None = None, depth_channel: int = -1, channels: int = 0,
             events: list | None = None) -> Projection:
     """World to screen for every (camera, Gaussian).
 
     means [N,3], quats [N,4] wxyz, scales [N,3], opacities [N], viewmats [C,4,4], Ks [C,3,3].
-    With ``depth_channel >= 0`` the camera depth is also written into
-    ``feats[C,N,channels][..., depth_channel]``.
     """
     C, N = viewmats.tensor.shape[0], means.tensor.shape[0]
     dt = cfg.dtype
@@ -68,35 +65,33 @@ def project(rt: Runtime, cfg: RenderConfig, means: DeviceArray, quats: DeviceArr
         means2d=rt.empty((C, N, 2), dt), conics=rt.empty((C, N, 3), dt), depths=rt.empty((C, N), dt),
         radii=rt.empty((C, N, 2), torch.int32), opacities=rt.empty((C, N), dt),
         rects=rt.empty((C, N, 4), torch.int32))
-    defines = cfg.defines(tile_size) | {"ANTIALIASED": antialiased, "DEPTH_CHANNEL": depth_channel,
-                                         "CHANNELS": max(channels, 1)}
-    k = rt.kernel("project", "project", defines, cfg.fast_math)
+    k = rt.kernel("project", "project", cfg.defines(tile_size) | {"ANTIALIASED": antialiased},
+                  cfg.fast_math)
     R = _np_real(cfg)
-    args = [np.int32(C), np.int32(N), means.buffer, quats.buffer, scales.buffer, opacities.buffer,
-            viewmats.buffer, Ks.buffer, np.int32(width), np.int32(height), R(near_plane),
-            R(far_plane), R(eps2d), R(radius_clip), np.int32(tiles_x), np.int32(tiles_y),
-            out.means2d.buffer, out.conics.buffer, out.depths.buffer, out.radii.buffer,
-            out.opacities.buffer, out.rects.buffer]
-    if depth_channel >= 0:
-        assert feats is not None
-        args.append(feats.buffer)
-    _record(events, "project", rt.launch(k, C * N, LOCAL_1D, *args))
+    _record(events, "project", rt.launch(
+        k, C * N, LOCAL_1D, np.int32(C), np.int32(N), means.buffer, quats.buffer, scales.buffer,
+        opacities.buffer, viewmats.buffer, Ks.buffer, np.int32(width), np.int32(height),
+        R(near_plane), R(far_plane), R(eps2d), R(radius_clip), np.int32(tiles_x), np.int32(tiles_y),
+        out.means2d.buffer, out.conics.buffer, out.depths.buffer, out.radii.buffer,
+        out.opacities.buffer, out.rects.buffer))
     return out
 
 
 def sh_colors(rt: Runtime, cfg: RenderConfig, means: DeviceArray, viewmats: DeviceArray,
-              coeffs: DeviceArray, radii: DeviceArray, feats: DeviceArray, sh_degree: int,
-              channels: int, events: list | None = None) -> None:
-    """Evaluate SH of degree ``sh_degree`` into ``feats[C,N,channels][..., :3]``.
+              coeffs: DeviceArray, radii: DeviceArray, sh_degree: int,
+              events: list | None = None) -> DeviceArray:
+    """Colours [C,N,3] from SH coefficients [N,K,3] (K >= (sh_degree+1)^2) of visible pairs.
 
-    coeffs [N,K,3] with K >= (sh_degree+1)^2; radii [C,N,2] (culled pairs are skipped).
+    radii [C,N,2]: culled pairs (radii 0) are skipped and keep colour 0.
     """
     C, N = viewmats.tensor.shape[0], means.tensor.shape[0]
-    defines = cfg.defines(16) | {"SH_DEGREE": sh_degree, "SH_COEFFS": coeffs.tensor.shape[1],
-                                  "CHANNELS": channels}
+    colors = rt.empty((C, N, 3), cfg.dtype)
+    defines = {"REAL_DOUBLE": cfg.precision == "float64", "SH_DEGREE": sh_degree,
+               "SH_COEFFS": coeffs.tensor.shape[1]}
     k = rt.kernel("sh", "sh_colors", defines, cfg.fast_math)
     _record(events, "sh", rt.launch(k, C * N, LOCAL_1D, np.int32(C), np.int32(N), means.buffer,
-                                    viewmats.buffer, coeffs.buffer, radii.buffer, feats.buffer))
+                                    viewmats.buffer, coeffs.buffer, radii.buffer, colors.buffer))
+    return colors
 
 
 def _scan_exclusive(rt: Runtime, src: DeviceArray, dst: DeviceArray, events) -> None:
@@ -106,21 +101,24 @@ def _scan_exclusive(rt: Runtime, src: DeviceArray, dst: DeviceArray, events) -> 
     _record(events, "scan", rt.exclusive_scan_int32()(a, b, queue=rt.queue))
 
 
-def bin_tiles(rt: Runtime, cfg: RenderConfig, proj: Projection, width: int, height: int,
-              tile_size: int, events: list | None = None) -> tuple[DeviceArray, DeviceArray]:
+def bin_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: DeviceArray,
+              width: int, height: int, tile_size: int,
+              events: list | None = None) -> tuple[DeviceArray, DeviceArray]:
     """Count, scan and scatter (camera, Gaussian, tile) intersections into tile segments.
+
+    rects [C,N,4] int32 tile rectangles and depths [C,N] from :func:`project`.
 
     Returns ``tile_offsets`` [C*T+1] int32 (segment of tile t is offsets[t]:offsets[t+1]) and
     ``keys`` [M] int64 holding ulong keys (float32 depth bits << 32 | c*N+g), unsorted within
     each segment.
     """
-    C, N = proj.depths.tensor.shape
+    C, N = depths.tensor.shape
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
     tpc = tiles_x * tiles_y
     counts = rt.empty((C * tpc + 1,), torch.int32)
     offsets = rt.empty((C * tpc + 1,), torch.int32)
     defines = cfg.defines(tile_size)
-    common = (np.int32(C * N), np.int32(tiles_x), np.int32(tpc), np.int32(N), proj.rects.buffer)
+    common = (np.int32(C * N), np.int32(tiles_x), np.int32(tpc), np.int32(N), rects.buffer)
     _record(events, "bin_count", rt.launch(rt.kernel("bin", "count_tiles", defines), C * N, LOCAL_1D,
                                            *common, counts.buffer))
     _scan_exclusive(rt, counts, offsets, events)
@@ -133,7 +131,7 @@ def bin_tiles(rt: Runtime, cfg: RenderConfig, proj: Projection, width: int, heig
     if total:
         _record(events, "bin_scatter", rt.launch(
             rt.kernel("bin", "scatter_keys", defines), C * N, LOCAL_1D, *common,
-            proj.depths.buffer, offsets.buffer, cursor.buffer, keys.buffer))
+            depths.buffer, offsets.buffer, cursor.buffer, keys.buffer))
     return offsets, keys
 
 
@@ -207,8 +205,13 @@ def tile_ranges(offsets: DeviceArray, n_cameras: int, tiles_y: int, tiles_x: int
     return torch.stack([off[:-1], off[1:]], -1).reshape(n_cameras, tiles_y, tiles_x, 2)
 
 
-def composite_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: int) -> tuple[int, int]:
-    """(pixels per work-item, batch size) for compositing on this device."""
+def composite_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: int,
+                     grads: int = 0) -> tuple[int, int]:
+    """(pixels per work-item, batch size) for compositing on this device.
+
+    ``grads`` is the number of gradient values per intersection (backward only): their
+    per-item partials are staged in local memory too.
+    """
     # 8 floats or 4 doubles fill one 256-bit AVX register; PoCL rejects wider double vectors
     # on CPUs without AVX-512 (no kernel is produced).
     pix = cfg.pix or ((4 if cfg.precision == "float64" else 8) if rt.is_cpu else 1)
@@ -218,20 +221,21 @@ def composite_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: i
         raise ValueError(f"tile_size: {tile_size}x{tile_size} tiles need work-groups of {group} "
                          f"items with {pix} pixel(s) per item; the device allows {rt.max_group}")
     real = 8 if cfg.precision == "float64" else 4
-    per = (6 + channels) * real
-    batch = max(1, min(group, rt.local_mem // 2 // per))
+    per = (6 + channels + group * grads) * real + 4
+    batch = max(1, min(32 if grads else group, (rt.local_mem * 3 // 4) // per))
     return pix, batch
 
 
-def composite(rt: Runtime, cfg: RenderConfig, proj: Projection, feats: DeviceArray,
-              offsets: DeviceArray, keys: DeviceArray, width: int, height: int, tile_size: int,
-              save_last: bool, events: list | None = None
-              ) -> tuple[DeviceArray, DeviceArray, DeviceArray | None]:
+def composite(rt: Runtime, cfg: RenderConfig, means2d: DeviceArray, conics: DeviceArray,
+              opacities: DeviceArray, feats: DeviceArray, offsets: DeviceArray, keys: DeviceArray,
+              width: int, height: int, tile_size: int, save_last: bool,
+              events: list | None = None) -> tuple[DeviceArray, DeviceArray, DeviceArray | None]:
     """Front-to-back compositing of every tile.
 
-    feats [C,N,CH] -> (out_feats [C,H,W,CH], out_T [C,H,W], last [C,H,W] int32 or None).
+    means2d [C,N,2], conics [C,N,3], opacities [C,N], feats [C,N,CH] ->
+    (out_feats [C,H,W,CH], out_T [C,H,W], last [C,H,W] int32 or None).
     """
-    C = proj.depths.tensor.shape[0]
+    C = means2d.tensor.shape[0]
     CH = feats.tensor.shape[-1]
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
     pix, batch = composite_layout(rt, cfg, tile_size, CH)
@@ -243,10 +247,130 @@ def composite(rt: Runtime, cfg: RenderConfig, proj: Projection, feats: DeviceArr
     k = rt.kernel("composite", "composite_fwd", defines, cfg.fast_math)
     group = tile_size * tile_size // pix
     args = [np.int32(width), np.int32(height), np.int32(tiles_x), np.int32(tiles_x * tiles_y),
-            offsets.buffer, keys.buffer, proj.means2d.buffer, proj.conics.buffer,
-            proj.opacities.buffer, feats.buffer, out.buffer, T.buffer]
+            offsets.buffer, keys.buffer, means2d.buffer, conics.buffer, opacities.buffer,
+            feats.buffer, out.buffer, T.buffer]
     if save_last:
         args.append(last.buffer)
-    ev = k(rt.queue, (C * tiles_x * tiles_y * group,), (group,), *args)
-    _record(events, "composite", ev)
+    _record(events, "composite", k(rt.queue, (C * tiles_x * tiles_y * group,), (group,), *args))
     return out, T, last
+
+
+# ---- backward ------------------------------------------------------------------------------
+
+def slot_width(channels: int, geom: bool, color: bool, absgrad: bool) -> int:
+    """Gradient values stored per intersection (see kernels/composite_bwd.cl)."""
+    return (8 if absgrad else 6) * geom + channels * color
+
+
+def isect_offsets(rt: Runtime, rects: DeviceArray) -> DeviceArray:
+    """[C*N] first gradient slot of each pair: exclusive prefix of its tile count."""
+    r = rects.host().reshape(-1, 4)
+    n = ((r[:, 2] - r[:, 0]) * (r[:, 3] - r[:, 1])).to(torch.int64)
+    return rt.array((torch.cumsum(n, 0) - n).to(torch.int32))
+
+
+def composite_bwd(rt: Runtime, cfg: RenderConfig, fwd: dict, v_out: DeviceArray,
+                  v_T: DeviceArray, width: int, height: int, tile_size: int, *, geom: bool,
+                  color: bool, absgrad: bool, divide: bool = False,
+                  events: list | None = None) -> tuple[DeviceArray, DeviceArray]:
+    """Per-intersection gradient slots of compositing.
+
+    ``fwd`` holds the forward's DeviceArrays: means2d, conics, opacities, feats, rects,
+    offsets, keys, out (out_feats), T, last. v_out [C,H,W,CH], v_T [C,H,W].
+    Returns (slots [M, G], isect_offsets [C*N]).
+    """
+    C, N = fwd["opacities"].tensor.shape
+    CH = fwd["feats"].tensor.shape[-1]
+    G = slot_width(CH, geom, color, absgrad)
+    M = fwd["keys"].tensor.numel()
+    tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
+    pix, batch = composite_layout(rt, cfg, tile_size, CH, grads=G)
+    offs = isect_offsets(rt, fwd["rects"])
+    slots = rt.empty((M, G), cfg.dtype)
+    defines = cfg.defines(tile_size) | {"PIX": pix, "BATCH": batch, "CHANNELS": CH,
+                                         "GEOM_GRAD": geom, "COLOR_GRAD": color,
+                                         "ABSGRAD": absgrad, "BWD_DIVIDE": divide}
+    k = rt.kernel("composite_bwd", "composite_bwd", defines, cfg.fast_math)
+    group = tile_size * tile_size // pix
+    f = fwd
+    _record(events, "composite_bwd", k(
+        rt.queue, (C * tiles_x * tiles_y * group,), (group,), np.int32(width), np.int32(height),
+        np.int32(tiles_x), np.int32(tiles_x * tiles_y), np.int32(N), f["offsets"].buffer,
+        f["keys"].buffer, f["rects"].buffer, offs.buffer, f["means2d"].buffer, f["conics"].buffer,
+        f["opacities"].buffer, f["feats"].buffer, f["out"].buffer, f["T"].buffer, f["last"].buffer,
+        v_out.buffer, v_T.buffer, slots.buffer))
+    return slots, offs
+
+
+def reduce_slots(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, offs: DeviceArray,
+                 slots: DeviceArray, channels: int, *, geom: bool, color: bool, absgrad: bool,
+                 events: list | None = None) -> dict:
+    """Sum each pair's slots: v_means2d [C,N,2], v_conics [C,N,3], v_opacities [C,N],
+    absgrad [C,N,2], v_feats [C,N,CH] (those not built in stay zero)."""
+    C, N = rects.tensor.shape[:2]
+    dt = cfg.dtype
+    out = {"v_means2d": rt.empty((C, N, 2), dt), "v_conics": rt.empty((C, N, 3), dt),
+           "v_opacities": rt.empty((C, N), dt), "absgrad": rt.empty((C, N, 2), dt),
+           "v_feats": rt.empty((C, N, channels), dt)}
+    defines = {"REAL_DOUBLE": cfg.precision == "float64", "CHANNELS": channels,
+               "GEOM_GRAD": geom, "COLOR_GRAD": color, "ABSGRAD": absgrad}
+    k = rt.kernel("reduce", "reduce_slots", defines)
+    _record(events, "reduce", rt.launch(
+        k, C * N, LOCAL_1D, np.int32(C * N), rects.buffer, offs.buffer, slots.buffer,
+        *(a.buffer for a in out.values())))
+    return out
+
+
+def sh_colors_bwd(rt: Runtime, cfg: RenderConfig, means: DeviceArray, viewmats: DeviceArray,
+                  coeffs: DeviceArray, radii: DeviceArray, v_colors: DeviceArray, sh_degree: int,
+                  means_grad: bool, dir_grad: bool = False,
+                  events: list | None = None) -> tuple[DeviceArray, DeviceArray, DeviceArray]:
+    """v_colors [C,N,3] -> (v_coeffs [N,K,3], v_means [N,3] through the view direction,
+    v_dirs [C,N,3] gradient of each unnormalised direction mean - camera centre)."""
+    N = means.tensor.shape[0]
+    C = viewmats.tensor.shape[0]
+    v_coeffs = rt.empty(tuple(coeffs.tensor.shape), cfg.dtype)
+    v_means = rt.empty((N, 3), cfg.dtype)
+    v_dirs = rt.empty((C, N, 3) if dir_grad else (0,), cfg.dtype)
+    defines = {"REAL_DOUBLE": cfg.precision == "float64", "SH_DEGREE": sh_degree,
+               "SH_COEFFS": coeffs.tensor.shape[1], "MEANS_GRAD": means_grad,
+               "DIR_GRAD": dir_grad}
+    k = rt.kernel("sh_bwd", "sh_colors_bwd", defines, cfg.fast_math)
+    _record(events, "sh_bwd", rt.launch(
+        k, N, LOCAL_1D, np.int32(C), np.int32(N), means.buffer, viewmats.buffer, coeffs.buffer,
+        radii.buffer, v_colors.buffer, v_coeffs.buffer, v_means.buffer, v_dirs.buffer))
+    return v_coeffs, v_means, v_dirs
+
+
+def project_bwd(rt: Runtime, cfg: RenderConfig, inputs: dict, radii: DeviceArray, grads: dict,
+                width: int, height: int, *, eps2d: float, antialiased: bool, viewmat_grad: bool,
+                events: list | None = None) -> dict:
+    """Screen-space gradients to 3D parameters.
+
+    inputs: means, quats, scales, opacities, viewmats, Ks (DeviceArrays, as in :func:`project`);
+    grads: v_means2d [C,N,2], v_conics [C,N,3], v_depths [C,N], v_opacities [C,N].
+    Returns v_means [N,3], v_quats [N,4], v_scales [N,3], v_opacities [N] and, with
+    ``viewmat_grad``, v_viewmats [C,4,4].
+    """
+    N = inputs["means"].tensor.shape[0]
+    C = inputs["viewmats"].tensor.shape[0]
+    dt = cfg.dtype
+    out = {"v_means": rt.empty((N, 3), dt), "v_quats": rt.empty((N, 4), dt),
+           "v_scales": rt.empty((N, 3), dt), "v_opacities": rt.empty((N,), dt)}
+    defines = {"REAL_DOUBLE": cfg.precision == "float64", "ANTIALIASED": antialiased,
+               "VIEWMAT_GRAD": viewmat_grad}
+    k = rt.kernel("project_bwd", "project_bwd", defines, cfg.fast_math)
+    args = [np.int32(C), np.int32(N)] + [inputs[n].buffer for n in
+                                         ("means", "quats", "scales", "opacities", "viewmats", "Ks")]
+    args += [np.int32(width), np.int32(height), _np_real(cfg)(eps2d), radii.buffer]
+    args += [grads[n].buffer for n in ("v_means2d", "v_conics", "v_depths", "v_opacities")]
+    args += [a.buffer for a in out.values()]
+    v_view = rt.empty((C, N, 12), dt) if viewmat_grad else None
+    if viewmat_grad:
+        args.append(v_view.buffer)
+    _record(events, "project_bwd", rt.launch(k, N, LOCAL_1D, *args))
+    if viewmat_grad:
+        vv = torch.zeros((C, 4, 4), dtype=dt)
+        vv[:, :3, :] = v_view.host().sum(1).reshape(C, 3, 4)
+        out["v_viewmats"] = vv
+    return out

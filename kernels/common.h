@@ -75,11 +75,18 @@
 #define VANY(m) (m)
 #define VALL(m) (m)
 #define VSTORE(v, p) ((p)[0] = (v))
+#define VSUM(v) (v)
 #else
 #define VREAL CAT(REAL, PIX)
 #define VMASK CAT(MASK_SCALAR, PIX)
 #define VANY(m) any(m)
 #define VSTORE(v, p) CAT(vstore, PIX)(v, 0, p)
+/* Horizontal sum in a fixed pairwise order, so gradients are bitwise reproducible. */
+#define VSUM2(v) ((v).s0 + (v).s1)
+#define VSUM4(v) VSUM2((v).lo + (v).hi)
+#define VSUM8(v) VSUM4((v).lo + (v).hi)
+#define VSUM16(v) VSUM8((v).lo + (v).hi)
+#define VSUM(v) CAT(VSUM, PIX)(v)
 #define VALL(m) all(m)
 #if PIX == 2
 #define VRAMP ((VREAL)(0, 1))

@@ -3,8 +3,7 @@
  * One work-item per (camera, Gaussian) pair cg = c * N + g. Culled pairs get radii 0 and an
  * empty tile rectangle, so no later stage touches them.
  *
- * Build parameters: REAL_DOUBLE, TILE, ANTIALIASED (0/1), DEPTH_CHANNEL (-1 or the feature
- * column that receives the depth), CHANNELS, and the radius knobs of common.h.
+ * Build parameters: REAL_DOUBLE, TILE, ANTIALIASED (0/1), and the radius knobs of common.h.
  */
 
 __kernel void project(const int C, const int N,
@@ -23,11 +22,8 @@ __kernel void project(const int C, const int N,
                       __global REAL *depths,   /* [C, N] */
                       __global int *radii,     /* [C, N, 2] */
                       __global REAL *opac_cg,  /* [C, N] opacity used in compositing */
-                      __global int *rects      /* [C, N, 4] tile rectangle x0 y0 x1 y1 */
-#if DEPTH_CHANNEL >= 0
-                      , __global REAL *feats   /* [C, N, CHANNELS] */
-#endif
-) {
+                      __global int *rects)     /* [C, N, 4] tile rectangle x0 y0 x1 y1 */
+{
     const int cg = get_global_id(0);
     if (cg >= C * N) return; /* no barrier in this kernel */
     const int c = cg / N, g = cg - c * N;
@@ -43,9 +39,6 @@ __kernel void project(const int C, const int N,
                             vm[4] * m.x + vm[5] * m.y + vm[6] * m.z + vm[7],
                             vm[8] * m.x + vm[9] * m.y + vm[10] * m.z + vm[11]);
     depths[cg] = p.z;
-#if DEPTH_CHANNEL >= 0
-    feats[cg * CHANNELS + DEPTH_CHANNEL] = p.z;
-#endif
     if (!(p.z >= near_plane && p.z <= far_plane)) return;
 
     /* World covariance M M^T with M = R S. */

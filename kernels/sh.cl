@@ -2,11 +2,9 @@
  *
  * One work-item per (camera, Gaussian). The degree is a build constant (SH_DEGREE), so a
  * degree-0 scene never evaluates a higher band. Culled pairs are skipped.
- * colour = max(SH(normalise(mean - camera centre)) + 0.5, 0), written into the first three
- * columns of the composited feature rows.
+ * colour = max(SH(normalise(mean - camera centre)) + 0.5, 0).
  *
- * Build parameters: REAL_DOUBLE, SH_DEGREE, SH_COEFFS (stored per Gaussian, >= basis length),
- * CHANNELS.
+ * Build parameters: REAL_DOUBLE, SH_DEGREE, SH_COEFFS (stored per Gaussian, >= basis length).
  */
 
 __kernel void sh_colors(const int C, const int N,
@@ -14,7 +12,7 @@ __kernel void sh_colors(const int C, const int N,
                         __global const REAL *viewmats, /* [C, 4, 4] */
                         __global const REAL *coeffs,   /* [N, SH_COEFFS, 3] */
                         __global const int *radii,     /* [C, N, 2] */
-                        __global REAL *feats)          /* [C, N, CHANNELS] */
+                        __global REAL *colors)         /* [C, N, 3] */
 {
     const int cg = get_global_id(0);
     if (cg >= C * N) return;
@@ -28,6 +26,6 @@ __kernel void sh_colors(const int C, const int N,
     for (int ch = 0; ch < 3; ++ch) {
         REAL acc = 0;
         for (int i = 0; i < SH_BASIS_LEN; ++i) acc += b[i] * k[3 * i + ch];
-        feats[(size_t)cg * CHANNELS + ch] = fmax(acc + (REAL)0.5, (REAL)0);
+        colors[(size_t)cg * 3 + ch] = fmax(acc + (REAL)0.5, (REAL)0);
     }
 }

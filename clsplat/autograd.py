@@ -1,0 +1,178 @@
+"""torch.autograd Functions between :func:`clsplat.rasterization` and the stage drivers.
+
+Three Functions, as in gsplat, so that ``meta["means2d"]`` is a real graph node that accepts
+``retain_grad()``:
+
+* :class:`ProjectFn`: (means, quats, scales, opacities, viewmats) -> means2d, conics, depths,
+  compositing opacities (+ non-differentiable radii and tile rectangles);
+* :class:`ShFn`: (SH coefficients, means) -> colours [C,N,3];
+* :class:`RasterizeFn`: (means2d, conics, opacities, features) -> composited features, T.
+
+Each forward keeps the device buffers its backward needs rather than recomputing them, and
+each backward is specialised on ``ctx.needs_input_grad``: gradients nobody asked for are
+neither computed nor stored.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from . import stages
+from .config import RenderConfig
+from .runtime import Runtime
+
+__all__ = ["Settings", "ProjectFn", "ShFn", "RasterizeFn"]
+
+
+@dataclass
+class Settings:
+    """Non-tensor arguments shared by the Functions of one rasterization call."""
+
+    rt: Runtime
+    cfg: RenderConfig
+    width: int
+    height: int
+    tile_size: int
+    near_plane: float
+    far_plane: float
+    eps2d: float
+    radius_clip: float
+    antialiased: bool
+    absgrad: bool = False
+    sh_degree: int | None = None
+    bwd_divide: bool = False
+    events: list | None = None
+    isect: tuple | None = None  # (tile offsets, sorted keys) of the forward, for ``meta``
+
+
+def _finite_grad(name: str, g: torch.Tensor | None) -> None:
+    if g is not None and not bool(torch.isfinite(g).all()):
+        raise ValueError(f"grad_output ({name}): contains NaN or Inf; the loss or its "
+                         "gradient is not finite")
+
+
+def _grad_or_zeros(g: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor:
+    return torch.zeros_like(like) if g is None else g.contiguous().to(like.dtype)
+
+
+class ProjectFn(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, viewmats, Ks, s: Settings):
+        rt, arr = s.rt, s.rt.array
+        p = stages.project(rt, s.cfg, arr(means), arr(quats), arr(scales), arr(opacities),
+                           arr(viewmats), arr(Ks), s.width, s.height, s.tile_size,
+                           near_plane=s.near_plane, far_plane=s.far_plane, eps2d=s.eps2d,
+                           radius_clip=s.radius_clip, antialiased=s.antialiased, events=s.events)
+        outs = [a.host() for a in (p.means2d, p.conics, p.depths, p.opacities, p.radii, p.rects)]
+        ctx.mark_non_differentiable(outs[4], outs[5])
+        ctx.save_for_backward(means, quats, scales, opacities, viewmats, Ks, outs[4])
+        ctx.s = s
+        return tuple(outs)
+
+    @staticmethod
+    def backward(ctx, v_means2d, v_conics, v_depths, v_opac, _v_radii, _v_rects):
+        s = ctx.s
+        means, quats, scales, opacities, viewmats, Ks, radii = ctx.saved_tensors
+        C, N = radii.shape[:2]
+        dt = s.cfg.dtype
+        like2, like3, like1 = (torch.zeros((C, N, k), dtype=dt) for k in (2, 3, 1))
+        grads = {"v_means2d": _grad_or_zeros(v_means2d, like2),
+                 "v_conics": _grad_or_zeros(v_conics, like3),
+                 "v_depths": _grad_or_zeros(v_depths, like1[..., 0]),
+                 "v_opacities": _grad_or_zeros(v_opac, like1[..., 0])}
+        rt = s.rt
+        inputs = {n: rt.array(t.detach()) for n, t in zip(
+            ("means", "quats", "scales", "opacities", "viewmats", "Ks"),
+            (means, quats, scales, opacities, viewmats, Ks))}
+        out = stages.project_bwd(rt, s.cfg, inputs, rt.array(radii),
+                                 {k: rt.array(v) for k, v in grads.items()}, s.width, s.height,
+                                 eps2d=s.eps2d, antialiased=s.antialiased,
+                                 viewmat_grad=ctx.needs_input_grad[4], events=s.events)
+        need = ctx.needs_input_grad
+        res = [out[k].host() if need[i] else None
+               for i, k in enumerate(("v_means", "v_quats", "v_scales", "v_opacities"))]
+        res.append(out["v_viewmats"] if need[4] else None)
+        return (*res, None, None)
+
+
+class ShFn(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, coeffs, means, viewmats, radii, s: Settings):
+        rt, arr = s.rt, s.rt.array
+        colors = stages.sh_colors(rt, s.cfg, arr(means), arr(viewmats), arr(coeffs), arr(radii),
+                                  s.sh_degree, events=s.events).host()
+        ctx.save_for_backward(coeffs, means, viewmats, radii)
+        ctx.s = s
+        return colors
+
+    @staticmethod
+    def backward(ctx, v_colors):
+        s = ctx.s
+        coeffs, means, viewmats, radii = ctx.saved_tensors
+        need_coeffs, need_means, need_view = ctx.needs_input_grad[:3]
+        if not (need_coeffs or need_means or need_view):
+            return None, None, None, None, None
+        rt, arr = s.rt, s.rt.array
+        v_coeffs, v_means, v_dirs = stages.sh_colors_bwd(
+            rt, s.cfg, arr(means.detach()), arr(viewmats.detach()), arr(coeffs.detach()),
+            arr(radii), arr(v_colors.contiguous()), s.sh_degree, need_means, need_view,
+            events=s.events)
+        v_view = None
+        if need_view:  # direction = mean - centre, centre = -R^T t: a [C]-sized torch backward
+            with torch.enable_grad():
+                vm = viewmats.detach().requires_grad_()
+                centre = -(vm[:, :3, :3].transpose(-1, -2) @ vm[:, :3, 3:])[..., 0]
+                v_view, = torch.autograd.grad(centre, vm, -v_dirs.host().sum(1))
+        return (v_coeffs.host() if need_coeffs else None,
+                v_means.host() if need_means else None, v_view, None, None)
+
+
+class RasterizeFn(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, feats, rects, depths, s: Settings):
+        rt, cfg, arr = s.rt, s.cfg, s.rt.array
+        a = {"means2d": arr(means2d.detach()), "conics": arr(conics.detach()),
+             "opacities": arr(opacities.detach()), "feats": arr(feats.detach()),
+             "rects": arr(rects)}
+        offsets, keys = stages.bin_tiles(rt, cfg, a["rects"], arr(depths.detach()), s.width,
+                                         s.height, s.tile_size, events=s.events)
+        stages.sort_segments(rt, cfg, keys, offsets, events=s.events)
+        want_grad = any(ctx.needs_input_grad[:4])  # False under no_grad or for constants
+        out, T, last = stages.composite(rt, cfg, a["means2d"], a["conics"], a["opacities"],
+                                        a["feats"], offsets, keys, s.width, s.height,
+                                        s.tile_size, save_last=want_grad, events=s.events)
+        out_t, T_t = out.host(), T.host()
+        ctx.s = s
+        ctx.fwd = dict(a, offsets=offsets, keys=keys, out=out, T=T, last=last) if want_grad else None
+        ctx.means2d = means2d  # receives .absgrad, as gsplat's densification expects
+        s.isect = (offsets.tensor, keys.tensor)
+        return out_t, T_t
+
+    @staticmethod
+    def backward(ctx, v_out, v_T):
+        s = ctx.s
+        _finite_grad("render_colors", v_out)
+        _finite_grad("render_alphas", v_T)
+        need = ctx.needs_input_grad
+        geom, color = any(need[:3]), need[3]
+        fwd = ctx.fwd
+        if fwd is None or not (geom or color):
+            return (None,) * 7
+        rt, cfg = s.rt, s.cfg
+        v_out = _grad_or_zeros(v_out, fwd["out"].tensor)
+        v_T = _grad_or_zeros(v_T, fwd["T"].tensor)
+        absgrad = s.absgrad and geom
+        CH = fwd["feats"].tensor.shape[-1]
+        slots, offs = stages.composite_bwd(rt, cfg, fwd, rt.array(v_out), rt.array(v_T),
+                                           s.width, s.height, s.tile_size, geom=geom,
+                                           color=color, absgrad=absgrad, divide=s.bwd_divide,
+                                           events=s.events)
+        r = stages.reduce_slots(rt, cfg, fwd["rects"], offs, slots, CH, geom=geom, color=color,
+                                absgrad=absgrad, events=s.events)
+        g = {k: v.host() for k, v in r.items()}
+        if absgrad:
+            ctx.means2d.absgrad = g["absgrad"]
+        return (g["v_means2d"] if need[0] else None, g["v_conics"] if need[1] else None,
+                g["v_opacities"] if need[2] else None, g["v_feats"] if color else None,
+                None, None, None)

@@ -1,0 +1,212 @@
+/* composite_bwd.cl — backward of compositing: per-intersection gradient slots.
+ *
+ * One work-group per tile, the forward's pixel layout. For every sample a pixel composited,
+ * with w_i = alpha_i T_i, out = sum_i f_i w_i and T_final = prod_i (1 - alpha_i):
+ *   d out / d f_i       = w_i
+ *   d out / d alpha_i   = T_i f_i - S_i / (1 - alpha_i),   S_i = sum_{j > i} f_j w_j
+ *   d T_final / d alpha_i = -T_final / (1 - alpha_i)
+ * and alpha_i = o_i exp(-sigma_i) unless the ALPHA_MAX clamp was active, in which case no
+ * gradient reaches o_i or sigma_i. Samples the forward skipped (alpha < ALPHA_MIN, sigma < 0)
+ * or never reached (past the pixel's last contributor) get none either: the forward's
+ * decisions are replayed exactly, with the same arithmetic.
+ *
+ * T_i is recovered in one of two ways (BWD_DIVIDE):
+ *   0 (replay, default): walk front to back as the forward did, so T_i is the forward's own
+ *     running product and S_i = out - prefix_i. No division by 1 - alpha.
+ *   1 (divide): walk back to front from T_final with T_i = T_{i+1} / (1 - alpha_i),
+ *     accumulating S_i. Rounding grows with every division through an opaque stack.
+ *
+ * The pixel sums of each sample's gradient are reduced inside the group in a fixed order and
+ * written to that intersection's slot; no float atomics, so results are bitwise reproducible.
+ * Slot layout (G values): [GEOM: v_xy(2) v_conic(3) v_opacity(1) (ABSGRAD: |v_xy|(2))]
+ * [COLOR: v_feat(CHANNELS)].
+ *
+ * Build parameters: REAL_DOUBLE, TILE, PIX, BATCH, CHANNELS, GEOM_GRAD, COLOR_GRAD, ABSGRAD,
+ * BWD_DIVIDE, ALPHA_MIN, ALPHA_MAX.
+ */
+
+#define GROUP (TILE * TILE / PIX)
+#define ITEMS_PER_ROW (TILE / PIX)
+#define G_GEOM (GEOM_GRAD ? (ABSGRAD ? 8 : 6) : 0)
+#define G (G_GEOM + (COLOR_GRAD ? CHANNELS : 0))
+
+__kernel __attribute__((reqd_work_group_size(GROUP, 1, 1)))
+void composite_bwd(const int width, const int height, const int tiles_x, const int tiles_per_cam,
+                   const int N,
+                   __global const int *tile_offsets, /* [C * tiles_per_cam + 1] */
+                   __global const ulong *keys,       /* [M] sorted per segment */
+                   __global const int *rects,        /* [C, N, 4] */
+                   __global const int *isect_offsets,/* [C * N] first slot of each pair */
+                   __global const REAL *means2d,     /* [C, N, 2] */
+                   __global const REAL *conics,      /* [C, N, 3] */
+                   __global const REAL *opac_cg,     /* [C, N] */
+                   __global const REAL *feats,       /* [C, N, CHANNELS] */
+                   __global const REAL *out_feats,   /* [C, H, W, CHANNELS] forward result */
+                   __global const REAL *out_T,       /* [C, H, W] */
+                   __global const int *out_last,     /* [C, H, W] */
+                   __global const REAL *v_out,       /* [C, H, W, CHANNELS] */
+                   __global const REAL *v_T,         /* [C, H, W] */
+                   __global REAL *slots)             /* [M, G] */
+{
+    __local REAL l_xy[2 * BATCH], l_conic[3 * BATCH], l_op[BATCH], l_f[CHANNELS * BATCH];
+    __local int l_slot[BATCH];
+    __local REAL part[BATCH * GROUP * G];
+    __local int l_max_last;
+
+    const int tile = get_group_id(0), lid = get_local_id(0);
+    const int c = tile / tiles_per_cam, t = tile - c * tiles_per_cam;
+    const int ty = t / tiles_x, tx = t - ty * tiles_x;
+    const int row = lid / ITEMS_PER_ROW;
+    const int py = ty * TILE + row, px0 = tx * TILE + (lid - row * ITEMS_PER_ROW) * PIX;
+
+    /* Per-lane state, gathered from the forward's per-pixel outputs. */
+    REAL Tf_l[PIX], lastf_l[PIX], vT_l[PIX], vo_l[PIX * CHANNELS], out_l[PIX * CHANNELS];
+    int my_max = 0;
+    for (int q = 0; q < PIX; ++q) {
+        const int px = px0 + q;
+        const int ok = px < width && py < height;
+        const size_t pix = ((size_t)c * height + (ok ? py : 0)) * width + (ok ? px : 0);
+        Tf_l[q] = ok ? out_T[pix] : (REAL)1;
+        const int lst = ok ? out_last[pix] : 0;
+        lastf_l[q] = (REAL)lst;
+        my_max = max(my_max, lst);
+        vT_l[q] = ok ? v_T[pix] : (REAL)0;
+        for (int ch = 0; ch < CHANNELS; ++ch) {
+            vo_l[PIX * ch + q] = ok ? v_out[pix * CHANNELS + ch] : (REAL)0;
+            out_l[PIX * ch + q] = ok ? out_feats[pix * CHANNELS + ch] : (REAL)0;
+        }
+    }
+#if PIX == 1
+    const VREAL T_final = Tf_l[0], last = lastf_l[0], vT = vT_l[0];
+#else
+    const VREAL T_final = CAT(vload, PIX)(0, Tf_l), last = CAT(vload, PIX)(0, lastf_l);
+    const VREAL vT = CAT(vload, PIX)(0, vT_l);
+#endif
+    VREAL vo[CHANNELS];
+    for (int ch = 0; ch < CHANNELS; ++ch) {
+#if PIX == 1
+        vo[ch] = vo_l[ch];
+#else
+        vo[ch] = CAT(vload, PIX)(0, vo_l + PIX * ch);
+#endif
+    }
+    const VREAL pxc = (REAL)px0 + VRAMP + (REAL)CLS_PIXEL_CENTRE;
+    const REAL pyc = (REAL)py + (REAL)CLS_PIXEL_CENTRE;
+
+    if (lid == 0) l_max_last = 0;
+    barrier(CLK_LOCAL_MEM_FENCE);
+    atomic_max(&l_max_last, my_max);
+    barrier(CLK_LOCAL_MEM_FENCE);
+    const int start = tile_offsets[tile];
+    const int n_used = l_max_last; /* samples past every pixel's last contributor: no gradient */
+    const int n_batches = (n_used + BATCH - 1) / BATCH;
+
+#if BWD_DIVIDE
+    VREAL T = T_final;
+    VREAL S[CHANNELS];
+    for (int ch = 0; ch < CHANNELS; ++ch) S[ch] = (VREAL)0;
+#else
+    VREAL T = (VREAL)1;
+    VREAL S[CHANNELS]; /* out minus the prefix composited so far, i.e. the colour behind */
+    for (int ch = 0; ch < CHANNELS; ++ch) {
+#if PIX == 1
+        S[ch] = out_l[ch];
+#else
+        S[ch] = CAT(vload, PIX)(0, out_l + PIX * ch);
+#endif
+    }
+#endif
+
+    for (int bi = 0; bi < n_batches; ++bi) {
+#if BWD_DIVIDE
+        const int b0 = (n_batches - 1 - bi) * BATCH; /* back to front */
+#else
+        const int b0 = bi * BATCH;
+#endif
+        const int nb = min(BATCH, n_used - b0);
+        barrier(CLK_LOCAL_MEM_FENCE);
+        for (int i = lid; i < nb; i += GROUP) {
+            const uint cg = key_id(keys[start + b0 + i]);
+            l_xy[2 * i] = means2d[2 * cg];
+            l_xy[2 * i + 1] = means2d[2 * cg + 1];
+            l_conic[3 * i] = conics[3 * cg];
+            l_conic[3 * i + 1] = conics[3 * cg + 1];
+            l_conic[3 * i + 2] = conics[3 * cg + 2];
+            l_op[i] = opac_cg[cg];
+            for (int ch = 0; ch < CHANNELS; ++ch) l_f[CHANNELS * i + ch] = feats[(size_t)cg * CHANNELS + ch];
+            /* The slot of (pair, tile): the pair's first slot plus the tile's position in
+             * its row-major tile rectangle, the order in which its tiles were counted. */
+            const int4 r = vload4(cg, rects);
+            l_slot[i] = isect_offsets[cg] + (ty - r.y) * (r.z - r.x) + (tx - r.x);
+        }
+        barrier(CLK_LOCAL_MEM_FENCE);
+
+        for (int kk = 0; kk < nb; ++kk) {
+#if BWD_DIVIDE
+            const int k = nb - 1 - kk;
+#else
+            const int k = kk;
+#endif
+            __local REAL *my = part + (k * GROUP + lid) * G;
+            for (int j = 0; j < G; ++j) my[j] = 0;
+            const REAL pos = (REAL)(b0 + k + 1);
+            const VREAL dx = l_xy[2 * k] - pxc;
+            const REAL dy = l_xy[2 * k + 1] - pyc;
+            const REAL ca = l_conic[3 * k], cb = l_conic[3 * k + 1], cc = l_conic[3 * k + 2];
+            const VREAL sigma = (REAL)0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy;
+            const VREAL g = exp(-sigma);
+            const VREAL raw = l_op[k] * g;
+            const VREAL alpha = fmin((VREAL)(REAL)ALPHA_MAX, raw);
+            const VMASK valid = pos <= last && sigma >= (REAL)0 && alpha >= (REAL)ALPHA_MIN;
+            if (!VANY(valid)) continue;
+            const VREAL one_m = (REAL)1 - alpha;
+            const VREAL inv_one_m = (REAL)1 / one_m;
+#if BWD_DIVIDE
+            T = valid ? T * inv_one_m : T;
+#endif
+            const VREAL w = valid ? alpha * T : (VREAL)0;
+            VREAL v_alpha = -vT * T_final * inv_one_m;
+            for (int ch = 0; ch < CHANNELS; ++ch) {
+                const REAL f = l_f[CHANNELS * k + ch];
+#if BWD_DIVIDE
+                v_alpha += (T * f - S[ch] * inv_one_m) * vo[ch];
+                S[ch] += valid ? f * w : (VREAL)0;
+#else
+                S[ch] -= valid ? f * w : (VREAL)0;
+                v_alpha += (T * f - S[ch] * inv_one_m) * vo[ch];
+#endif
+#if COLOR_GRAD
+                my[G_GEOM + ch] = VSUM(w * vo[ch]);
+#endif
+            }
+#if !BWD_DIVIDE
+            T = valid ? T * one_m : T;
+#endif
+#if GEOM_GRAD
+            /* The clamp makes alpha constant: nothing flows to sigma or the opacity. */
+            const VMASK live = valid && raw < (REAL)ALPHA_MAX;
+            v_alpha = live ? v_alpha : (VREAL)0;
+            const VREAL v_sigma = -v_alpha * raw;
+            const VREAL vx = v_sigma * (ca * dx + cb * dy), vy = v_sigma * (cb * dx + cc * dy);
+            my[0] = VSUM(vx);
+            my[1] = VSUM(vy);
+            my[2] = VSUM((REAL)0.5 * v_sigma * dx * dx);
+            my[3] = VSUM(v_sigma * dx * dy);
+            my[4] = VSUM((REAL)0.5 * v_sigma * dy * dy);
+            my[5] = VSUM(v_alpha * g);
+#if ABSGRAD
+            my[6] = VSUM(fabs(vx));
+            my[7] = VSUM(fabs(vy));
+#endif
+#endif
+        }
+        barrier(CLK_LOCAL_MEM_FENCE);
+        /* Sum each sample's per-item partials in item order and write its slot. */
+        for (int idx = lid; idx < nb * G; idx += GROUP) {
+            const int k = idx / G, j = idx - k * G;
+            REAL acc = 0;
+            for (int w = 0; w < GROUP; ++w) acc += part[(k * GROUP + w) * G + j];
+            slots[(size_t)l_slot[k] * G + j] = acc;
+        }
+    }
+}

@@ -1,0 +1,49 @@
+/* reduce.cl — per (camera, Gaussian) sum of its intersection slots, in tile order.
+ *
+ * composite_bwd wrote one slot of G values per (pair, tile); a pair's slots are contiguous
+ * (isect_offsets[cg] onwards, one per tile of its rectangle), so the sum is a short loop in
+ * a fixed order: deterministic without float atomics.
+ * Outputs follow the slot layout: geometry gradients (v_means2d, v_conics, v_opacity,
+ * absgrad) and feature gradients, each only when built in (GEOM_GRAD, COLOR_GRAD, ABSGRAD).
+ *
+ * Build parameters: REAL_DOUBLE, CHANNELS, GEOM_GRAD, COLOR_GRAD, ABSGRAD.
+ */
+
+#define G_GEOM (GEOM_GRAD ? (ABSGRAD ? 8 : 6) : 0)
+#define G (G_GEOM + (COLOR_GRAD ? CHANNELS : 0))
+
+__kernel void reduce_slots(const int CN,
+                           __global const int *rects,          /* [C, N, 4] */
+                           __global const int *isect_offsets,  /* [C * N] */
+                           __global const REAL *slots,         /* [M, G] */
+                           __global REAL *v_means2d,           /* [C, N, 2] */
+                           __global REAL *v_conics,            /* [C, N, 3] */
+                           __global REAL *v_opac,              /* [C, N] */
+                           __global REAL *absgrad,             /* [C, N, 2] */
+                           __global REAL *v_feats)             /* [C, N, CHANNELS] */
+{
+    const int cg = get_global_id(0);
+    if (cg >= CN) return;
+    const int4 r = vload4(cg, rects);
+    const int n = (r.z - r.x) * (r.w - r.y);
+    __global const REAL *s = slots + (size_t)isect_offsets[cg] * G;
+    REAL acc[G];
+    for (int j = 0; j < G; ++j) acc[j] = 0;
+    for (int i = 0; i < n; ++i)
+        for (int j = 0; j < G; ++j) acc[j] += s[(size_t)i * G + j];
+#if GEOM_GRAD
+    v_means2d[2 * cg] = acc[0];
+    v_means2d[2 * cg + 1] = acc[1];
+    v_conics[3 * cg] = acc[2];
+    v_conics[3 * cg + 1] = acc[3];
+    v_conics[3 * cg + 2] = acc[4];
+    v_opac[cg] = acc[5];
+#if ABSGRAD
+    absgrad[2 * cg] = acc[6];
+    absgrad[2 * cg + 1] = acc[7];
+#endif
+#endif
+#if COLOR_GRAD
+    for (int ch = 0; ch < CHANNELS; ++ch) v_feats[(size_t)cg * CHANNELS + ch] = acc[G_GEOM + ch];
+#endif
+}
