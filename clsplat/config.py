@@ -18,17 +18,18 @@ __all__ = ["RenderConfig"]
 class RenderConfig:
     """Accuracy and layout knobs (DESIGN.md §6). Defaults reproduce gsplat's semantics.
 
-    precision:    "float32" or "float64" (the latter needs cl_khr_fp64).
+    precision:    "float32", "float64" (needs cl_khr_fp64), or None: the dtype of the means.
     alpha_min:    samples with alpha below it are skipped.
     t_min:        a pixel stops before the sample that would take its transmittance to <= t_min.
     radius_rule:  "3.33sigma" (default), "opacity" (sigma extent where alpha reaches
                   alpha_min) or "4sigma".
     fast_math:    build with -cl-fast-relaxed-math.
-    pix:          pixels per work-item in compositing (None: 8 on CPUs, 1 on GPUs).
+    pix:          pixels per work-item in compositing (None: one 256-bit vector on CPUs,
+                  i.e. 8 floats or 4 doubles; 1 on GPUs).
     sort_local:   keys sorted in local memory per work-group (None: from device limits).
     """
 
-    precision: str = "float32"
+    precision: str | None = None
     alpha_min: float = K.ALPHA_MIN
     t_min: float = K.T_MIN
     radius_rule: str = "3.33sigma"
@@ -37,7 +38,7 @@ class RenderConfig:
     sort_local: int | None = None
 
     def __post_init__(self) -> None:
-        if self.precision not in ("float32", "float64"):
+        if self.precision not in (None, "float32", "float64"):
             raise ValueError(f"precision: expected 'float32' or 'float64', got {self.precision!r}")
         if not 0.0 <= self.alpha_min < K.ALPHA_MAX:
             raise ValueError(f"alpha_min: must lie in [0, {K.ALPHA_MAX}), got {self.alpha_min}")

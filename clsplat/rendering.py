@@ -93,7 +93,7 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
     if distributed:
         raise ValueError("distributed: multi-process rendering is not supported")
     if precision is None:
-        precision = config.precision if config is not None else (
+        precision = (config.precision if config is not None else None) or (
             "float64" if means.dtype == torch.float64 else "float32")
     cfg = (config or RenderConfig()).with_(precision=precision)
     rt = get_runtime(device)

@@ -67,7 +67,7 @@ def list_devices() -> list[tuple[int, int, cl.Device]]:
 
 
 def _label(d: cl.Device) -> str:
-    return f"{d.platform.name} {d.name} {cl.device_type.to_string(d.type)}"
+    return f"{d.platform.name} ({d.platform.vendor}) {d.name} {cl.device_type.to_string(d.type)}"
 
 
 def _choose(spec: str | None) -> cl.Device:
@@ -163,7 +163,11 @@ class Runtime:
         key = (id(prog), name)
         k = self._kernels.get(key)
         if k is None:
-            k = self._kernels[key] = getattr(prog, name)
+            try:
+                k = self._kernels[key] = getattr(prog, name)
+            except (AttributeError, cl.Error) as exc:  # built, yet the device made no kernel
+                raise BuildError(stage, [f"-D{d}={_define(v)}" for d, v in sorted(defines.items())],
+                                 f"no kernel {name!r} in the built program: {exc}", self.name) from None
         return k
 
     def exclusive_scan_int32(self):

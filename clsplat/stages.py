@@ -214,13 +214,16 @@ def composite_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: i
     """
     # 8 floats or 4 doubles fill one 256-bit AVX register; PoCL rejects wider double vectors
     # on CPUs without AVX-512 (no kernel is produced).
-    pix = cfg.pix or ((4 if cfg.precision == "float64" else 8) if rt.is_cpu else 1)
+    real = 8 if cfg.precision == "float64" else 4
+    pix = cfg.pix or ((32 // real) if rt.is_cpu else 1)
+    if rt.is_cpu and pix * real > 32:
+        raise ValueError(f"pix: {pix} x {cfg.precision} exceeds the 256-bit vectors PoCL builds "
+                         f"for this CPU; use at most {32 // real}")
     pix = min(pix, tile_size)
     group = tile_size * tile_size // pix
     if group > rt.max_group:
         raise ValueError(f"tile_size: {tile_size}x{tile_size} tiles need work-groups of {group} "
                          f"items with {pix} pixel(s) per item; the device allows {rt.max_group}")
-    real = 8 if cfg.precision == "float64" else 4
     per = (6 + channels + group * grads) * real + 4
     batch = max(1, min(32 if grads else group, (rt.local_mem * 3 // 4) // per))
     return pix, batch

@@ -1,0 +1,180 @@
+"""Shared fixtures of the engine tests: seeded random scenes and small helpers.
+
+Tests run on PoCL's CPU device with POCL_MAX_WORK_GROUP_SIZE=256 (DESIGN.md §4), so a kernel
+that needs more than a GPU allows fails here first. The variable must be set before pyopencl
+creates a context, i.e. before clsplat is imported.
+"""
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("POCL_MAX_WORK_GROUP_SIZE", "256")
+
+import math  # noqa: E402
+
+import pytest  # noqa: E402
+import torch  # noqa: E402
+
+import clsplat  # noqa: E402
+from clsplat import reference as ref  # noqa: E402
+from clsplat.config import RenderConfig  # noqa: E402
+
+F64 = torch.float64
+
+
+def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> torch.Tensor:
+    """World-to-camera [4,4] (OpenCV: x right, y down, z forward) looking from eye at target."""
+    eye, target, up = (torch.as_tensor(v, dtype=F64) for v in (eye, target, up))
+    z = target - eye
+    z = z / z.norm()
+    x = torch.linalg.cross(z, up)
+    if x.norm() < 1e-9:  # looking along up: pick another
+        x = torch.linalg.cross(z, torch.tensor([1.0, 0.0, 0.0], dtype=F64))
+    x = x / x.norm()
+    y = torch.linalg.cross(z, x)
+    R = torch.stack([x, y, z])  # rows: camera axes in world
+    vm = torch.eye(4, dtype=F64)
+    vm[:3, :3] = R
+    vm[:3, 3] = -R @ eye
+    return vm
+
+
+def intrinsics(width: int, height: int, fov_deg: float = 60.0, jitter: float = 0.0,
+               gen: torch.Generator | None = None) -> torch.Tensor:
+    f = 0.5 * width / math.tan(math.radians(fov_deg) / 2)
+    cx, cy = width / 2, height / 2
+    if jitter and gen is not None:
+        j = (torch.rand(3, generator=gen, dtype=F64) - 0.5) * 2 * jitter
+        f, cx, cy = f * (1 + j[0].item()), cx + j[1].item() * width, cy + j[2].item() * height
+    return torch.tensor([[f, 0, cx], [0, f * 1.05, cy], [0, 0, 1]], dtype=F64)
+
+
+def random_scene(seed: int = 0, N: int = 60, C: int = 2, width: int = 64, height: int = 48,
+                 dtype: torch.dtype = F64, D: int = 3, colors_per_camera: bool = False,
+                 sh_degree: int | None = None, K_extra: int = 0, scale_range=(0.02, 0.35),
+                 opacity_range=(0.05, 0.99)) -> dict:
+    """N Gaussians in a ball of radius ~1.2 around the origin, seen by C cameras on a sphere of
+    radius ~4 looking roughly at the origin (random poses). Returns rasterization kwargs."""
+    g = torch.Generator().manual_seed(seed)
+    r = lambda *s: torch.rand(*s, generator=g, dtype=F64)  # noqa: E731
+    means = (r(N, 3) - 0.5) * 2.4
+    quats = torch.randn(N, 4, generator=g, dtype=F64)
+    quats = quats + 0.05 * torch.sign(quats)  # keep away from zero norm
+    lo, hi = scale_range
+    scales = torch.exp(math.log(lo) + (math.log(hi) - math.log(lo)) * r(N, 3))
+    opacities = opacity_range[0] + (opacity_range[1] - opacity_range[0]) * r(N)
+    vms, Ks = [], []
+    for _ in range(C):
+        d = torch.randn(3, generator=g, dtype=F64)
+        d = d / d.norm()
+        eye = d * (3.5 + r(1).item())
+        target = (r(3) - 0.5) * 0.4
+        up = torch.randn(3, generator=g, dtype=F64)
+        vms.append(look_at(eye, target, up))
+        Ks.append(intrinsics(width, height, 50 + 20 * r(1).item(), jitter=0.05, gen=g))
+    if sh_degree is not None:
+        K = (sh_degree + 1) ** 2 + K_extra
+        colors = torch.randn(N, K, 3, generator=g, dtype=F64) * 0.5
+    elif colors_per_camera:
+        colors = r(C, N, D)
+    else:
+        colors = r(N, D)
+    out = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
+               viewmats=torch.stack(vms), Ks=torch.stack(Ks), width=width, height=height)
+    if sh_degree is not None:
+        out["sh_degree"] = sh_degree
+    return {k: (v.to(dtype) if isinstance(v, torch.Tensor) else v) for k, v in out.items()}
+
+
+def single_camera(width: int = 64, height: int = 48, fov: float = 60.0, dtype=F64):
+    """Identity pose (camera at origin looking down +z) and a centred pinhole."""
+    return torch.eye(4, dtype=dtype)[None], intrinsics(width, height, fov).to(dtype)[None]
+
+
+@pytest.fixture(scope="session")
+def rt():
+    return clsplat.get_runtime()
+
+
+@pytest.fixture(scope="session")
+def make_scene():
+    return random_scene
+
+
+@pytest.fixture(scope="session")
+def camera():
+    return single_camera
+
+
+@pytest.fixture(scope="session")
+def cfg64():
+    return RenderConfig(precision="float64")
+
+
+@pytest.fixture(scope="session")
+def cfg32():
+    return RenderConfig(precision="float32")
+
+
+@pytest.fixture(scope="session")
+def reference():
+    return ref
+
+
+def engine_project(rt, cfg: RenderConfig, scene: dict, tile_size: int = 16, near_plane=0.01,
+                   far_plane=1e10, eps2d=0.3, radius_clip=0.0, antialiased=False) -> dict:
+    """Run kernels/project.cl through clsplat.stages.project; host tensors keyed like the reference."""
+    from clsplat import stages
+    dt = cfg.dtype
+    a = lambda k: rt.array(scene[k].to(dt).contiguous())  # noqa: E731
+    p = stages.project(rt, cfg, a("means"), a("quats"), a("scales"), a("opacities"), a("viewmats"),
+                       a("Ks"), scene["width"], scene["height"], tile_size, near_plane=near_plane,
+                       far_plane=far_plane, eps2d=eps2d, radius_clip=radius_clip,
+                       antialiased=antialiased)
+    out = {k: getattr(p, k).host().clone() for k in
+           ("means2d", "conics", "depths", "radii", "opacities", "rects")}
+    out["_proj"] = p
+    return out
+
+
+def reference_project(scene: dict, cfg: RenderConfig = RenderConfig(), tile_size: int = 16,
+                      near_plane=0.01, far_plane=1e10, eps2d=0.3, radius_clip=0.0,
+                      antialiased=False) -> dict:
+    f = lambda k: scene[k].to(F64)  # noqa: E731
+    return ref.project(f("means"), f("quats"), f("scales"), f("opacities"), f("viewmats"), f("Ks"),
+                       scene["width"], scene["height"], near_plane, far_plane, eps2d, radius_clip,
+                       tile_size, antialiased, cfg)
+
+
+@pytest.fixture(scope="session")
+def run_project():
+    return engine_project
+
+
+@pytest.fixture(scope="session")
+def ref_project():
+    return reference_project
+
+
+def engine_forward(rt, cfg: RenderConfig, scene: dict, feats: torch.Tensor, tile_size: int = 16,
+                   save_last: bool = True, **proj_kw) -> dict:
+    """project -> bin -> sort -> composite through the stage drivers; feats [C,N,CH]."""
+    from clsplat import stages
+    W, H = scene["width"], scene["height"]
+    pr = engine_project(rt, cfg, scene, tile_size, **proj_kw)
+    p = pr["_proj"]
+    offsets, keys = stages.bin_tiles(rt, cfg, p.rects, p.depths, W, H, tile_size)
+    stages.sort_segments(rt, cfg, keys, offsets)
+    f = rt.array(feats.to(cfg.dtype).contiguous())
+    out, T, last = stages.composite(rt, cfg, p.means2d, p.conics, p.opacities, f, offsets, keys,
+                                    W, H, tile_size, save_last)
+    res = dict(pr)
+    res.update(out=out.host().clone(), T=T.host().clone(),
+               last=None if last is None else last.host().clone(),
+               offsets=offsets.host().clone(), keys=keys.host().clone())
+    return res
+
+
+@pytest.fixture(scope="session")
+def run_forward():
+    return engine_forward

@@ -1,0 +1,64 @@
+"""The benchmark reports in their --quick configuration: files, JSON schema, float64 baseline."""
+import json
+
+import pytest
+
+from clsplat.bench_cli import main
+
+
+@pytest.fixture(scope="module")
+def out(tmp_path_factory):
+    d = tmp_path_factory.mktemp("bench")
+    assert main(["all", "--quick", "--out", str(d), "--repeats", "1"]) == 0
+    return d
+
+
+def test_files(out):
+    for name in ("stages.json", "stages.md", "precision.json", "precision.md", "precision.png",
+                 "stability.json", "stability.md", "report.md"):
+        assert (out / name).is_file() and (out / name).stat().st_size > 0, name
+    assert (out / "precision.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_stages_schema(out):
+    r = json.loads((out / "stages.json").read_text())
+    assert r["limits"]["bandwidth_GBps"] > 0 and r["limits"]["flops_f32_G"] > 0
+    for key in ("A", "B"):
+        s = r["scenes"][key]
+        assert {"project", "bin_count", "sort_local", "composite"} <= set(s["stages_ms"])
+        for st in s["stages_ms"].values():
+            assert {"median", "min", "max", "spread_pct"} <= set(st)
+        assert s["kernel_total_ms"]["median"] > 0
+        ev = s["evaluations"]
+        assert 0 < ev["useful"] <= ev["kernel"] <= ev["segment"]
+        sv = s["sort_vs_numpy"]
+        assert sv["correct"] is True
+        assert {"clsplat_kernel_ms", "np_argsort_stable_ms", "np_sort_ms"} <= set(sv["medians_ms"])
+    for key in ("scaling_n", "scaling_pixels"):
+        assert len(r[key]["rows"]) >= 2 and "kernel_total_ms" in r[key]["loglog_slope"]
+
+
+def test_precision_schema(out):
+    r = json.loads((out / "precision.json").read_text())
+    assert len(r["scenes"]) == 2
+    for rows in r["scenes"].values():
+        knobs = {row["knob"] for row in rows}
+        assert {"precision", "alpha_min", "t_min", "radius_rule", "fast_math", "prune_budget"} <= knobs
+        for row in rows:
+            assert {"value", "kernel_ms", "max_abs", "rmse", "psnr", "grad_rel_l2"} <= set(row)
+        f64 = [row for row in rows if row["knob"] == "precision" and row["value"] == "float64"]
+        assert len(f64) == 1 and f64[0]["max_abs"] <= 1e-9
+        assert any(row.get("pareto") for row in rows)
+
+
+def test_stability_schema(out):
+    r = json.loads((out / "stability.json").read_text())
+    cats = {row["category"] for row in r["rows"]}
+    assert {"needle", "grazing", "huge", "sub-pixel", "opaque stack", "equal depths", "behind camera",
+            "zero scales", "NaN/Inf input", "zero quaternion"} <= cats
+    for row in r["rows"]:
+        if row["category"] in ("NaN/Inf input", "zero quaternion"):
+            assert row["outcome"] == "ValueError"
+        else:
+            assert row["outcome"] == "rendered", row
+            assert row["nonfinite_f32"] == 0 and row["nonfinite_f64"] == 0

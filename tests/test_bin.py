@@ -1,0 +1,68 @@
+"""kernels/bin.cl (clsplat.stages.bin_tiles) and clsplat.stages.tile_ranges."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from clsplat import stages
+
+
+def expected_intersections(rects: torch.Tensor, tiles_x: int, tiles_y: int) -> list:
+    """Every (camera, Gaussian, tile) from the tile rectangles, as (segment, cg) pairs."""
+    C, N, _ = rects.shape
+    out = []
+    r = rects.numpy()
+    for c in range(C):
+        for g in range(N):
+            x0, y0, x1, y1 = r[c, g]
+            for ty in range(y0, y1):
+                for tx in range(x0, x1):
+                    out.append((c * tiles_x * tiles_y + ty * tiles_x + tx, c * N + g))
+    return out
+
+
+@pytest.mark.parametrize("tile_size,precision", [(16, "float64"), (8, "float32"), (32, "float64"), (4, "float32")])
+def test_bin_counts_offsets_and_keys(rt, make_scene, run_project, ref_project, tile_size, precision):
+    from clsplat.config import RenderConfig
+    cfg = RenderConfig(precision=precision)
+    W, H = 40, 56
+    scene = make_scene(30 + tile_size, N=120, C=3, width=W, height=H,
+                       dtype=torch.float64 if precision == "float64" else torch.float32)
+    got = run_project(rt, cfg, scene, tile_size=tile_size)
+    if precision == "float64":  # the rectangles themselves are checked against the reference
+        assert torch.equal(got["rects"], ref_project(scene, cfg, tile_size=tile_size)["rects"])
+    tx, ty = -(-W // tile_size), -(-H // tile_size)
+    offsets, keys = stages.bin_tiles(rt, cfg, got["_proj"].rects, got["_proj"].depths, W, H, tile_size)
+    off = offsets.host().numpy().astype(np.int64)
+    k = keys.host().numpy().view(np.uint64)
+    inter = expected_intersections(got["rects"], tx, ty)
+    C = 3
+    counts = np.bincount([s for s, _ in inter], minlength=C * tx * ty)
+    assert off.shape == (C * tx * ty + 1,)
+    assert off[0] == 0 and np.array_equal(np.diff(off), counts)
+    assert len(k) == off[-1] == len(inter)
+    # every (camera, Gaussian, tile) exactly once, in its own tile's segment
+    seg_of = np.repeat(np.arange(C * tx * ty), counts)
+    ids = (k & np.uint64(0xFFFFFFFF)).astype(np.int64)
+    assert sorted(zip(seg_of.tolist(), ids.tolist())) == sorted(inter)
+    # the high word is the float32 depth bits
+    depths32 = got["depths"].reshape(-1).to(torch.float32).numpy()
+    assert np.array_equal((k >> np.uint64(32)).astype(np.uint32), depths32[ids].view(np.uint32))
+    # tile_ranges: [C, ty, tx, 2] (start, end), consistent with the offsets
+    rng = stages.tile_ranges(offsets, C, ty, tx)
+    assert rng.shape == (C, ty, tx, 2)
+    flat = rng.reshape(-1, 2).numpy()
+    assert np.array_equal(flat[:, 0], off[:-1]) and np.array_equal(flat[:, 1], off[1:])
+    assert (flat[:, 1] >= flat[:, 0]).all()
+
+
+def test_bin_nothing_visible(rt, cfg32, make_scene, run_project):
+    scene = make_scene(1, N=20, C=1)
+    scene["means"][:, 2] = -5.0  # everything behind the (identity) camera
+    scene["viewmats"] = torch.eye(4, dtype=torch.float64)[None]
+    got = run_project(rt, cfg32, scene)
+    assert not got["radii"].any()
+    offsets, keys = stages.bin_tiles(rt, cfg32, got["_proj"].rects, got["_proj"].depths, 64, 48, 16)
+    assert keys.tensor.numel() == 0 and not offsets.host().any()
+    assert tuple(stages.tile_ranges(offsets, 1, 3, 4).shape) == (1, 3, 4, 2)

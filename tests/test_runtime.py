@@ -1,0 +1,132 @@
+"""clsplat.runtime: device choice, program and kernel caches, device description."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+import torch
+
+import clsplat
+
+
+def test_device_by_argument():
+    a = clsplat.get_runtime("0:0")
+    c = clsplat.get_runtime("cpu")
+    p = clsplat.get_runtime("portable")
+    assert "portable computing language" in a.name.lower()
+    for r in (a, c, p):
+        assert r.device.int_ptr == a.device.int_ptr and r.is_cpu
+    assert clsplat.get_runtime("0:0") is a  # runtimes are cached per spec
+    assert clsplat.get_runtime(a) is a
+
+
+def test_device_pocl_by_name():
+    """The runtime docstring (and DESIGN.md) name PoCL's device "pocl"; PoCL's platform name is
+    "Portable Computing Language" (vendor "The pocl project"), so the label must carry it."""
+    r = clsplat.get_runtime("pocl")
+    assert r.device.int_ptr == clsplat.get_runtime("0:0").device.int_ptr
+
+
+def test_device_by_environment(monkeypatch):
+    monkeypatch.setenv("CLSPLAT_DEVICE", "0:0")
+    assert clsplat.get_runtime().device.int_ptr == clsplat.get_runtime("0:0").device.int_ptr
+    monkeypatch.setenv("CLSPLAT_DEVICE", "no-such-device")
+    with pytest.raises(clsplat.DeviceError, match="device"):
+        clsplat.get_runtime()
+
+
+@pytest.mark.parametrize("spec", ["no-such-device", "9:9", "0:99"])
+def test_unknown_device(spec):
+    with pytest.raises(clsplat.DeviceError) as exc:
+        clsplat.get_runtime(spec)
+    assert isinstance(exc.value, ValueError)
+    assert str(exc.value).startswith("device") and spec in str(exc.value)
+    assert "0:0" in str(exc.value)  # lists what is available
+
+
+def test_device_wrong_type():
+    with pytest.raises(clsplat.DeviceError, match="device"):
+        clsplat.get_runtime(0)
+
+
+def test_program_and_kernel_cache(rt):
+    d = {"SORT_LOCAL": 64}
+    p1 = rt.program("sort", d)
+    assert rt.program("sort", dict(d)) is p1
+    assert rt.program("sort", {"SORT_LOCAL": 128}) is not p1
+    assert rt.program("sort", d, fast_math=True) is not p1
+    k1 = rt.kernel("sort", "sort_local", d)
+    assert rt.kernel("sort", "sort_local", d) is k1
+    assert rt.kernel("sort", "merge_runs", d) is not k1
+    n_prog, n_kern = len(rt._programs), len(rt._kernels)
+    for _ in range(3):
+        rt.kernel("sort", "sort_local", d)
+    assert (len(rt._programs), len(rt._kernels)) == (n_prog, n_kern)
+
+
+def test_renders_reuse_programs(make_scene):
+    scene = make_scene(0, N=20, C=1, width=32, height=24, dtype=torch.float32)
+    rt = clsplat.get_runtime()
+    clsplat.rasterization(**scene)
+    n_prog, n_kern = len(rt._programs), len(rt._kernels)
+    clsplat.rasterization(**scene)
+    assert (len(rt._programs), len(rt._kernels)) == (n_prog, n_kern)
+
+
+def test_describe_devices():
+    text = clsplat.describe_devices()
+    assert "0:0" in text and "Portable Computing Language" in text
+    for feat in ("fp64: yes", "int64 atomics", "float atomics", "subgroups", "max work-group"):
+        assert feat in text
+    assert "*" in text  # the default device is marked
+
+
+def test_device_array_roundtrip(rt):
+    t = torch.arange(10, dtype=torch.float32)
+    a = rt.array(t)
+    assert torch.equal(a.host(), t)
+    assert rt.array(torch.zeros(0)).host().numel() == 0
+    with pytest.raises(ValueError):
+        rt.array(torch.zeros(3, device="meta"))
+
+
+def test_pocl_group_limit_is_in_effect(rt):
+    assert rt.max_group <= 256  # POCL_MAX_WORK_GROUP_SIZE=256, set by conftest (DESIGN.md §4)
+
+
+_PIX_SCRIPT = textwrap.dedent("""
+    import os, sys, math, torch
+    os.environ.setdefault("POCL_MAX_WORK_GROUP_SIZE", "256")
+    import clsplat
+    g = torch.Generator().manual_seed(0)
+    N = 40
+    means = torch.cat([(torch.rand(N, 2, generator=g) - 0.5), 2 + torch.rand(N, 1, generator=g)], 1)
+    kw = dict(means=means, quats=torch.randn(N, 4, generator=g) + 0.1, scales=torch.full((N, 3), 0.1),
+              opacities=torch.full((N,), 0.7), colors=torch.rand(N, 3, generator=g),
+              viewmats=torch.eye(4)[None], Ks=torch.tensor([[[30.0, 0, 16], [0, 30, 16], [0, 0, 1]]]),
+              width=32, height=32)
+    prec, pix = sys.argv[1], int(sys.argv[2])
+    base = clsplat.rasterization(**kw, config=clsplat.RenderConfig(precision=prec, pix=1))[0]
+    try:
+        img = clsplat.rasterization(**kw, config=clsplat.RenderConfig(precision=prec, pix=pix))[0]
+    except (ValueError, clsplat.BuildError) as e:
+        print("REJECTED", type(e).__name__, str(e).splitlines()[0]); sys.exit(0)
+    err = float((img - base).abs().max())
+    print("ERR", err); sys.exit(0 if err <= 1e-6 else 3)
+""")
+
+
+@pytest.mark.parametrize("precision,pix", [("float32", 16), ("float64", 8), ("float64", 16)])
+def test_wide_pix_layouts_work_or_are_rejected(precision, pix):
+    """RenderConfig accepts pix up to 16. Where the device cannot run that vector width (PoCL
+    without AVX-512 gives no kernel, a crash or wrong images for float16/double8/double16), the
+    engine must say so with a ValueError or BuildError instead. Run in a subprocess because the
+    failure mode can be a segfault."""
+    env = dict(os.environ, POCL_MAX_WORK_GROUP_SIZE="256")
+    p = subprocess.run([sys.executable, "-c", _PIX_SCRIPT, precision, str(pix)], env=env,
+                       capture_output=True, text=True, timeout=120)
+    tail = (p.stdout + p.stderr)[-600:]
+    assert p.returncode == 0, f"rc={p.returncode}: {tail}"
