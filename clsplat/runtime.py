@@ -171,10 +171,14 @@ class Runtime:
         return k
 
     def exclusive_scan_int32(self):
-        """pyopencl's exclusive prefix-sum kernel over int32, built once per runtime."""
+        """pyopencl's exclusive prefix sum over int32 (``scan(src, dst) -> cl.Event``),
+        built once per runtime."""
         if "int32" not in self._scans:
-            from pyopencl.scan import ExclusiveScanKernel
-            self._scans["int32"] = ExclusiveScanKernel(self.context, np.int32, "a+b", neutral="0")
+            from pyopencl.scan import GenericScanKernel
+            self._scans["int32"] = GenericScanKernel(
+                self.context, np.int32, arguments="__global const int *src, __global int *dst",
+                input_expr="src[i]", scan_expr="a+b", neutral="0",
+                output_statement="dst[i] = prev_item;")
         return self._scans["int32"]
 
     # -- launches -----------------------------------------------------------------------
