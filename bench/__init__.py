@@ -1,0 +1,12 @@
+"""clsplat's benchmarks and reports (installed as ``clsplat.bench``).
+
+* :mod:`.scenes`     the standard scenes A (100k SH-3 Gaussians, one 640x352 camera) and B
+                     (pixel-aligned, 6 cameras at 176x320), plus size sweeps;
+* :mod:`.limits`     the machine's memory bandwidth (copy kernel) and peak FLOP/s (FMA kernel);
+* :mod:`.stages`     per-stage timing with OpenCL profiling events, sort vs numpy, scaling;
+* :mod:`.precision`  the work-precision diagram (DESIGN.md §6);
+* :mod:`.stability`  the stiff and extreme catalogue (DESIGN.md §5) at increasing severity.
+
+Run with ``clsplat bench {stages,precision,stability,all} --out DIR`` (see
+:mod:`clsplat.bench_cli`). ``bench/RESULTS.md`` holds the latest figures.
+"""

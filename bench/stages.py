@@ -1,0 +1,395 @@
+"""Per-stage timing of the forward pipeline with OpenCL profiling events.
+
+For a scene, :func:`time_forward` runs :func:`clsplat.rasterization` (``events=``) ``repeats + 1``
+times on a fresh :class:`~clsplat.runtime.Runtime` (so the first call pays the program builds
+and PoCL's JIT; PoCL's on-disk cache under ~/.cache/pocl may be warm) and reports per stage
+the device time from profiling events (end - start), summed over the stage's launches
+(``sort_merge`` runs once per merge pass; ``scan`` is not captured: pyopencl's legacy
+ExclusiveScanKernel returns its output Array, whose events are already drained),
+as median, min, max over the repeats, with the first call apart.
+
+Compositing work is counted three ways (see :func:`count_evaluations`):
+
+* ``segment``: sum over tiles of segment length x in-image pixels of the tile (upper bound);
+* ``kernel``:  what the kernel evaluates: per work-item (PIX pixels of a row) the samples up to
+  and including the one where its last pixel stops, times its in-image pixels; this is
+  emulated in float32 from the engine's own projected values and sorted keys;
+* ``useful``:  per pixel, samples up to and including its own stop.
+
+The per-tile sort (:func:`clsplat.stages.sort_segments`, on the forward's keys shuffled inside
+each segment) is compared with numpy on the same unsorted uint64 keys, side by side in
+the same loop: ``np.argsort(keys, kind='stable')``, ``np.argsort(keys)`` and ``np.sort(keys)``.
+"""
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+
+import numpy as np
+import torch
+
+import clsplat
+from clsplat import stages as engine
+from clsplat.config import RenderConfig
+from clsplat.runtime import Runtime, get_runtime
+
+from . import scenes as S
+
+__all__ = ["time_forward", "count_evaluations", "sort_vs_numpy", "stage_bytes", "scaling",
+           "FLOPS_PER_EVAL"]
+
+#: floating-point operations per compositing evaluation assumed for the FLOP fraction:
+#: conic quadratic form 8, alpha (mul, min) 2, exp counted as 15 (a vector polynomial),
+#: tests and selects 6, transmittance 2, weight 1, 3 colour channels 6.
+FLOPS_PER_EVAL = 40
+
+STAGE_ORDER = ("project", "sh", "bin_count", "scan", "bin_scatter", "sort_local", "sort_merge", "composite")
+
+
+def _ms(ev) -> float:
+    """Device milliseconds of an event. pyopencl's scan kernels return the output Array, whose
+    ``events`` hold the launches still pending on it (their sum is used)."""
+    if hasattr(ev, "events"):
+        return sum(_ms(e) for e in ev.events)
+    return (ev.profile.end - ev.profile.start) * 1e-6
+
+
+def _inputs(scene: dict, cfg: RenderConfig) -> dict:
+    c = lambda t: t.detach().to(cfg.dtype).contiguous()  # noqa: E731
+    return {k: c(scene[k]) for k in ("means", "quats", "scales", "opacities", "colors", "viewmats", "Ks")}
+
+
+class Forward:
+    """What one forward render leaves for the counters: outputs, ``meta``, runtime, config."""
+
+    def __init__(self, rt, cfg, scene, render, alpha, meta):
+        self.rt, self.cfg, self.scene = rt, cfg, scene
+        self.render, self.alpha, self.meta = render, alpha, meta
+        self.width, self.height, self.tile_size = scene["width"], scene["height"], meta["tile_size"]
+
+
+def run_forward(rt: Runtime, cfg: RenderConfig, scene: dict, events=None, inputs=None,
+                tile_size: int = 16) -> Forward:
+    """One forward render through :func:`clsplat.rasterization` (no graph recorded)."""
+    x = inputs or _inputs(scene, cfg)
+    with torch.no_grad():
+        render, alpha, meta = clsplat.rasterization(
+            x["means"], x["quats"], x["scales"], x["opacities"], x["colors"], x["viewmats"], x["Ks"],
+            scene["width"], scene["height"], sh_degree=scene["sh_degree"], tile_size=tile_size,
+            device=rt, config=cfg, events=events)
+    return Forward(rt, cfg, scene, render, alpha, meta)
+
+
+def _summary(values: list[float]) -> dict:
+    a = np.asarray(values, dtype=np.float64)
+    if a.size == 0:
+        return {"median": 0.0, "min": 0.0, "max": 0.0, "spread_pct": 0.0}
+    med = float(np.median(a))
+    return {"median": med, "min": float(a.min()), "max": float(a.max()),
+            "spread_pct": float(100 * (a.max() - a.min()) / med) if med > 0 else 0.0}
+
+
+def time_forward(scene: dict, repeats: int = 5, device=None, cfg: RenderConfig | None = None,
+                 fresh: bool = True, keep_state: bool = False) -> dict:
+    """Per-stage device milliseconds (first call apart) and wall time per forward pass."""
+    cfg = cfg or RenderConfig()
+    base = get_runtime(device)
+    rt = Runtime(base.device) if fresh else base
+    x = _inputs(scene, cfg)
+    runs, walls, state = [], [], None
+    for r in range(repeats + 1):
+        events: list = []
+        t0 = time.perf_counter()
+        st = run_forward(rt, cfg, scene, events, x)
+        rt.queue.finish()
+        walls.append((time.perf_counter() - t0) * 1e3)
+        per = defaultdict(float)
+        for name, ev in events:
+            per[name] += _ms(ev)
+        runs.append(dict(per))
+        if r == repeats and keep_state:
+            state = st
+        else:
+            rt.finish()
+    names = [n for n in STAGE_ORDER if any(n in run for run in runs)] + sorted(
+        {n for run in runs for n in run} - set(STAGE_ORDER))
+    warm = runs[1:]
+    out = {
+        "scene": scene["name"], "n_gaussians": int(scene["means"].shape[0]), "n_pixels": S.n_pixels(scene),
+        "n_cameras": int(scene["viewmats"].shape[0]), "width": scene["width"], "height": scene["height"],
+        "precision": cfg.precision, "repeats": repeats,
+        "first_call_ms": {n: runs[0].get(n, 0.0) for n in names} | {"wall": walls[0]},
+        "stages_ms": {n: _summary([run.get(n, 0.0) for run in warm]) for n in names},
+        "kernel_total_ms": _summary([sum(run.values()) for run in warm]),
+        "wall_ms": _summary(walls[1:]),
+    }
+    out["first_call_ms"]["kernel_total"] = sum(runs[0].values())
+    out["build_and_jit_ms"] = walls[0] - out["wall_ms"]["median"]
+    if keep_state:
+        out["_state"], out["_rt"] = state, rt
+    return out
+
+
+def count_evaluations(st, scene: dict) -> dict:
+    """Compositing evaluation counts (segment bound, kernel-exact emulation, useful)."""
+    rt, cfg, meta = st.rt, st.cfg, st.meta
+    W, H, ts = st.width, st.height, st.tile_size
+    C = int(scene["viewmats"].shape[0])
+    tx, ty = -(-W // ts), -(-H // ts)
+    pix, _ = engine.composite_layout(rt, cfg, ts, st.render.shape[-1])
+    ids = meta["flatten_ids"].to(torch.int64)
+    off = np.concatenate([meta["isect_offsets"].reshape(-1).numpy().astype(np.int64), [ids.numel()]])
+    xy = meta["means2d"].detach().reshape(-1, 2).float()
+    con = meta["conics"].detach().reshape(-1, 3).float()
+    op = meta["opacities"].detach().reshape(-1).float()
+    ly, lx = torch.meshgrid(torch.arange(ts), torch.arange(ts), indexing="ij")
+    ly, lx = ly.reshape(-1), lx.reshape(-1)
+    n_tiles = C * tx * ty
+    t_in_cam = torch.arange(n_tiles) % (tx * ty)
+    PY = (t_in_cam // tx)[:, None] * ts + ly[None]                              # [tiles, ts*ts]
+    PX = (t_in_cam % tx)[:, None] * ts + lx[None]
+    INSIDE = (PX < W) & (PY < H)
+    lens = torch.from_numpy(np.diff(off))
+    seg_total = int((lens * INSIDE.sum(1)).sum())
+    kern_total = useful_total = 0
+    # Tiles in batches, padded to the longest segment of the batch (sorted by length so that
+    # padding stays small); padding samples are invalid and never stop a pixel.
+    order = torch.argsort(lens)
+    budget = 4_000_000
+    i = 0
+    while i < n_tiles:
+        n_max = max(int(lens[order[min(i + 1, n_tiles) - 1]]), 1)
+        j = i + 1
+        while j < n_tiles and (j - i + 1) * max(int(lens[order[j]]), 1) * ts * ts <= budget:
+            j += 1
+        tiles = order[i:j]
+        n_max = max(int(lens[tiles].max()), 1)
+        i = j
+        starts = torch.from_numpy(off[:-1])[tiles]
+        k = torch.arange(n_max)
+        pos = starts[:, None] + k[None]                                         # [b, n]
+        real = k[None] < lens[tiles][:, None]
+        g = ids[pos.clamp_max(max(ids.numel() - 1, 0))] if ids.numel() else torch.zeros_like(pos)
+        px = PX[tiles].float()[:, None, :] + 0.5
+        py = PY[tiles].float()[:, None, :] + 0.5
+        dx = xy[g, 0][..., None] - px
+        dy = xy[g, 1][..., None] - py
+        sigma = 0.5 * (con[g, 0][..., None] * dx * dx + con[g, 2][..., None] * dy * dy) + con[g, 1][..., None] * dx * dy
+        alpha = torch.clamp_max(op[g][..., None] * torch.exp(-sigma), 0.99)
+        valid = (sigma >= 0) & (alpha >= cfg.alpha_min) & real[..., None]
+        Tc = torch.cumprod(torch.where(valid, 1 - alpha, torch.ones_like(alpha)), 1)
+        hit = Tc <= cfg.t_min                                                   # [b, n, P]
+        any_hit = hit.any(1)
+        n_t = lens[tiles][:, None].expand_as(any_hit)
+        stop = torch.where(any_hit, hit.to(torch.uint8).argmax(1) + 1, n_t)
+        inside = INSIDE[tiles]
+        stop = torch.where(inside, stop, torch.zeros_like(stop))
+        useful_total += int(stop.sum())
+        b = len(tiles)
+        item = stop.reshape(b, ts, ts // pix, pix).amax(-1)
+        kern_total += int((item * inside.reshape(b, ts, ts // pix, pix).sum(-1)).sum())
+    return {"segment": int(seg_total), "kernel": int(kern_total), "useful": int(useful_total),
+            "pix_per_item": pix, "intersections": int(off[-1])}
+
+
+def sort_vs_numpy(st, repeats: int = 5) -> dict:
+    """The per-tile sort against numpy on the same unsorted keys, medians side by side."""
+    rt, cfg, meta = st.rt, st.cfg, st.meta
+    ids = meta["flatten_ids"].to(torch.int64)
+    off = np.concatenate([meta["isect_offsets"].reshape(-1).numpy().astype(np.int64), [ids.numel()]])
+    depth_bits = meta["depths"].detach().reshape(-1).to(torch.float32).view(torch.int32).to(torch.int64) & 0xFFFFFFFF
+    sorted_keys = (depth_bits[ids] << 32) | ids
+    # The bin stage leaves segments in atomic order; a fixed random permutation inside each
+    # segment stands for it (the local bitonic sort's work does not depend on the order).
+    seg = np.repeat(np.arange(len(off) - 1), np.diff(off))
+    rnd = np.random.default_rng(0).random(seg.size)
+    perm = np.lexsort((rnd, seg))
+    unsorted = sorted_keys[torch.from_numpy(perm)].contiguous()
+    k_np = unsorted.numpy().view(np.uint64)
+    offsets = rt.array(torch.from_numpy(off.astype(np.int32)))
+    res = defaultdict(list)
+    ok = True
+    for r in range(repeats + 1):
+        ka = rt.array(unsorted.clone())
+        ev: list = []
+        t0 = time.perf_counter()
+        engine.sort_segments(rt, cfg, ka, offsets, events=ev)
+        rt.queue.finish()
+        wall = (time.perf_counter() - t0) * 1e3
+        if r == 0:
+            order = np.lexsort((k_np, seg))
+            ok = bool(np.array_equal(ka.host().numpy().view(np.uint64), k_np[order]))
+            continue
+        res["clsplat_kernel_ms"].append(sum(_ms(e) for _, e in ev))
+        res["clsplat_wall_ms"].append(wall)
+        for name, fn in (("np_argsort_stable_ms", lambda: np.argsort(k_np, kind="stable")),
+                         ("np_argsort_ms", lambda: np.argsort(k_np)),
+                         ("np_sort_ms", lambda: np.sort(k_np))):
+            t0 = time.perf_counter()
+            fn()
+            res[name].append((time.perf_counter() - t0) * 1e3)
+        rt.finish()
+    med = {k: float(np.median(v)) for k, v in res.items()}
+    return {"n_keys": int(k_np.size), "n_segments": int((np.diff(off) > 0).sum()),
+            "max_segment": int(np.diff(off).max()) if len(off) > 1 else 0, "correct": ok,
+            "medians_ms": med, "all_ms": {k: list(map(float, v)) for k, v in res.items()},
+            "ratio_kernel_vs_argsort_stable": med["clsplat_kernel_ms"] / med["np_argsort_stable_ms"],
+            "ratio_wall_vs_argsort_stable": med["clsplat_wall_ms"] / med["np_argsort_stable_ms"],
+            "ratio_kernel_vs_argsort_default": med["clsplat_kernel_ms"] / med["np_argsort_ms"]}
+
+
+def stage_bytes(scene: dict, M: int, real: int = 4) -> dict:
+    """Approximate bytes each stage reads plus writes (for the bandwidth fraction)."""
+    C, N = int(scene["viewmats"].shape[0]), int(scene["means"].shape[0])
+    Kc = scene["colors"].shape[1] if scene["sh_degree"] is not None else 0
+    CH = 3
+    P = S.n_pixels(scene)
+    return {
+        "project": N * 11 * real + C * N * (8 * real + 6 * 4),
+        "sh": N * (Kc * 3 + 3) * real + C * N * (8 + CH * real),
+        "bin_count": C * N * 16 + M * 8,
+        "bin_scatter": C * N * (16 + real) + M * (8 + 8 + 4),
+        "sort_local": M * 16,
+        "sort_merge": M * 16,
+        "composite": M * (8 + (6 + CH) * real) + P * (CH + 1) * real,
+    }
+
+
+def scaling(scene_iter, repeats: int = 3, device=None, x_key: str = "n_gaussians") -> dict:
+    """Time per forward vs a size; log-log slope of total kernel time, composite and wall."""
+    rows = []
+    for sc in scene_iter:
+        r = time_forward(sc, repeats, device, fresh=False)
+        rows.append({"scene": sc["name"], "n_gaussians": r["n_gaussians"], "n_pixels": r["n_pixels"],
+                     "kernel_total_ms": r["kernel_total_ms"]["median"], "wall_ms": r["wall_ms"]["median"],
+                     "stages_ms": {k: v["median"] for k, v in r["stages_ms"].items()}})
+    x = np.log10([row[x_key] for row in rows])
+    slopes = {}
+    for key in ("kernel_total_ms", "wall_ms"):
+        y = np.log10([max(row[key], 1e-6) for row in rows])
+        slopes[key] = float(np.polyfit(x, y, 1)[0]) if len(rows) > 1 else float("nan")
+    for st in ("composite", "sort_local", "project"):
+        y = np.log10([max(row["stages_ms"].get(st, 0.0), 1e-6) for row in rows])
+        slopes[st] = float(np.polyfit(x, y, 1)[0]) if len(rows) > 1 else float("nan")
+    return {"x": x_key, "rows": rows, "loglog_slope": slopes}
+
+
+def _fmt(x, nd=2):
+    return "-" if x is None else f"{x:.{nd}f}"
+
+
+def scene_report(scene: dict, repeats: int, device, limits: dict, exact_counts: bool = True) -> dict:
+    """Stage times, evaluation rates, limit fractions and the sort comparison for one scene."""
+    r = time_forward(scene, repeats, device, keep_state=True)
+    st, _ = r.pop("_state"), r.pop("_rt")
+    counts = count_evaluations(st, scene) if exact_counts else None
+    comp_s = r["stages_ms"]["composite"]["median"] * 1e-3
+    if counts:
+        r["evaluations"] = counts
+        r["evals_per_s"] = {k: counts[k] / comp_s for k in ("segment", "kernel", "useful")}
+        best_s = r["stages_ms"]["composite"]["min"] * 1e-3
+        r["evals_per_s_best"] = {k: counts[k] / best_s for k in ("segment", "kernel", "useful")}
+    M = int(st.meta["flatten_ids"].numel())
+    nbytes = stage_bytes(scene, M)
+    bw = limits["bandwidth_GBps"] * 1e9
+    frac = {}
+    for name, s in r["stages_ms"].items():
+        t = s["median"] * 1e-3
+        if t <= 0:
+            continue
+        if name == "composite" and counts:
+            frac[name] = {"limit": "flops_f32", "fraction": counts["kernel"] * FLOPS_PER_EVAL / t /
+                          (limits["flops_f32_G"] * 1e9)}
+        elif name in nbytes:
+            frac[name] = {"limit": "bandwidth", "fraction": nbytes[name] / t / bw}
+    r["limit_fraction"] = frac
+    r["intersections"] = M
+    r["sort_vs_numpy"] = sort_vs_numpy(st, repeats)
+    st.rt.finish()
+    return r
+
+
+def run(out_dir, device=None, quick: bool = False, repeats: int = 5) -> dict:
+    """The ``stages`` report: limits, scenes A and B, scaling; writes stages.{json,md}."""
+    import json
+    from pathlib import Path
+
+    from clsplat.runtime import describe_devices
+
+    from .limits import measure_limits
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rt = get_runtime(device)
+    limits = measure_limits(rt, repeats, quick=quick)
+    if quick:
+        repeats = min(repeats, 2)
+        sa = S.scene_a(n=2000, width=160, height=96)
+        sb = S.scene_b(height=24, width=40)
+        sweeps = (list(S.sweep_n((300, 1000, 3000), 160, 96)),
+                  list(S.sweep_pixels(((80, 48), (160, 96)), n=1000, base_width=160)))
+    else:
+        sa, sb = S.scene_a(), S.scene_b()
+        sweeps = (S.sweep_n(), S.sweep_pixels())
+    result = {"device": rt.name, "devices": describe_devices(), "quick": quick, "repeats": repeats,
+              "limits": limits, "flops_per_eval_assumed": FLOPS_PER_EVAL, "scenes": {}}
+    for key, sc in (("A", sa), ("B", sb)):
+        result["scenes"][key] = scene_report(sc, repeats, device, limits)
+    sc_rep = max(1, min(repeats, 3))
+    result["scaling_n"] = scaling(sweeps[0], sc_rep, device, "n_gaussians")
+    result["scaling_pixels"] = scaling(sweeps[1], sc_rep, device, "n_pixels")
+    (out / "stages.json").write_text(json.dumps(result, indent=1))
+    (out / "stages.md").write_text(markdown(result))
+    return result
+
+
+def markdown(res: dict) -> str:
+    L = [f"## Stage timings ({res['device']})", "",
+         f"Limits: copy bandwidth **{res['limits']['bandwidth_GBps']:.1f} GB/s** (read+write, "
+         f"{res['limits']['copy_MiB']} MiB), FMA peak **{res['limits']['flops_f32_G']:.0f} GFLOP/s** float32"
+         + (f", {res['limits']['flops_f64_G']:.0f} GFLOP/s float64" if res['limits'].get('flops_f64_G') else "") + ".",
+         f"Repeats: {res['repeats']} (+1 first call); device ms from profiling events; "
+         "median [min-max].", ""]
+    for key, r in res["scenes"].items():
+        L += [f"### Scene {r['scene']}", "",
+              f"{r['n_gaussians']} Gaussians, {r['n_pixels']} pixels, {r['intersections']} intersections.", "",
+              "| stage | first call ms | median ms | min-max ms | fraction of limit |", "|---|---|---|---|---|"]
+        for name, s in r["stages_ms"].items():
+            if name == "scan" and s["max"] == 0:
+                L.append("| scan | - | - | - | not captured: pyopencl's ExclusiveScanKernel returns no event |")
+                continue
+            f = r["limit_fraction"].get(name)
+            fs = f"{100 * f['fraction']:.1f}% of {f['limit']}" if f else "-"
+            L.append(f"| {name} | {r['first_call_ms'].get(name, 0):.2f} | {s['median']:.2f} | "
+                     f"{s['min']:.2f}-{s['max']:.2f} | {fs} |")
+        kt, w = r["kernel_total_ms"], r["wall_ms"]
+        L.append(f"| **kernels total** | {r['first_call_ms']['kernel_total']:.1f} | **{kt['median']:.1f}** | "
+                 f"{kt['min']:.1f}-{kt['max']:.1f} | |")
+        L.append(f"| wall (host+device) | {r['first_call_ms']['wall']:.1f} | {w['median']:.1f} | "
+                 f"{w['min']:.1f}-{w['max']:.1f} | |")
+        L.append("")
+        L.append(f"Build + JIT on the first call (wall, first - median): {r['build_and_jit_ms']:.0f} ms.")
+        if "evals_per_s" in r:
+            e, c = r["evals_per_s"], r["evaluations"]
+            L.append(f"Compositing evaluations/s (median composite time): **{e['kernel']:.3g}** kernel-exact ({c['kernel']:.4g} evals), "
+                     f"{e['useful']:.3g} useful ({c['useful']:.4g}), {e['segment']:.3g} by segment x pixels "
+                     f"({c['segment']:.4g}); at the fastest repeat {r['evals_per_s_best']['kernel']:.3g} kernel-exact.")
+        sv = r["sort_vs_numpy"]
+        m = sv["medians_ms"]
+        L.append(f"Sort of {sv['n_keys']} keys in {sv['n_segments']} segments (max {sv['max_segment']}), "
+                 f"correct={sv['correct']}: clsplat kernels {m['clsplat_kernel_ms']:.1f} ms (wall "
+                 f"{m['clsplat_wall_ms']:.1f}), numpy argsort stable {m['np_argsort_stable_ms']:.1f} ms, "
+                 f"argsort {m['np_argsort_ms']:.1f} ms, sort {m['np_sort_ms']:.1f} ms; ratio clsplat/argsort-stable "
+                 f"**{sv['ratio_kernel_vs_argsort_stable']:.2f}**.")
+        L.append("")
+    for key, label in (("scaling_n", "N (fixed resolution, SH3)"), ("scaling_pixels", "pixels (fixed Gaussians)")):
+        sc = res[key]
+        L += [f"### Scaling with {label}", "", "| scene | N | pixels | kernels ms | composite ms | sort ms | wall ms |",
+              "|---|---|---|---|---|---|---|"]
+        for row in sc["rows"]:
+            s = row["stages_ms"]
+            L.append(f"| {row['scene']} | {row['n_gaussians']} | {row['n_pixels']} | {row['kernel_total_ms']:.1f} | "
+                     f"{s.get('composite', 0):.1f} | {s.get('sort_local', 0) + s.get('sort_merge', 0):.1f} | {row['wall_ms']:.1f} |")
+        sl = sc["loglog_slope"]
+        L += ["", "log-log slope: " + ", ".join(f"{k} {v:.2f}" for k, v in sl.items()), ""]
+    return "\n".join(L) + "\n"

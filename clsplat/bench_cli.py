@@ -1,0 +1,53 @@
+"""``clsplat bench``: the benchmark reports of ``bench/`` (installed as ``clsplat.bench``).
+
+    clsplat bench {stages,precision,stability,all} [--out DIR] [--device DEV] [--quick] [--repeats N]
+
+Each report writes ``<name>.json`` and ``<name>.md`` into ``--out`` (precision also a PNG);
+``all`` runs the three and writes ``report.md`` with the device description and the command.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import shlex
+import sys
+import time
+from pathlib import Path
+
+__all__ = ["main"]
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="clsplat bench", description=__doc__.split("\n")[0])
+    p.add_argument("report", choices=("stages", "precision", "stability", "all"))
+    p.add_argument("--out", default="bench_out", help="output folder (created)")
+    p.add_argument("--device", default=None, help="OpenCL device, e.g. 'pocl' or '0:0' (default CLSPLAT_DEVICE)")
+    p.add_argument("--quick", action="store_true", help="tiny configuration (for tests)")
+    p.add_argument("--repeats", type=int, default=None, help="timed repeats after the first call")
+    a = p.parse_args(argv)
+    if a.repeats is not None and a.repeats < 1:
+        p.error("--repeats must be >= 1")
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    names = ("stages", "precision", "stability") if a.report == "all" else (a.report,)
+    defaults = {"stages": 5, "precision": 3, "stability": 3}
+    parts, secs = [], {}
+    import clsplat
+    for name in names:
+        mod = importlib.import_module(f"clsplat.bench.{name}")
+        t0 = time.perf_counter()
+        mod.run(out, device=a.device, quick=a.quick, repeats=a.repeats or defaults[name])
+        secs[name] = time.perf_counter() - t0
+        print(f"clsplat bench {name}: {secs[name]:.1f} s -> {out / (name + '.md')}", flush=True)
+        parts.append((out / f"{name}.md").read_text())
+    if a.report == "all":
+        cmd = "clsplat bench " + " ".join(shlex.quote(x) for x in (argv if argv is not None else sys.argv[1:]))
+        head = ["# clsplat benchmark report", "", f"Command: `{cmd}`", "",
+                "Devices:", "", "```", clsplat.describe_devices(), "```", "",
+                "Run time: " + ", ".join(f"{k} {v:.0f} s" for k, v in secs.items()), ""]
+        (out / "report.md").write_text("\n".join(head) + "\n" + "\n".join(parts))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
