@@ -27,6 +27,8 @@ class RenderConfig:
     pix:          pixels per work-item in compositing (None: one 256-bit vector on CPUs,
                   i.e. 8 floats or 4 doubles; 1 on GPUs).
     sort_local:   keys sorted in local memory per work-group (None: from device limits).
+    sort_layout:  "serial" (a merge sort per segment and work-item; CPU default) or
+                  "bitonic" (a work-group per segment in local memory; GPU default).
     """
 
     precision: str | None = None
@@ -36,6 +38,7 @@ class RenderConfig:
     fast_math: bool = False
     pix: int | None = None
     sort_local: int | None = None
+    sort_layout: str | None = None
 
     def __post_init__(self) -> None:
         if self.precision not in (None, "float32", "float64"):
@@ -48,6 +51,8 @@ class RenderConfig:
             raise ValueError(f"radius_rule: expected one of {K.RADIUS_RULES}, got {self.radius_rule!r}")
         if self.pix is not None and self.pix not in (1, 2, 4, 8, 16):
             raise ValueError(f"pix: expected 1, 2, 4, 8 or 16, got {self.pix}")
+        if self.sort_layout not in (None, "serial", "bitonic"):
+            raise ValueError(f"sort_layout: expected 'serial' or 'bitonic', got {self.sort_layout!r}")
         if self.sort_local is not None and (self.sort_local < 2 or self.sort_local & (self.sort_local - 1)):
             raise ValueError(f"sort_local: must be a power of two >= 2, got {self.sort_local}")
 

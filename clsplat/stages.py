@@ -146,20 +146,29 @@ def sort_segments(rt: Runtime, cfg: RenderConfig, keys: DeviceArray, offsets: De
                   events: list | None = None) -> None:
     """Sort each tile segment of ``keys`` [M] ascending, in place.
 
-    Segments up to SORT_LOCAL keys are sorted by one work-group in local memory; longer
-    ones are cut into SORT_LOCAL chunks, sorted likewise, then merged by ``merge_runs``
-    passes until one run remains.
+    Serial layout (CPUs by default): one work-item merge-sorts a whole segment.
+    Bitonic layout (GPUs): segments up to SORT_LOCAL keys are sorted by one work-group in
+    local memory; longer ones are cut into SORT_LOCAL chunks, sorted likewise, then merged by
+    ``merge_runs`` passes until one run remains.
     """
     M = keys.tensor.numel()
     if M < 2:
         return
-    sl, ls = _sort_local_size(rt, cfg)
     off = offsets.host().numpy().astype(np.int64)
     starts, lens = off[:-1], np.diff(off)
     seg = lens >= 2
     starts, lens = starts[seg], lens[seg]
     if len(lens) == 0:
         return
+    if (cfg.sort_layout or ("serial" if rt.is_cpu else "bitonic")) == "serial":
+        tmp = rt.empty((M,), torch.int64, zero=False)
+        k = rt.kernel("sort", "sort_serial", {"SORT_LOCAL": 2})
+        _record(events, "sort_serial", rt.launch(
+            k, len(lens), 16, keys.buffer, tmp.buffer,
+            rt.array(torch.from_numpy(starts.astype(np.int32))).buffer,
+            rt.array(torch.from_numpy(lens.astype(np.int32))).buffer, np.int32(len(lens))))
+        return
+    sl, ls = _sort_local_size(rt, cfg)
     n_chunks = -(-lens // sl)
     chunk_seg = np.repeat(np.arange(len(lens)), n_chunks)
     chunk_idx = np.arange(len(chunk_seg)) - np.repeat(np.cumsum(n_chunks) - n_chunks, n_chunks)

@@ -6,9 +6,15 @@
  * work-item places one key by binary search in the sibling run, so a pass is fully parallel
  * and needs no atomics. log2(segment / SORT_LOCAL) passes finish the sort.
  *
+ * sort_serial: the CPU layout. One work-item per whole segment, insertion-sorted runs then a
+ * bottom-up merge through a scratch buffer: O(n log n) work and no barriers. On a CPU the
+ * bitonic network's O(n log^2 n) compare-exchanges and its barrier per step (each one splits
+ * PoCL's work-item loop) cost more than the parallelism inside a tile buys; the tiles
+ * themselves give the cores enough independent work.
+ *
  * Keys are unique (the id is in the low word), which makes the result independent of how
- * the bin stage's atomics ordered a segment: the sort is deterministic.
- * Build parameters: SORT_LOCAL (a power of two).
+ * the bin stage's atomics ordered a segment: the sort is deterministic, in either layout.
+ * Build parameters: SORT_LOCAL (a power of two), for the bitonic layout.
  */
 
 /* Padding sorts after every real key: real keys hold finite positive depths. */
@@ -65,4 +71,45 @@ __kernel void merge_runs(__global const ulong *src, __global ulong *dst, const i
         if (s[mid] < key) a = mid + 1; else b = mid;
     }
     dst[seg_start[lo] + min(run, partner) * width + (j - run * width) + (a - p0)] = key;
+}
+
+/* Runs this short are insertion-sorted first: below ~16 keys it beats merging. */
+#define SERIAL_RUN 16
+
+__kernel void sort_serial(__global ulong *keys, __global ulong *scratch,
+                          __global const int *seg_start, /* [n_seg] */
+                          __global const int *seg_len,   /* [n_seg] */
+                          const int n_seg)
+{
+    const int s = get_global_id(0);
+    if (s >= n_seg) return; /* no barrier in this kernel */
+    const int n = seg_len[s];
+    __global ulong *a = keys + seg_start[s];
+    for (int r = 0; r < n; r += SERIAL_RUN) {
+        const int e = min(r + SERIAL_RUN, n);
+        for (int i = r + 1; i < e; ++i) {
+            const ulong k = a[i];
+            int j = i - 1;
+            while (j >= r && a[j] > k) {
+                a[j + 1] = a[j];
+                --j;
+            }
+            a[j + 1] = k;
+        }
+    }
+    __global ulong *src = a, *dst = scratch + seg_start[s];
+    for (int w = SERIAL_RUN; w < n; w *= 2) {
+        for (int lo = 0; lo < n; lo += 2 * w) {
+            const int mid = min(lo + w, n), hi = min(lo + 2 * w, n);
+            int i = lo, j = mid, o = lo;
+            while (i < mid && j < hi) dst[o++] = src[i] <= src[j] ? src[i++] : src[j++];
+            while (i < mid) dst[o++] = src[i++];
+            while (j < hi) dst[o++] = src[j++];
+        }
+        __global ulong *t = src;
+        src = dst;
+        dst = t;
+    }
+    if (src != a)
+        for (int i = 0; i < n; ++i) a[i] = src[i];
 }

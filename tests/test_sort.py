@@ -39,14 +39,15 @@ def expected(keys, off, depths, ids):
     return out
 
 
+@pytest.mark.parametrize("layout", ["serial", "bitonic"])
 @pytest.mark.parametrize("n_depths", [None, 3])
-def test_many_small_segments(rt, n_depths):
+def test_many_small_segments(rt, n_depths, layout):
     rng = np.random.default_rng(0 if n_depths is None else 1)
     lens = rng.integers(0, 300, 400)
     lens[::17] = 0
     lens[::23] = 1
     keys, off, d, ids = make_keys(rng, lens, n_depths)
-    got = run_sort(rt, RenderConfig(), keys, off)
+    got = run_sort(rt, RenderConfig(sort_layout=layout), keys, off)
     assert np.array_equal(got, expected(keys, off, d, ids))
 
 
@@ -61,7 +62,7 @@ def test_global_merge_path(rt, sort_local, seed):
     if sort_local == 2:
         lens = lens[lens < 600]  # keep the pass count (log2 of 300) modest
     keys, off, d, ids = make_keys(rng, lens, n_depths=5 if seed else None)
-    got = run_sort(rt, RenderConfig(sort_local=sort_local), keys, off)
+    got = run_sort(rt, RenderConfig(sort_local=sort_local, sort_layout="bitonic"), keys, off)
     assert np.array_equal(got, expected(keys, off, d, ids))
 
 
@@ -70,22 +71,24 @@ def test_pass_counts(rt, length):
     """One big segment per run: with sort_local=64 these need 1..5 merge passes (odd and even)."""
     rng = np.random.default_rng(length)
     keys, off, d, ids = make_keys(rng, [length], n_depths=2)
-    got = run_sort(rt, RenderConfig(sort_local=64), keys, off)
+    got = run_sort(rt, RenderConfig(sort_local=64, sort_layout="bitonic"), keys, off)
     assert np.array_equal(got, expected(keys, off, d, ids))
 
 
-def test_already_sorted_and_reversed(rt):
+@pytest.mark.parametrize("layout", ["serial", "bitonic"])
+def test_already_sorted_and_reversed(rt, layout):
     rng = np.random.default_rng(5)
     keys, off, d, ids = make_keys(rng, [3000, 700])
     want = expected(keys, off, d, ids)
-    cfg = RenderConfig(sort_local=128)
+    cfg = RenderConfig(sort_local=128, sort_layout=layout)
     assert np.array_equal(run_sort(rt, cfg, want.copy(), off), want)
     rev = np.concatenate([want[:3000][::-1], want[3000:][::-1]])
     assert np.array_equal(run_sort(rt, cfg, rev, off), want)
 
 
-def test_trivial_inputs(rt):
-    cfg = RenderConfig()
+@pytest.mark.parametrize("layout", ["serial", "bitonic"])
+def test_trivial_inputs(rt, layout):
+    cfg = RenderConfig(sort_layout=layout)
     rng = np.random.default_rng(3)
     for lens in ([], [0, 0, 0], [1], [1, 0, 1], [2]):
         keys, off, d, ids = make_keys(rng, lens)
@@ -93,12 +96,13 @@ def test_trivial_inputs(rt):
         assert np.array_equal(got, expected(keys, off, d, ids))
 
 
-def test_deterministic_regardless_of_input_order(rt):
+@pytest.mark.parametrize("layout", ["serial", "bitonic"])
+def test_deterministic_regardless_of_input_order(rt, layout):
     """The bin stage's atomics shuffle each segment; the sort must erase that."""
     rng = np.random.default_rng(9)
     lens = [500, 3000, 40]
     keys, off, d, ids = make_keys(rng, lens, n_depths=4)
-    cfg = RenderConfig(sort_local=256)
+    cfg = RenderConfig(sort_local=256, sort_layout=layout)
     outs = []
     for s in range(3):
         sh = keys.copy()
