@@ -255,23 +255,45 @@ def stage_bytes(scene: dict, M: int, real: int = 4) -> dict:
     }
 
 
-def scaling(scene_iter, repeats: int = 3, device=None, x_key: str = "n_gaussians") -> dict:
-    """Time per forward vs a size; log-log slope of total kernel time, composite and wall."""
+def scaling(scene_iter, repeats: int = 3, device=None, x_key: str = "n_gaussians",
+            backward: bool = True) -> dict:
+    """Time per forward (and forward+backward) vs a size; log-log slopes of total kernel time,
+    composite, sort, project, wall and the backward's kernel total."""
+    from .backward import time_backward
+
     rows = []
     for sc in scene_iter:
         r = time_forward(sc, repeats, device, fresh=False)
-        rows.append({"scene": sc["name"], "n_gaussians": r["n_gaussians"], "n_pixels": r["n_pixels"],
-                     "kernel_total_ms": r["kernel_total_ms"]["median"], "wall_ms": r["wall_ms"]["median"],
-                     "stages_ms": {k: v["median"] for k, v in r["stages_ms"].items()}})
+        row = {"scene": sc["name"], "n_gaussians": r["n_gaussians"], "n_pixels": r["n_pixels"],
+               "kernel_total_ms": r["kernel_total_ms"]["median"], "wall_ms": r["wall_ms"]["median"],
+               "stages_ms": {k: v["median"] for k, v in r["stages_ms"].items()}}
+        if backward:
+            b = time_backward(sc, max(1, repeats - 1), device)
+            row["backward_kernel_total_ms"] = b["backward_kernel_total_ms"]["median"]
+            row["backward_stages_ms"] = {k: v["median"] for k, v in b["backward_stages_ms"].items()}
+            row["bwd_fwd_ratio"] = b["bwd_fwd_ratio_kernels"]
+            row["intersections"] = b["intersections"]
+        rows.append(row)
     x = np.log10([row[x_key] for row in rows])
     slopes = {}
-    for key in ("kernel_total_ms", "wall_ms"):
+    for key in ("kernel_total_ms", "wall_ms") + (("backward_kernel_total_ms",) if backward else ()):
         y = np.log10([max(row[key], 1e-6) for row in rows])
         slopes[key] = float(np.polyfit(x, y, 1)[0]) if len(rows) > 1 else float("nan")
-    for st in ("composite", "sort_local", "project"):
-        y = np.log10([max(row["stages_ms"].get(st, 0.0), 1e-6) for row in rows])
+    for st in ("composite", "sort", "project"):
+        y = np.log10([max(_stage(row["stages_ms"], st), 1e-6) for row in rows])
         slopes[st] = float(np.polyfit(x, y, 1)[0]) if len(rows) > 1 else float("nan")
+    if backward:
+        y = np.log10([max(row["backward_stages_ms"].get("composite_bwd", 0.0), 1e-6) for row in rows])
+        slopes["composite_bwd"] = float(np.polyfit(x, y, 1)[0]) if len(rows) > 1 else float("nan")
     return {"x": x_key, "rows": rows, "loglog_slope": slopes}
+
+
+def _stage(stages_ms: dict, name: str) -> float:
+    """Median ms of a stage; "sort" sums every stage whose name starts with "sort"."""
+    if name == "sort":
+        return sum(v["median"] if isinstance(v, dict) else v for k, v in stages_ms.items() if k.startswith("sort"))
+    v = stages_ms.get(name, 0.0)
+    return v["median"] if isinstance(v, dict) else v
 
 
 def _fmt(x, nd=2):
@@ -300,8 +322,8 @@ def scene_report(scene: dict, repeats: int, device, limits: dict, exact_counts: 
         if name == "composite" and counts:
             frac[name] = {"limit": "flops_f32", "fraction": counts["kernel"] * FLOPS_PER_EVAL / t /
                           (limits["flops_f32_G"] * 1e9)}
-        elif name in nbytes:
-            frac[name] = {"limit": "bandwidth", "fraction": nbytes[name] / t / bw}
+        elif name in nbytes or name.startswith("sort"):
+            frac[name] = {"limit": "bandwidth", "fraction": nbytes.get(name, M * 16) / t / bw}
     r["limit_fraction"] = frac
     r["intersections"] = M
     r["sort_vs_numpy"] = sort_vs_numpy(st, repeats)
@@ -332,9 +354,15 @@ def run(out_dir, device=None, quick: bool = False, repeats: int = 5) -> dict:
         sa, sb = S.scene_a(), S.scene_b()
         sweeps = (S.sweep_n(), S.sweep_pixels())
     result = {"device": rt.name, "devices": describe_devices(), "quick": quick, "repeats": repeats,
-              "limits": limits, "flops_per_eval_assumed": FLOPS_PER_EVAL, "scenes": {}}
+              "limits": limits, "flops_per_eval_assumed": FLOPS_PER_EVAL, "scenes": {},
+              "backward": {}, "training": {}, "specialisation": {}}
     for key, sc in (("A", sa), ("B", sb)):
         result["scenes"][key] = scene_report(sc, repeats, device, limits)
+    from . import backward as BW
+    for key, sc in (("A", sa), ("B", sb)):
+        result["backward"][key] = BW.time_backward(sc, repeats, device)
+        result["training"][key] = BW.training_steps(sc, max(2, repeats), device)
+        result["specialisation"][key] = BW.specialisation(sc, repeats, device)
     sc_rep = max(1, min(repeats, 3))
     result["scaling_n"] = scaling(sweeps[0], sc_rep, device, "n_gaussians")
     result["scaling_pixels"] = scaling(sweeps[1], sc_rep, device, "n_pixels")
@@ -382,14 +410,24 @@ def markdown(res: dict) -> str:
                  f"argsort {m['np_argsort_ms']:.1f} ms, sort {m['np_sort_ms']:.1f} ms; ratio clsplat/argsort-stable "
                  f"**{sv['ratio_kernel_vs_argsort_stable']:.2f}**.")
         L.append("")
+    if res.get("backward"):
+        from .backward import markdown as bw_markdown
+        L.append(bw_markdown(res))
     for key, label in (("scaling_n", "N (fixed resolution, SH3)"), ("scaling_pixels", "pixels (fixed Gaussians)")):
         sc = res[key]
-        L += [f"### Scaling with {label}", "", "| scene | N | pixels | kernels ms | composite ms | sort ms | wall ms |",
-              "|---|---|---|---|---|---|---|"]
+        L += [f"### Scaling with {label}", "",
+              "Forward: medians of a no-grad forward; backward: device ms of the backward kernels with every "
+              "parameter requiring grad (medians, fewer repeats); ratio = backward / forward kernel totals of the "
+              "grad-recording pass.", "",
+              "| scene | N | pixels | kernels ms | composite ms | sort ms | wall ms | backward kernels ms | "
+              "composite_bwd ms | bwd/fwd |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
         for row in sc["rows"]:
             s = row["stages_ms"]
             L.append(f"| {row['scene']} | {row['n_gaussians']} | {row['n_pixels']} | {row['kernel_total_ms']:.1f} | "
-                     f"{s.get('composite', 0):.1f} | {s.get('sort_local', 0) + s.get('sort_merge', 0):.1f} | {row['wall_ms']:.1f} |")
+                     f"{s.get('composite', 0):.1f} | {_stage(s, 'sort'):.1f} | {row['wall_ms']:.1f} | "
+                     + (f"{row['backward_kernel_total_ms']:.1f} | {row['backward_stages_ms'].get('composite_bwd', 0):.1f} | "
+                        f"{row['bwd_fwd_ratio']:.2f} |" if "backward_kernel_total_ms" in row else "- | - | - |"))
         sl = sc["loglog_slope"]
         L += ["", "log-log slope: " + ", ".join(f"{k} {v:.2f}" for k, v in sl.items()), ""]
     return "\n".join(L) + "\n"

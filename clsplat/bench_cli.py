@@ -32,7 +32,10 @@ def main(argv: list[str] | None = None) -> int:
     names = ("stages", "precision", "stability") if a.report == "all" else (a.report,)
     defaults = {"stages": 5, "precision": 3, "stability": 3}
     parts, secs = [], {}
+    import torch
+
     import clsplat
+    torch.set_num_threads(1)  # torch's CPU threads would fight PoCL's workers for the cores
     for name in names:
         mod = importlib.import_module(f"clsplat.bench.{name}")
         t0 = time.perf_counter()

@@ -103,8 +103,9 @@ class Runtime:
     _programs: dict = field(default_factory=dict, init=False, repr=False)
     _kernels: dict = field(default_factory=dict, init=False, repr=False)
     _scans: dict = field(default_factory=dict, init=False, repr=False)
-    # Arrays that queued commands may still touch. A released pyopencl Buffer drops its host
-    # memory at once, even while a kernel is queued on it, so arrays live here until finish().
+    # Buffers that queued commands may still touch. A released pyopencl Buffer drops its host
+    # memory at once, even while a kernel is queued on it, so every buffer a command uses is
+    # held here from its enqueue until the next finish().
     _in_flight: list = field(default_factory=list, init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -182,11 +183,18 @@ class Runtime:
         return self._scans["int32"]
 
     # -- launches -----------------------------------------------------------------------
-    def launch(self, kernel: cl.Kernel, n_items: int, local: int, *args,
-               wait_for=None) -> cl.Event:
+    def enqueue(self, kernel: cl.Kernel, global_size: int, local_size: int, *args) -> cl.Event:
+        """Enqueue ``kernel`` and hold its buffer arguments until the next :meth:`finish`."""
+        self.hold(*args)
+        return kernel(self.queue, (global_size,), (local_size,), *args)
+
+    def launch(self, kernel: cl.Kernel, n_items: int, local: int, *args) -> cl.Event:
         """Enqueue over ``n_items`` work-items padded up to a multiple of ``local``."""
-        global_size = max(local, -(-n_items // local) * local)
-        return kernel(self.queue, (global_size,), (local,), *args, wait_for=wait_for)
+        return self.enqueue(kernel, max(local, -(-n_items // local) * local), local, *args)
+
+    def hold(self, *args) -> None:
+        """Keep the buffers among ``args`` alive until the queue has finished with them."""
+        self._in_flight.extend(a for a in args if isinstance(a, cl.MemoryObjectHolder))
 
     def finish(self) -> None:
         """Wait for every queued command, then let go of the arrays they used."""
@@ -231,7 +239,6 @@ class DeviceArray:
         else:
             self.buffer = cl.Buffer(rt.context, mf.READ_WRITE | mf.COPY_HOST_PTR,
                                     hostbuf=self.tensor.numpy())
-        rt._in_flight.append(self)
 
     def host(self) -> torch.Tensor:
         """The tensor, with every queued command finished and device data copied back."""

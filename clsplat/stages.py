@@ -98,6 +98,7 @@ def _scan_exclusive(rt: Runtime, src: DeviceArray, dst: DeviceArray, events) -> 
     n = src.tensor.numel()
     a = cl_array.Array(rt.queue, (n,), np.int32, data=src.buffer)
     b = cl_array.Array(rt.queue, (n,), np.int32, data=dst.buffer)
+    rt.hold(src.buffer, dst.buffer)
     _record(events, "scan", rt.exclusive_scan_int32()(a, b, queue=rt.queue))
 
 
@@ -118,14 +119,18 @@ def bin_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Device
     counts = rt.empty((C * tpc + 1,), torch.int32)
     offsets = rt.empty((C * tpc + 1,), torch.int32)
     defines = cfg.defines(tile_size)
+    # The exact total from the rectangles, in int64 and before any per-tile work: an int32
+    # scan would wrap silently, and counting ~1e9 intersections only to refuse them is slow.
+    r = rects.host().reshape(-1, 4).to(torch.int64)
+    total = int(((r[:, 2] - r[:, 0]) * (r[:, 3] - r[:, 1])).sum())
+    if total >= 2**31 - 1 or total * 8 > rt.device.max_mem_alloc_size:
+        raise ValueError(f"means, scales: {total} (camera, Gaussian, tile) intersections exceed the "
+                         f"int32 index range or the device's {rt.device.max_mem_alloc_size >> 20} MiB "
+                         "allocation limit; render fewer cameras, fewer or smaller Gaussians per call")
     common = (np.int32(C * N), np.int32(tiles_x), np.int32(tpc), np.int32(N), rects.buffer)
     _record(events, "bin_count", rt.launch(rt.kernel("bin", "count_tiles", defines), C * N, LOCAL_1D,
                                            *common, counts.buffer))
     _scan_exclusive(rt, counts, offsets, events)
-    total = int(offsets.host()[-1])
-    if total >= 2**31 - 1:
-        raise ValueError(f"means: {total} tile intersections exceed the int32 index range; "
-                         "render fewer cameras or Gaussians per call")
     keys = rt.empty((total,), torch.int64, zero=False)
     cursor = rt.empty((C * tpc,), torch.int32)
     if total:
@@ -177,7 +182,7 @@ def sort_segments(rt: Runtime, cfg: RenderConfig, keys: DeviceArray, offsets: De
     c_start_a = rt.array(torch.from_numpy(c_start.astype(np.int32)))
     c_len_a = rt.array(torch.from_numpy(c_len.astype(np.int32)))
     k = rt.kernel("sort", "sort_local", {"SORT_LOCAL": sl})
-    ev = k(rt.queue, (len(c_start) * ls,), (ls,), keys.buffer, c_start_a.buffer, c_len_a.buffer)
+    ev = rt.enqueue(k, len(c_start) * ls, ls, keys.buffer, c_start_a.buffer, c_len_a.buffer)
     _record(events, "sort_local", ev)
     big = lens > sl
     if not big.any():
@@ -263,7 +268,7 @@ def composite(rt: Runtime, cfg: RenderConfig, means2d: DeviceArray, conics: Devi
             feats.buffer, out.buffer, T.buffer]
     if save_last:
         args.append(last.buffer)
-    _record(events, "composite", k(rt.queue, (C * tiles_x * tiles_y * group,), (group,), *args))
+    _record(events, "composite", rt.enqueue(k, C * tiles_x * tiles_y * group, group, *args))
     return out, T, last
 
 
@@ -297,6 +302,11 @@ def composite_bwd(rt: Runtime, cfg: RenderConfig, fwd: dict, v_out: DeviceArray,
     M = fwd["keys"].tensor.numel()
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
     pix, batch = composite_layout(rt, cfg, tile_size, CH, grads=G)
+    nbytes = M * G * (8 if cfg.precision == "float64" else 4)
+    if nbytes > rt.device.max_mem_alloc_size:
+        raise ValueError(f"means, scales: the backward needs {nbytes >> 20} MiB of gradient slots "
+                         f"({M} intersections x {G} values), over the device's "
+                         f"{rt.device.max_mem_alloc_size >> 20} MiB allocation limit")
     offs = isect_offsets(rt, fwd["rects"])
     slots = rt.empty((M, G), cfg.dtype)
     defines = cfg.defines(tile_size) | {"PIX": pix, "BATCH": batch, "CHANNELS": CH,
@@ -305,8 +315,8 @@ def composite_bwd(rt: Runtime, cfg: RenderConfig, fwd: dict, v_out: DeviceArray,
     k = rt.kernel("composite_bwd", "composite_bwd", defines, cfg.fast_math)
     group = tile_size * tile_size // pix
     f = fwd
-    _record(events, "composite_bwd", k(
-        rt.queue, (C * tiles_x * tiles_y * group,), (group,), np.int32(width), np.int32(height),
+    _record(events, "composite_bwd", rt.enqueue(
+        k, C * tiles_x * tiles_y * group, group, np.int32(width), np.int32(height),
         np.int32(tiles_x), np.int32(tiles_x * tiles_y), np.int32(N), f["offsets"].buffer,
         f["keys"].buffer, f["rects"].buffer, offs.buffer, f["means2d"].buffer, f["conics"].buffer,
         f["opacities"].buffer, f["feats"].buffer, f["out"].buffer, f["T"].buffer, f["last"].buffer,

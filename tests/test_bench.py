@@ -25,7 +25,8 @@ def test_stages_schema(out):
     assert r["limits"]["bandwidth_GBps"] > 0 and r["limits"]["flops_f32_G"] > 0
     for key in ("A", "B"):
         s = r["scenes"][key]
-        assert {"project", "bin_count", "sort_local", "composite"} <= set(s["stages_ms"])
+        assert {"project", "bin_count", "composite"} <= set(s["stages_ms"])
+        assert any(n.startswith("sort") for n in s["stages_ms"])
         for st in s["stages_ms"].values():
             assert {"median", "min", "max", "spread_pct"} <= set(st)
         assert s["kernel_total_ms"]["median"] > 0
@@ -36,6 +37,35 @@ def test_stages_schema(out):
         assert {"clsplat_kernel_ms", "np_argsort_stable_ms", "np_sort_ms"} <= set(sv["medians_ms"])
     for key in ("scaling_n", "scaling_pixels"):
         assert len(r[key]["rows"]) >= 2 and "kernel_total_ms" in r[key]["loglog_slope"]
+        assert "backward_kernel_total_ms" in r[key]["loglog_slope"]
+        assert all(row["backward_kernel_total_ms"] > 0 for row in r[key]["rows"])
+
+
+def test_backward_schema(out):
+    r = json.loads((out / "stages.json").read_text())
+    for key in ("A", "B"):
+        b = r["backward"][key]
+        assert {"composite_bwd", "reduce", "project_bwd"} <= set(b["backward_stages_ms"])
+        if key == "A":  # SH degree 3
+            assert "sh_bwd" in b["backward_stages_ms"]
+        for st in b["backward_stages_ms"].values():
+            assert {"median", "min", "max", "spread_pct"} <= set(st)
+        assert b["backward_kernel_total_ms"]["median"] > 0 and b["forward_kernel_total_ms"]["median"] > 0
+        assert b["bwd_fwd_ratio_kernels"] > 0 and b["bwd_fwd_target"] == 2.5
+        assert "backward_kernel_total" in b["first_call_ms"]
+        m = b["slot_memory"]
+        assert m["sizeof_real"] == 4 and m["bytes_per_intersection"] == m["slot_width"] * 4
+        assert m["total_bytes"] == m["bytes_per_intersection"] * m["intersections"] > 0
+        t = r["training"][key]
+        assert t["steps_per_s"] > 0 and t["step_ms"]["median"] > 0
+        sp = r["specialisation"][key]
+        cases = {c["case"] for c in sp["cases"]}
+        assert {"no_depth", "frozen_colours_only", "frozen_means_only"} <= cases
+        assert ("no_sh" in cases) == (key == "A")
+        assert all(c["ratio_total"] > 0 for c in sp["cases"])
+    md = (out / "stages.md").read_text()
+    for text in ("Backward pass", "Training step", "bytes / intersection", "Specialisation gains"):
+        assert text in md
 
 
 def test_precision_schema(out):
@@ -49,6 +79,11 @@ def test_precision_schema(out):
         f64 = [row for row in rows if row["knob"] == "precision" and row["value"] == "float64"]
         assert len(f64) == 1 and f64[0]["max_abs"] <= 1e-9
         assert any(row.get("pareto") for row in rows)
+        assert all("max_abs_vs_default" in row for row in rows)
+    assert set(r["faster_within_1_255"]) == set(r["scenes"])
+    for f in r["faster_within_1_255"].values():
+        assert {"vs_f64", "vs_default", "default_kernel_ms", "tolerance"} <= set(f)
+    assert "Faster than the float32 default" in (out / "precision.md").read_text()
 
 
 def test_stability_schema(out):
@@ -62,3 +97,5 @@ def test_stability_schema(out):
         else:
             assert row["outcome"] == "rendered", row
             assert row["nonfinite_f32"] == 0 and row["nonfinite_f64"] == 0
+            assert {"grad_rel_l2", "grad_rel_l2_extreme", "grad_nonfinite_f32", "grad_nonfinite_f64"} <= set(row), row
+            assert row["grad_rel_l2"] >= 0

@@ -66,3 +66,19 @@ def test_bin_nothing_visible(rt, cfg32, make_scene, run_project):
     offsets, keys = stages.bin_tiles(rt, cfg32, got["_proj"].rects, got["_proj"].depths, 64, 48, 16)
     assert keys.tensor.numel() == 0 and not offsets.host().any()
     assert tuple(stages.tile_ranges(offsets, 1, 3, 4).shape) == (1, 3, 4, 2)
+
+
+def test_intersections_over_device_limit_are_a_clear_error():
+    """Huge Gaussians in many cameras: more intersections than the device can hold is a
+    ValueError naming the arguments, not an allocation failure or a crash."""
+    import clsplat
+    N, C = 200_000, 4
+    means = torch.zeros(N, 3)
+    means[:, 2] = 5.0
+    quats = torch.tensor([[1.0, 0, 0, 0]]).repeat(N, 1)
+    scales = torch.full((N, 3), 50.0)
+    vm = torch.eye(4).repeat(C, 1, 1)
+    K = torch.tensor([[[500.0, 0, 1024], [0, 500, 1024], [0, 0, 1]]]).repeat(C, 1, 1)
+    with pytest.raises(ValueError, match="intersections"):
+        clsplat.rasterization(means, quats, scales, torch.full((N,), 0.5), torch.rand(N, 3), vm, K,
+                              2048, 2048)
