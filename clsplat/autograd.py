@@ -64,14 +64,15 @@ class ProjectFn(torch.autograd.Function):
                            arr(viewmats), arr(Ks), s.width, s.height, s.tile_size,
                            near_plane=s.near_plane, far_plane=s.far_plane, eps2d=s.eps2d,
                            radius_clip=s.radius_clip, antialiased=s.antialiased, events=s.events)
-        outs = [a.host() for a in (p.means2d, p.conics, p.depths, p.opacities, p.radii, p.rects)]
-        ctx.mark_non_differentiable(outs[4], outs[5])
+        outs = [a.host() for a in (p.means2d, p.conics, p.depths, p.opacities, p.radii, p.rects,
+                                   p.extents)]
+        ctx.mark_non_differentiable(*outs[4:])
         ctx.save_for_backward(means, quats, scales, opacities, viewmats, Ks, outs[4])
         ctx.s = s
         return tuple(outs)
 
     @staticmethod
-    def backward(ctx, v_means2d, v_conics, v_depths, v_opac, _v_radii, _v_rects):
+    def backward(ctx, v_means2d, v_conics, v_depths, v_opac, _v_radii, _v_rects, _v_ext):
         s = ctx.s
         means, quats, scales, opacities, viewmats, Ks, radii = ctx.saved_tensors
         C, N = radii.shape[:2]
@@ -130,17 +131,17 @@ class ShFn(torch.autograd.Function):
 
 class RasterizeFn(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, feats, rects, depths, s: Settings):
+    def forward(ctx, means2d, conics, opacities, feats, rects, extents, depths, s: Settings):
         rt, cfg, arr = s.rt, s.cfg, s.rt.array
         a = {"means2d": arr(means2d.detach()), "conics": arr(conics.detach()),
              "opacities": arr(opacities.detach()), "feats": arr(feats.detach()),
-             "rects": arr(rects)}
+             "rects": arr(rects), "extents": arr(extents)}
         offsets, keys = stages.bin_tiles(rt, cfg, a["rects"], arr(depths.detach()), s.width,
                                          s.height, s.tile_size, events=s.events)
         stages.sort_segments(rt, cfg, keys, offsets, events=s.events)
         want_grad = any(ctx.needs_input_grad[:4])  # False under no_grad or for constants
         out, T, last = stages.composite(rt, cfg, a["means2d"], a["conics"], a["opacities"],
-                                        a["feats"], offsets, keys, s.width, s.height,
+                                        a["extents"], a["feats"], offsets, keys, s.width, s.height,
                                         s.tile_size, save_last=want_grad, events=s.events)
         out_t, T_t = out.host(), T.host()
         ctx.s = s
@@ -158,7 +159,7 @@ class RasterizeFn(torch.autograd.Function):
         geom, color = any(need[:3]), need[3]
         fwd = ctx.fwd
         if fwd is None or not (geom or color):
-            return (None,) * 7
+            return (None,) * 8
         rt, cfg = s.rt, s.cfg
         v_out = _grad_or_zeros(v_out, fwd["out"].tensor)
         v_T = _grad_or_zeros(v_T, fwd["T"].tensor)
@@ -175,4 +176,4 @@ class RasterizeFn(torch.autograd.Function):
             ctx.means2d.absgrad = g["absgrad"]
         return (g["v_means2d"] if need[0] else None, g["v_conics"] if need[1] else None,
                 g["v_opacities"] if need[2] else None, g["v_feats"] if color else None,
-                None, None, None)
+                None, None, None, None)

@@ -114,7 +114,7 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
                   absgrad=absgrad, sh_degree=sh_degree, bwd_divide=bwd_divide, events=events)
     cast = lambda x: x.to(dt).contiguous()  # noqa: E731  (differentiable: grads come back cast)
     means_r, viewmats_r = cast(means), cast(viewmats)
-    means2d, conics, depths, opac, radii, rects = ProjectFn.apply(
+    means2d, conics, depths, opac, radii, rects, extents = ProjectFn.apply(
         means_r, cast(quats), cast(scales), cast(opacities), viewmats_r, cast(Ks).detach(), st)
     parts = []
     if n_col:
@@ -132,7 +132,7 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
         isect_offsets = torch.zeros((C * tiles_y * tiles_x + 1,), dtype=torch.int32)
         keys = torch.zeros((0,), dtype=torch.int64)
     else:
-        render, T = RasterizeFn.apply(means2d, conics, opac, feats.contiguous(), rects,
+        render, T = RasterizeFn.apply(means2d, conics, opac, feats.contiguous(), rects, extents,
                                       depths.detach(), st)
         isect_offsets, keys = st.isect
 

@@ -38,7 +38,8 @@ class Projection:
 
     means2d [C,N,2], conics [C,N,3], depths [C,N], radii [C,N,2] int32 (0 = culled),
     opacities [C,N] (times the antialiasing compensation when enabled), rects [C,N,4] int32
-    tile rectangle (x0, y0, x1, y1), half-open.
+    tile rectangle (x0, y0, x1, y1), half-open, extents [C,N,2] screen distances in x and y
+    beyond which the sample's alpha is below ALPHA_MIN (-1: nowhere above it).
     """
 
     means2d: DeviceArray
@@ -47,6 +48,7 @@ class Projection:
     radii: DeviceArray
     opacities: DeviceArray
     rects: DeviceArray
+    extents: DeviceArray
 
 
 def project(rt: Runtime, cfg: RenderConfig, means: DeviceArray, quats: DeviceArray,
@@ -64,7 +66,7 @@ def project(rt: Runtime, cfg: RenderConfig, means: DeviceArray, quats: DeviceArr
     out = Projection(
         means2d=rt.empty((C, N, 2), dt), conics=rt.empty((C, N, 3), dt), depths=rt.empty((C, N), dt),
         radii=rt.empty((C, N, 2), torch.int32), opacities=rt.empty((C, N), dt),
-        rects=rt.empty((C, N, 4), torch.int32))
+        rects=rt.empty((C, N, 4), torch.int32), extents=rt.empty((C, N, 2), dt))
     k = rt.kernel("project", "project", cfg.defines(tile_size) | {"ANTIALIASED": antialiased},
                   cfg.fast_math)
     R = _np_real(cfg)
@@ -73,7 +75,7 @@ def project(rt: Runtime, cfg: RenderConfig, means: DeviceArray, quats: DeviceArr
         opacities.buffer, viewmats.buffer, Ks.buffer, np.int32(width), np.int32(height),
         R(near_plane), R(far_plane), R(eps2d), R(radius_clip), np.int32(tiles_x), np.int32(tiles_y),
         out.means2d.buffer, out.conics.buffer, out.depths.buffer, out.radii.buffer,
-        out.opacities.buffer, out.rects.buffer))
+        out.opacities.buffer, out.rects.buffer, out.extents.buffer))
     return out
 
 
@@ -244,12 +246,13 @@ def composite_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: i
 
 
 def composite(rt: Runtime, cfg: RenderConfig, means2d: DeviceArray, conics: DeviceArray,
-              opacities: DeviceArray, feats: DeviceArray, offsets: DeviceArray, keys: DeviceArray,
+              opacities: DeviceArray, extents: DeviceArray, feats: DeviceArray,
+              offsets: DeviceArray, keys: DeviceArray,
               width: int, height: int, tile_size: int, save_last: bool,
               events: list | None = None) -> tuple[DeviceArray, DeviceArray, DeviceArray | None]:
     """Front-to-back compositing of every tile.
 
-    means2d [C,N,2], conics [C,N,3], opacities [C,N], feats [C,N,CH] ->
+    means2d [C,N,2], conics [C,N,3], opacities [C,N], extents [C,N,2], feats [C,N,CH] ->
     (out_feats [C,H,W,CH], out_T [C,H,W], last [C,H,W] int32 or None).
     """
     C = means2d.tensor.shape[0]
@@ -265,7 +268,7 @@ def composite(rt: Runtime, cfg: RenderConfig, means2d: DeviceArray, conics: Devi
     group = tile_size * tile_size // pix
     args = [np.int32(width), np.int32(height), np.int32(tiles_x), np.int32(tiles_x * tiles_y),
             offsets.buffer, keys.buffer, means2d.buffer, conics.buffer, opacities.buffer,
-            feats.buffer, out.buffer, T.buffer]
+            extents.buffer, feats.buffer, out.buffer, T.buffer]
     if save_last:
         args.append(last.buffer)
     _record(events, "composite", rt.enqueue(k, C * tiles_x * tiles_y * group, group, *args))
@@ -292,7 +295,7 @@ def composite_bwd(rt: Runtime, cfg: RenderConfig, fwd: dict, v_out: DeviceArray,
                   events: list | None = None) -> tuple[DeviceArray, DeviceArray]:
     """Per-intersection gradient slots of compositing.
 
-    ``fwd`` holds the forward's DeviceArrays: means2d, conics, opacities, feats, rects,
+    ``fwd`` holds the forward's DeviceArrays: means2d, conics, opacities, extents, feats, rects,
     offsets, keys, out (out_feats), T, last. v_out [C,H,W,CH], v_T [C,H,W].
     Returns (slots [M, G], isect_offsets [C*N]).
     """
@@ -319,7 +322,7 @@ def composite_bwd(rt: Runtime, cfg: RenderConfig, fwd: dict, v_out: DeviceArray,
         k, C * tiles_x * tiles_y * group, group, np.int32(width), np.int32(height),
         np.int32(tiles_x), np.int32(tiles_x * tiles_y), np.int32(N), f["offsets"].buffer,
         f["keys"].buffer, f["rects"].buffer, offs.buffer, f["means2d"].buffer, f["conics"].buffer,
-        f["opacities"].buffer, f["feats"].buffer, f["out"].buffer, f["T"].buffer, f["last"].buffer,
+        f["opacities"].buffer, f["extents"].buffer, f["feats"].buffer, f["out"].buffer, f["T"].buffer, f["last"].buffer,
         v_out.buffer, v_T.buffer, slots.buffer))
     return slots, offs
 

@@ -121,6 +121,18 @@ inline ulong depth_key(REAL depth, uint cg) {
 
 inline uint key_id(ulong key) { return (uint)(key & 0xffffffffUL); }
 
+/* True when no pixel of a PIX-wide row segment can reach ALPHA_MIN: the nearest pixel is
+ * beyond the sample's extent (from project). The margin keeps the test conservative against
+ * rounding, so skipping never changes a result; forward and backward share this test, so
+ * the backward replays exactly what the forward composited. */
+#define CLS_EXTENT_MARGIN 1e-3
+inline int outside_extent(REAL x, REAL y, REAL ext_x, REAL ext_y, REAL px_first, REAL px_last, REAL py) {
+    const REAL dy = fabs(y - py);
+    const REAL dx = fmax((REAL)0, fmax(px_first - x, x - px_last));
+    const REAL m = (REAL)CLS_EXTENT_MARGIN;
+    return ext_y < 0 || dy > ext_y * (1 + m) + m || dx > ext_x * (1 + m) + m;
+}
+
 #ifdef TILE
 /* Tile rectangle [x0, x1) x [y0, y1) touched by a screen-space box of half-size radius. */
 inline int4 tile_rect(REAL2 mean2d, int2 radius, int tiles_x, int tiles_y) {

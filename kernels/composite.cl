@@ -23,6 +23,7 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
                    __global const REAL *means2d,     /* [C, N, 2] */
                    __global const REAL *conics,      /* [C, N, 3] */
                    __global const REAL *opac_cg,     /* [C, N] */
+                   __global const REAL *extents,     /* [C, N, 2] */
                    __global const REAL *feats,       /* [C, N, CHANNELS] */
                    __global REAL *out_feats,         /* [C, H, W, CHANNELS] */
                    __global REAL *out_T              /* [C, H, W] */
@@ -30,7 +31,8 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
                    , __global int *out_last          /* [C, H, W] */
 #endif
 ) {
-    __local REAL l_xy[2 * BATCH], l_conic[3 * BATCH], l_op[BATCH], l_f[CHANNELS * BATCH];
+    __local REAL l_xy[2 * BATCH], l_conic[3 * BATCH], l_op[BATCH], l_ext[2 * BATCH];
+    __local REAL l_f[CHANNELS * BATCH];
     __local int n_done;
 
     const int tile = get_group_id(0), lid = get_local_id(0);
@@ -68,12 +70,19 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
             l_conic[3 * i + 1] = conics[3 * cg + 1];
             l_conic[3 * i + 2] = conics[3 * cg + 2];
             l_op[i] = opac_cg[cg];
+            l_ext[2 * i] = extents[2 * cg];
+            l_ext[2 * i + 1] = extents[2 * cg + 1];
             for (int ch = 0; ch < CHANNELS; ++ch) l_f[CHANNELS * i + ch] = feats[(size_t)cg * CHANNELS + ch];
         }
         barrier(CLK_LOCAL_MEM_FENCE);
 
         for (int k = 0; k < nb; ++k) {
             if (VALL(done)) break;
+            /* Most samples of a tile miss a given row segment: reject them before the exp. */
+            if (outside_extent(l_xy[2 * k], l_xy[2 * k + 1], l_ext[2 * k], l_ext[2 * k + 1],
+                               (REAL)px0 + (REAL)CLS_PIXEL_CENTRE,
+                               (REAL)(px0 + PIX - 1) + (REAL)CLS_PIXEL_CENTRE, pyc))
+                continue;
             const VREAL dx = l_xy[2 * k] - pxc;
             const REAL dy = l_xy[2 * k + 1] - pyc;
             const VREAL sigma = (REAL)0.5 * (l_conic[3 * k] * dx * dx + l_conic[3 * k + 2] * dy * dy) +

@@ -40,6 +40,7 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
                    __global const REAL *means2d,     /* [C, N, 2] */
                    __global const REAL *conics,      /* [C, N, 3] */
                    __global const REAL *opac_cg,     /* [C, N] */
+                   __global const REAL *extents,     /* [C, N, 2] */
                    __global const REAL *feats,       /* [C, N, CHANNELS] */
                    __global const REAL *out_feats,   /* [C, H, W, CHANNELS] forward result */
                    __global const REAL *out_T,       /* [C, H, W] */
@@ -48,7 +49,8 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
                    __global const REAL *v_T,         /* [C, H, W] */
                    __global REAL *slots)             /* [M, G] */
 {
-    __local REAL l_xy[2 * BATCH], l_conic[3 * BATCH], l_op[BATCH], l_f[CHANNELS * BATCH];
+    __local REAL l_xy[2 * BATCH], l_conic[3 * BATCH], l_op[BATCH], l_ext[2 * BATCH];
+    __local REAL l_f[CHANNELS * BATCH];
     __local int l_slot[BATCH];
     __local REAL part[BATCH * GROUP * G];
     __local int l_max_last;
@@ -133,6 +135,8 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
             l_conic[3 * i + 1] = conics[3 * cg + 1];
             l_conic[3 * i + 2] = conics[3 * cg + 2];
             l_op[i] = opac_cg[cg];
+            l_ext[2 * i] = extents[2 * cg];
+            l_ext[2 * i + 1] = extents[2 * cg + 1];
             for (int ch = 0; ch < CHANNELS; ++ch) l_f[CHANNELS * i + ch] = feats[(size_t)cg * CHANNELS + ch];
             /* The slot of (pair, tile): the pair's first slot plus the tile's position in
              * its row-major tile rectangle, the order in which its tiles were counted. */
@@ -149,6 +153,10 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
 #endif
             __local REAL *my = part + (k * GROUP + lid) * G;
             for (int j = 0; j < G; ++j) my[j] = 0;
+            if (outside_extent(l_xy[2 * k], l_xy[2 * k + 1], l_ext[2 * k], l_ext[2 * k + 1],
+                               (REAL)px0 + (REAL)CLS_PIXEL_CENTRE,
+                               (REAL)(px0 + PIX - 1) + (REAL)CLS_PIXEL_CENTRE, pyc))
+                continue; /* the forward skipped it too */
             const REAL pos = (REAL)(b0 + k + 1);
             const VREAL dx = l_xy[2 * k] - pxc;
             const REAL dy = l_xy[2 * k + 1] - pyc;

@@ -22,7 +22,8 @@ __kernel void project(const int C, const int N,
                       __global REAL *depths,   /* [C, N] */
                       __global int *radii,     /* [C, N, 2] */
                       __global REAL *opac_cg,  /* [C, N] opacity used in compositing */
-                      __global int *rects)     /* [C, N, 4] tile rectangle x0 y0 x1 y1 */
+                      __global int *rects,     /* [C, N, 4] tile rectangle x0 y0 x1 y1 */
+                      __global REAL *extents)  /* [C, N, 2] |dx|, |dy| beyond which alpha < ALPHA_MIN */
 {
     const int cg = get_global_id(0);
     if (cg >= C * N) return; /* no barrier in this kernel */
@@ -112,6 +113,13 @@ __kernel void project(const int C, const int N,
     conics[3 * cg + 1] = -b * inv_det;
     conics[3 * cg + 2] = a * inv_det;
     opac_cg[cg] = op;
+    /* alpha >= ALPHA_MIN needs sigma <= cut = log(o / ALPHA_MIN), and over a pixel row sigma
+     * is at least dy^2 / (2 cov_yy) (likewise for columns): compositing skips a sample
+     * beyond these extents without evaluating it. Computed here from the covariance, where
+     * it is accurate even for needles whose conic has lost its determinant to rounding. */
+    const REAL cut = log(op / (REAL)ALPHA_MIN);
+    extents[2 * cg] = cut >= 0 ? sqrt(2 * cut * a) : (REAL)-1;
+    extents[2 * cg + 1] = cut >= 0 ? sqrt(2 * cut * d) : (REAL)-1;
     rects[4 * cg] = rect.x;
     rects[4 * cg + 1] = rect.y;
     rects[4 * cg + 2] = rect.z;

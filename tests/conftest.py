@@ -166,7 +166,7 @@ def engine_forward(rt, cfg: RenderConfig, scene: dict, feats: torch.Tensor, tile
     offsets, keys = stages.bin_tiles(rt, cfg, p.rects, p.depths, W, H, tile_size)
     stages.sort_segments(rt, cfg, keys, offsets)
     f = rt.array(feats.to(cfg.dtype).contiguous())
-    out, T, last = stages.composite(rt, cfg, p.means2d, p.conics, p.opacities, f, offsets, keys,
+    out, T, last = stages.composite(rt, cfg, p.means2d, p.conics, p.opacities, p.extents, f, offsets, keys,
                                     W, H, tile_size, save_last)
     res = dict(pr)
     res.update(out=out.host().clone(), T=T.host().clone(),

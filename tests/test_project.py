@@ -154,3 +154,22 @@ def test_culling(rt, cfg64, camera, run_project, ref_project):
     got_vis = (out["radii"] != 0).any(-1)
     assert torch.equal(got_vis, want["visible"])
     assert got_vis.any() and not got_vis.all()
+
+
+def test_extents_bound_where_alpha_reaches_alpha_min(rt, make_scene, run_project, ref_project, cfg64):
+    """extents[c, g] = (x, y) distances beyond which alpha < ALPHA_MIN on every row/column;
+    compositing skips samples past them, so they must equal sqrt(2 ln(o / ALPHA_MIN) cov_ii)."""
+    from clsplat import constants as K
+    scene = make_scene(seed=4, N=150, C=2)
+    got = run_project(rt, cfg64, scene)
+    want = ref_project(scene, cfg64)
+    vis = want["visible"]
+    conic = want["conics"][vis]
+    det = conic[:, 0] * conic[:, 2] - conic[:, 1] ** 2
+    cov_xx, cov_yy = conic[:, 2] / det, conic[:, 0] / det
+    cut = torch.log(want["opacities"][vis] / K.ALPHA_MIN)
+    ext = got["_proj"].extents.host()[vis]
+    ok = cut >= 0
+    assert torch.allclose(ext[ok, 0], torch.sqrt(2 * cut[ok] * cov_xx[ok]), rtol=1e-9)
+    assert torch.allclose(ext[ok, 1], torch.sqrt(2 * cut[ok] * cov_yy[ok]), rtol=1e-9)
+    assert bool((ext[~ok] == -1).all())

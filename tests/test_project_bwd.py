@@ -19,7 +19,7 @@ def _project_grads(scene, fn, dtype, antialiased):
     if fn == "engine":
         st = Settings(clsplat.get_runtime(), RenderConfig(precision="float64" if dtype == F64 else "float32"),
                       W, H, 16, 0.01, 1e10, 0.3, 0.0, antialiased)
-        means2d, conics, depths, opac, radii, _ = ProjectFn.apply(*xs, scene["Ks"].to(dtype), st)
+        means2d, conics, depths, opac, radii, _, _ = ProjectFn.apply(*xs, scene["Ks"].to(dtype), st)
         vis = (radii > 0).any(-1)
     else:
         p = ref.project(*xs[:4], xs[4], scene["Ks"].to(dtype), W, H, antialiased=antialiased)
