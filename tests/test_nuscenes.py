@@ -124,7 +124,7 @@ def test_devkit_missing_message(written, monkeypatch):
     _, root = written
     monkeypatch.setitem(sys.modules, "nuscenes", None)
     monkeypatch.setitem(sys.modules, "nuscenes.nuscenes", None)
-    with pytest.raises(ImportError, match=r"clsplat\[nuscenes\]"):
+    with pytest.raises(ImportError, match="nuscenes-devkit"):
         load_nuscenes_scene(root, VERSION, use_devkit=True)
 
 

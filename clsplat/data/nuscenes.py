@@ -15,9 +15,9 @@ Two back ends give the same result:
 
 * default: a small built-in JSON reader (no extra dependency);
 * ``use_devkit=True``: tables loaded by ``nuscenes.nuscenes.NuScenes`` from the optional
-  ``nuscenes-devkit`` package (install the extra ``clsplat[nuscenes]``).  Note: the devkit
-  1.2.0 wheel requires ``numpy<2`` and would downgrade this project's pinned numpy 2.4.6, so it
-  is not installed by default.
+  ``nuscenes-devkit`` package, installed by hand in an environment of its own: the devkit
+  1.2.0 wheel requires ``numpy<2`` and would downgrade this project's pinned numpy 2.4.6, so
+  clsplat declares no extra for it.
 
 Mapping to :class:`~clsplat.data.scene.DrivingSequence`: ``Camera.cam_to_ego`` is the camera's
 ``calibrated_sensor``; every frame also stores each camera's exact pose
@@ -70,8 +70,8 @@ def _import_devkit():
         from nuscenes.nuscenes import NuScenes  # type: ignore
     except ImportError as exc:
         raise ImportError(
-            "use_devkit=True needs the optional nuScenes devkit; install it with "
-            "`pip install clsplat[nuscenes]` (package nuscenes-devkit). "
+            "use_devkit=True needs the optional nuScenes devkit (`pip install nuscenes-devkit`; "
+            "it requires numpy<2, so use an environment of its own). "
             f"Original error: {exc}. Without it, use use_devkit=False (built-in JSON reader)."
         ) from exc
     return NuScenes
@@ -96,7 +96,7 @@ def load_tables(dataroot: str | Path, version: str = "v1.0-mini", use_devkit: bo
     """Load the 13 nuScenes tables of ``<dataroot>/<version>``.
 
     Raises FileNotFoundError for a missing folder/table, ValueError for malformed JSON or records
-    without ``token``; ImportError (naming ``clsplat[nuscenes]``) if ``use_devkit`` and the devkit
+    without ``token``; ImportError (naming ``nuscenes-devkit``) if ``use_devkit`` and the devkit
     is not installed.
     """
     root = Path(dataroot)
@@ -221,7 +221,7 @@ def load_nuscenes_scene(dataroot: str | Path, version: str = "v1.0-mini", scene:
         load_lidar: attach the sample's ``LIDAR_TOP`` sweep (world frame) when present.
         load_boxes: attach the sample's annotations.
         short_labels: map nuScenes category names to short labels (``vehicle.car`` -> ``car``).
-        use_devkit: load tables through ``nuscenes-devkit`` (extra ``clsplat[nuscenes]``).
+        use_devkit: load tables through ``nuscenes-devkit`` (package ``nuscenes-devkit``).
     """
     t = load_tables(dataroot, version, use_devkit)
     r = _Reader(t)
