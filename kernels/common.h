@@ -133,6 +133,25 @@ inline int outside_extent(REAL x, REAL y, REAL ext_x, REAL ext_y, REAL px_first,
     return ext_y < 0 || dy > ext_y * (1 + m) + m || dx > ext_x * (1 + m) + m;
 }
 
+#ifdef CHANNELS
+/* Copy sample cg's compositing parameters to position i of a batch in local memory (the
+ * forward and backward compositing kernels stage batches identically). */
+inline void stage_sample(int i, uint cg, __global const REAL *means2d, __global const REAL *conics,
+                         __global const REAL *opac_cg, __global const REAL *extents,
+                         __global const REAL *feats, __local REAL *l_xy, __local REAL *l_conic,
+                         __local REAL *l_op, __local REAL *l_ext, __local REAL *l_f) {
+    l_xy[2 * i] = means2d[2 * cg];
+    l_xy[2 * i + 1] = means2d[2 * cg + 1];
+    l_conic[3 * i] = conics[3 * cg];
+    l_conic[3 * i + 1] = conics[3 * cg + 1];
+    l_conic[3 * i + 2] = conics[3 * cg + 2];
+    l_op[i] = opac_cg[cg];
+    l_ext[2 * i] = extents[2 * cg];
+    l_ext[2 * i + 1] = extents[2 * cg + 1];
+    for (int ch = 0; ch < CHANNELS; ++ch) l_f[CHANNELS * i + ch] = feats[(size_t)cg * CHANNELS + ch];
+}
+#endif
+
 #ifdef TILE
 /* Tile rectangle [x0, x1) x [y0, y1) touched by a screen-space box of half-size radius. */
 inline int4 tile_rect(REAL2 mean2d, int2 radius, int tiles_x, int tiles_y) {
@@ -181,6 +200,50 @@ inline void sh_basis(REAL3 d, REAL *b) {
 #endif
 }
 #endif
+
+/* The EWA splat of one Gaussian in one camera. project and project_bwd both call this, so
+ * the backward differentiates exactly the arithmetic of the forward. */
+typedef struct {
+    REAL V[9];                     /* Rv M: V V^T is the camera-frame covariance */
+    REAL j00, j02, j11, j12;       /* J = [[j00, 0, j02], [0, j11, j12]] */
+    REAL tx, ty;                   /* the frustum-clamped mean J is evaluated at (times z) */
+    int clip_x, clip_y;            /* whether that clamp was active */
+    REAL T0[3], T1[3];             /* rows of J V */
+    REAL a, b, d;                  /* 2D covariance J V V^T J^T, before eps2d */
+} Ewa;
+
+/* p: camera-frame mean (z > 0); Rv: row-major world-to-camera rotation; M = R(q) S. */
+inline Ewa ewa_splat(REAL3 p, const REAL *Rv, const REAL *M, __global const REAL *K,
+                     int width, int height) {
+    Ewa e;
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            e.V[3 * i + j] = Rv[3 * i] * M[j] + Rv[3 * i + 1] * M[3 + j] + Rv[3 * i + 2] * M[6 + j];
+    const REAL fx = K[0], fy = K[4], cx = K[2], cy = K[5];
+    const REAL tan_fovx = (REAL)0.5 * width / fx, tan_fovy = (REAL)0.5 * height / fy;
+    const REAL lim_xp = (width - cx) / fx + (REAL)CLS_FRUSTUM_MARGIN * tan_fovx;
+    const REAL lim_xn = cx / fx + (REAL)CLS_FRUSTUM_MARGIN * tan_fovx;
+    const REAL lim_yp = (height - cy) / fy + (REAL)CLS_FRUSTUM_MARGIN * tan_fovy;
+    const REAL lim_yn = cy / fy + (REAL)CLS_FRUSTUM_MARGIN * tan_fovy;
+    const REAL rz = 1 / p.z, ux = p.x * rz, uy = p.y * rz;
+    e.clip_x = ux > lim_xp || ux < -lim_xn;
+    e.clip_y = uy > lim_yp || uy < -lim_yn;
+    e.tx = p.z * fmin(lim_xp, fmax(-lim_xn, ux));
+    e.ty = p.z * fmin(lim_yp, fmax(-lim_yn, uy));
+    e.j00 = fx * rz;
+    e.j02 = -fx * e.tx * rz * rz;
+    e.j11 = fy * rz;
+    e.j12 = -fy * e.ty * rz * rz;
+    for (int j = 0; j < 3; ++j) {
+        e.T0[j] = e.j00 * e.V[j] + e.j02 * e.V[6 + j];
+        e.T1[j] = e.j11 * e.V[3 + j] + e.j12 * e.V[6 + j];
+    }
+    /* Forming J V before squaring keeps needle Gaussians positive semi-definite. */
+    e.a = e.T0[0] * e.T0[0] + e.T0[1] * e.T0[1] + e.T0[2] * e.T0[2];
+    e.b = e.T0[0] * e.T1[0] + e.T0[1] * e.T1[1] + e.T0[2] * e.T1[2];
+    e.d = e.T1[0] * e.T1[0] + e.T1[1] * e.T1[1] + e.T1[2] * e.T1[2];
+    return e;
+}
 
 /* Camera centre in world coordinates from a row-major world-to-camera matrix: -R^T t. */
 inline REAL3 camera_centre(__global const REAL *vm) {

@@ -129,15 +129,7 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
         barrier(CLK_LOCAL_MEM_FENCE);
         for (int i = lid; i < nb; i += GROUP) {
             const uint cg = key_id(keys[start + b0 + i]);
-            l_xy[2 * i] = means2d[2 * cg];
-            l_xy[2 * i + 1] = means2d[2 * cg + 1];
-            l_conic[3 * i] = conics[3 * cg];
-            l_conic[3 * i + 1] = conics[3 * cg + 1];
-            l_conic[3 * i + 2] = conics[3 * cg + 2];
-            l_op[i] = opac_cg[cg];
-            l_ext[2 * i] = extents[2 * cg];
-            l_ext[2 * i + 1] = extents[2 * cg + 1];
-            for (int ch = 0; ch < CHANNELS; ++ch) l_f[CHANNELS * i + ch] = feats[(size_t)cg * CHANNELS + ch];
+            stage_sample(i, cg, means2d, conics, opac_cg, extents, feats, l_xy, l_conic, l_op, l_ext, l_f);
             /* The slot of (pair, tile): the pair's first slot plus the tile's position in
              * its row-major tile rectangle, the order in which its tiles were counted. */
             const int4 r = vload4(cg, rects);

@@ -49,32 +49,10 @@ __kernel void project(const int C, const int N,
     REAL M[9] = {Rq[0] * s0, Rq[1] * s1, Rq[2] * s2,
                  Rq[3] * s0, Rq[4] * s1, Rq[5] * s2,
                  Rq[6] * s0, Rq[7] * s1, Rq[8] * s2};
-    /* Camera-frame M: Rv M, so the camera covariance is (Rv M)(Rv M)^T. Forming the product
-     * before squaring keeps needle Gaussians symmetric positive semi-definite. */
-    REAL V[9];
-    for (int i = 0; i < 3; ++i)
-        for (int j = 0; j < 3; ++j)
-            V[3 * i + j] = vm[4 * i] * M[j] + vm[4 * i + 1] * M[3 + j] + vm[4 * i + 2] * M[6 + j];
-
-    const REAL fx = K[0], fy = K[4], cx = K[2], cy = K[5];
-    const REAL tan_fovx = (REAL)0.5 * width / fx, tan_fovy = (REAL)0.5 * height / fy;
-    const REAL lim_xp = (width - cx) / fx + (REAL)CLS_FRUSTUM_MARGIN * tan_fovx;
-    const REAL lim_xn = cx / fx + (REAL)CLS_FRUSTUM_MARGIN * tan_fovx;
-    const REAL lim_yp = (height - cy) / fy + (REAL)CLS_FRUSTUM_MARGIN * tan_fovy;
-    const REAL lim_yn = cy / fy + (REAL)CLS_FRUSTUM_MARGIN * tan_fovy;
-    const REAL rz = 1 / p.z;
-    const REAL tx = p.z * fmin(lim_xp, fmax(-lim_xn, p.x * rz));
-    const REAL ty = p.z * fmin(lim_yp, fmax(-lim_yn, p.y * rz));
-    /* J = [[fx/z, 0, -fx tx/z^2], [0, fy/z, -fy ty/z^2]]; T = J V is 2x3. */
-    const REAL j00 = fx * rz, j02 = -fx * tx * rz * rz, j11 = fy * rz, j12 = -fy * ty * rz * rz;
-    REAL T0[3], T1[3];
-    for (int j = 0; j < 3; ++j) {
-        T0[j] = j00 * V[j] + j02 * V[6 + j];
-        T1[j] = j11 * V[3 + j] + j12 * V[6 + j];
-    }
-    REAL a = T0[0] * T0[0] + T0[1] * T0[1] + T0[2] * T0[2];
-    const REAL b = T0[0] * T1[0] + T0[1] * T1[1] + T0[2] * T1[2];
-    REAL d = T1[0] * T1[0] + T1[1] * T1[1] + T1[2] * T1[2];
+    const REAL Rv[9] = {vm[0], vm[1], vm[2], vm[4], vm[5], vm[6], vm[8], vm[9], vm[10]};
+    const Ewa e = ewa_splat(p, Rv, M, K, width, height);
+    REAL a = e.a, d = e.d;
+    const REAL b = e.b;
     const REAL det_orig = a * d - b * b;
     a += eps2d;
     d += eps2d;
@@ -99,7 +77,8 @@ __kernel void project(const int C, const int N,
     const REAL rxf = fmin(ceil(extent * sqrt(a)), rcap), ryf = fmin(ceil(extent * sqrt(d)), rcap);
     if (rxf <= radius_clip && ryf <= radius_clip) return;
 
-    const REAL2 xy = (REAL2)(fx * p.x * rz + cx, fy * p.y * rz + cy);
+    const REAL rz = 1 / p.z;
+    const REAL2 xy = (REAL2)(K[0] * p.x * rz + K[2], K[4] * p.y * rz + K[5]);
     if (xy.x + rxf <= 0 || xy.x - rxf >= width || xy.y + ryf <= 0 || xy.y - ryf >= height) return;
     const int2 rad = (int2)((int)rxf, (int)ryf);
     const int4 rect = tile_rect(xy, rad, tiles_x, tiles_y);

@@ -58,30 +58,13 @@ __kernel void project_bwd(const int C, const int N,
         REAL vRv[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
 
         if (radii[2 * cg] != 0 || radii[2 * cg + 1] != 0) {
-            REAL V[9];
-            for (int i = 0; i < 3; ++i)
-                for (int j = 0; j < 3; ++j)
-                    V[3 * i + j] = Rv[3 * i] * M[j] + Rv[3 * i + 1] * M[3 + j] + Rv[3 * i + 2] * M[6 + j];
-            const REAL fx = K[0], fy = K[4], cx = K[2], cy = K[5];
-            const REAL tan_fovx = (REAL)0.5 * width / fx, tan_fovy = (REAL)0.5 * height / fy;
-            const REAL lim_xp = (width - cx) / fx + (REAL)CLS_FRUSTUM_MARGIN * tan_fovx;
-            const REAL lim_xn = cx / fx + (REAL)CLS_FRUSTUM_MARGIN * tan_fovx;
-            const REAL lim_yp = (height - cy) / fy + (REAL)CLS_FRUSTUM_MARGIN * tan_fovy;
-            const REAL lim_yn = cy / fy + (REAL)CLS_FRUSTUM_MARGIN * tan_fovy;
+            const Ewa e = ewa_splat(p, Rv, M, K, width, height);
+            const REAL fx = K[0], fy = K[4];
             const REAL rz = 1 / p.z, rz2 = rz * rz, rz3 = rz2 * rz;
-            const REAL ux = p.x * rz, uy = p.y * rz;
-            const int clip_x = ux > lim_xp || ux < -lim_xn, clip_y = uy > lim_yp || uy < -lim_yn;
-            const REAL tx = p.z * fmin(lim_xp, fmax(-lim_xn, ux));
-            const REAL ty = p.z * fmin(lim_yp, fmax(-lim_yn, uy));
-            const REAL j00 = fx * rz, j02 = -fx * tx * rz2, j11 = fy * rz, j12 = -fy * ty * rz2;
-            REAL T0[3], T1[3];
-            for (int j = 0; j < 3; ++j) {
-                T0[j] = j00 * V[j] + j02 * V[6 + j];
-                T1[j] = j11 * V[3 + j] + j12 * V[6 + j];
-            }
-            REAL a = T0[0] * T0[0] + T0[1] * T0[1] + T0[2] * T0[2];
-            const REAL b = T0[0] * T1[0] + T0[1] * T1[1] + T0[2] * T1[2];
-            REAL d = T1[0] * T1[0] + T1[1] * T1[1] + T1[2] * T1[2];
+            const REAL tx = e.tx, ty = e.ty, j00 = e.j00, j02 = e.j02, j11 = e.j11, j12 = e.j12;
+            const REAL *V = e.V, *T0 = e.T0, *T1 = e.T1;
+            REAL a = e.a, d = e.d;
+            const REAL b = e.b;
             const REAL det_o = a * d - b * b;
             a += eps2d;
             d += eps2d;
@@ -134,9 +117,9 @@ __kernel void project_bwd(const int C, const int N,
                 }
             /* J(p) */
             vp.z += -fx * rz2 * vj00 - fy * rz2 * vj11;
-            if (clip_x) vp.z += fx * tx * rz3 * vj02;
+            if (e.clip_x) vp.z += fx * tx * rz3 * vj02;
             else { vp.x += -fx * rz2 * vj02; vp.z += 2 * fx * p.x * rz3 * vj02; }
-            if (clip_y) vp.z += fy * ty * rz3 * vj12;
+            if (e.clip_y) vp.z += fy * ty * rz3 * vj12;
             else { vp.y += -fy * rz2 * vj12; vp.z += 2 * fy * p.y * rz3 * vj12; }
             /* means2d = (fx x / z + cx, fy y / z + cy) */
             const REAL vx2 = v_means2d[2 * cg], vy2 = v_means2d[2 * cg + 1];
