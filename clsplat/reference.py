@@ -7,7 +7,6 @@ Memory grows as C * H * W * N: use it on small scenes only.
 """
 from __future__ import annotations
 
-import math
 from typing import Optional
 
 import numpy as np

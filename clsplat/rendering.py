@@ -1,7 +1,9 @@
 """The front door: :func:`rasterization`, gsplat's interface on the OpenCL engine.
 
 It validates input, chooses the channels to composite (colour, depth or both, by render
-mode), runs the stage drivers of :mod:`clsplat.stages` and assembles gsplat's return values.
+mode), chains the autograd Functions of :mod:`clsplat.autograd` (project, SH, rasterize;
+each runs the stage drivers of :mod:`clsplat.stages`), adds the background and assembles
+gsplat's return values.
 """
 from __future__ import annotations
 

@@ -1,7 +1,6 @@
 """PandaSet writer/loader round trip and error messages."""
 import gzip
 import json
-import math
 
 import numpy as np
 import pytest

@@ -42,7 +42,7 @@ Measured cost on the 2-core development machine (Xeon, numpy 2.4.6): 6 cameras x
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
