@@ -20,7 +20,7 @@ test: $(STAMP)
 	POCL_MAX_WORK_GROUP_SIZE=256 $(VENV)/bin/pytest -q tests
 
 bench: $(STAMP)
-	$(PY) bench/bench_stages.py
+	$(VENV)/bin/clsplat bench all --out bench/out
 
 info: $(STAMP)
 	$(VENV)/bin/clsplat info
