@@ -45,6 +45,14 @@ def _grads(fn, scene, weight_mask=None, **kw):
     return [x.grad for x in xs], meta
 
 
+def _gradcheck(scene, xs, **kw) -> bool:
+    def f(*args):
+        r, a, _ = _render(clsplat.rasterization, list(args), scene, **kw)
+        return r, a
+
+    return torch.autograd.gradcheck(f, xs, eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=True)
+
+
 @pytest.mark.parametrize("mode", ["RGB", "D", "ED", "RGB+D", "RGB+ED"])
 def test_gradcheck_render_modes(make_scene, mode):
     scene = make_scene(seed=3, N=6, C=2, width=24, height=16, scale_range=(0.15, 0.4))
@@ -52,37 +60,20 @@ def test_gradcheck_render_modes(make_scene, mode):
     if mode in ("D", "ED"):
         xs[4].requires_grad_(False)  # colours do not enter a depth-only render
         xs[6].requires_grad_(False)
-
-    def f(*args):
-        r, a, _ = _render(clsplat.rasterization, list(args), scene, render_mode=mode)
-        return r, a
-
-    assert torch.autograd.gradcheck(f, xs, eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=True)
+    assert _gradcheck(scene, xs, render_mode=mode)
 
 
 @pytest.mark.parametrize("degree", [0, 1, 2, 3])
 def test_gradcheck_sh(make_scene, degree):
     scene = make_scene(seed=5, N=5, C=2, width=24, height=16, sh_degree=degree, K_extra=1,
                        scale_range=(0.15, 0.4))
-    xs = _inputs(scene)
-
-    def f(*args):
-        r, a, _ = _render(clsplat.rasterization, list(args), scene, render_mode="RGB+ED")
-        return r, a
-
-    assert torch.autograd.gradcheck(f, xs, eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=True)
+    assert _gradcheck(scene, _inputs(scene), render_mode="RGB+ED")
 
 
 def test_gradcheck_antialiased_and_per_camera_colors(make_scene):
     scene = make_scene(seed=11, N=6, C=2, width=24, height=16, D=2, colors_per_camera=True,
                        scale_range=(0.05, 0.3))
-    xs = _inputs(scene)
-
-    def f(*args):
-        r, a, _ = _render(clsplat.rasterization, list(args), scene, rasterize_mode="antialiased")
-        return r, a
-
-    assert torch.autograd.gradcheck(f, xs, eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=True)
+    assert _gradcheck(scene, _inputs(scene), rasterize_mode="antialiased")
 
 
 @pytest.mark.parametrize("seed", range(4))
