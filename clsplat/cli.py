@@ -5,6 +5,8 @@
                                       surround-view scene (PoCL CPU by default)
     clsplat fit OUT [...]             fit Gaussians to an image (the optimisation example)
     clsplat bench REPORT [...]        benchmark reports (stages, precision, stability, all)
+    clsplat train FAMILY [...]        train a model (drivingforward, pgt, autosplat)
+    clsplat eval FAMILY [...]         evaluate a trained model
 """
 from __future__ import annotations
 
@@ -40,6 +42,9 @@ def main(argv: list[str] | None = None) -> int:
     if argv[:1] == ["bench"]:
         from .bench_cli import main as bench
         return bench(argv[1:])
+    if argv[:1] in (["train"], ["eval"]):
+        from .models.common.cli import dispatch
+        return dispatch(argv[0], argv[1:])
     if argv[:1] == ["fit"]:
         from .fit_image import _cli
         _cli(argv[1:])
@@ -56,6 +61,8 @@ def main(argv: list[str] | None = None) -> int:
     d.set_defaults(fn=_demo)
     sub.add_parser("fit", help="fit Gaussians to an image (see clsplat fit --help)")
     sub.add_parser("bench", help="benchmark reports (see clsplat bench --help)")
+    sub.add_parser("train", help="train a model: clsplat train {drivingforward,pgt,autosplat} --help")
+    sub.add_parser("eval", help="evaluate a model: clsplat eval {drivingforward,pgt,autosplat} --help")
     a = p.parse_args(argv)
     return a.fn(a)
 

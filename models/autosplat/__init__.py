@@ -1,0 +1,1 @@
+"""clsplat.models.autosplat (in progress)."""

@@ -1,0 +1,1 @@
+"""clsplat.models.pgt (in progress)."""
