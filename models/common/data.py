@@ -93,7 +93,7 @@ class DataSource:
         if self._full is None:
             if self.kind == "pandaset":
                 from clsplat.data import load_pandaset
-                self._full = load_pandaset(self.path)
+                self._full = load_pandaset(self.path, load_lidar=any((self.path / "lidar").glob("*.pkl.gz")))
             else:
                 from clsplat.data import load_nuscenes_scene
                 self._full = load_nuscenes_scene(self.path, self.version, self.scene)
