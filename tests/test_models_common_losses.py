@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from kornia.filters import box_blur
 
 from clsplat.models.common.losses import (
     chamfer_distance,
@@ -35,6 +36,12 @@ def test_ssim_map3_matches_direct_computation():
     got = ssim_map3(a, b)
     want = np.stack([[numpy_box_ssim(a[i, c].numpy(), b[i, c].numpy()) for c in range(3)] for i in range(2)])
     np.testing.assert_allclose(got.numpy(), want, rtol=0, atol=1e-12)
+    # the same statistics as kornia's reflect-padded box filter
+    mu, sq, ab = (box_blur(x, 3, border_type="reflect") for x in (a, a * a, a * b))
+    mu_b, sq_b = box_blur(b, 3, border_type="reflect"), box_blur(b * b, 3, border_type="reflect")
+    num = (2 * mu * mu_b + 1e-4) * (2 * (ab - mu * mu_b) + 9e-4)
+    den = (mu**2 + mu_b**2 + 1e-4) * (sq - mu**2 + sq_b - mu_b**2 + 9e-4)
+    torch.testing.assert_close(got, num / den)
 
 
 def test_photometric_error_zero_for_identical_and_grows_with_noise():

@@ -91,33 +91,43 @@ def test_depth_metrics_hand_values_and_sky():
 CHANNELS = (64, 128, 256, 512, 512)
 
 
-def write_lpips_files(tmp_path, lin_scale=1.0, lin_keys=None):
-    """A torchvision-layout VGG-16 file (random, with classifier) and an lpips v0.1 vgg.pth-layout file."""
+def write_lin(path, keys=None, channels=CHANNELS):
+    """An lpips v0.1 vgg.pth-layout file: lin{k}.model.1.weight [1, C_k, 1, 1], random non-negative."""
     g = torch.Generator().manual_seed(3)
+    keys = keys or [f"lin{k}.model.1.weight" for k in range(5)]
+    lin = {k: torch.rand(1, c, 1, 1, generator=g) for k, c in zip(keys, channels)}
+    torch.save(lin, path)
+    return lin
+
+
+@pytest.fixture(scope="module")
+def vgg_file(tmp_path_factory):
+    """A torchvision-layout VGG-16 file (random features, plus a classifier entry), written once."""
+    g = torch.Generator().manual_seed(5)
     vgg = {k: torch.randn(v.shape, generator=g) * 0.05 for k, v in VGG16().state_dict().items()}
-    vgg["classifier.6.weight"] = torch.zeros(1000, 4096)
-    torch.save(vgg, tmp_path / "vgg16.pth")
-    keys = lin_keys or [f"lin{k}.model.1.weight" for k in range(5)]
-    lin = {k: torch.rand(1, c, 1, 1, generator=g) * lin_scale for k, c in zip(keys, CHANNELS)}
-    torch.save(lin, tmp_path / "lin.pth")
-    return tmp_path / "vgg16.pth", tmp_path / "lin.pth", lin
+    vgg["classifier.6.bias"] = torch.zeros(1000)
+    path = tmp_path_factory.mktemp("lpips") / "vgg16.pth"
+    torch.save(vgg, path)
+    return path
 
 
-def test_lpips_from_local_files(tmp_path):
-    vgg_path, lin_path, lin = write_lpips_files(tmp_path)
-    model, msg = lpips_or_none(vgg_path, lin_path)
-    assert isinstance(model, LPIPS) and msg.startswith("LPIPS on") and str(lin_path) in msg
+def test_lpips_from_local_files(tmp_path, vgg_file):
+    lin = write_lin(tmp_path / "lin.pth")
+    model, msg = lpips_or_none(vgg_file, tmp_path / "lin.pth")
+    assert isinstance(model, LPIPS) and msg.startswith("LPIPS on") and str(tmp_path / "lin.pth") in msg
     assert torch.equal(model.lin4.model[1].weight, lin["lin4.model.1.weight"])
     g = torch.Generator().manual_seed(4)
-    a = torch.rand(2, 3, 32, 32, generator=g)
+    a = torch.rand(2, 3, 16, 16, generator=g)  # relu5_3 at 1x1
     b = (a + 0.2 * torch.randn(a.shape, generator=g)).clamp(0, 1)
     assert torch.equal(model(a, a), torch.zeros(2))
     d = model(a, b)
     assert d.shape == (2,) and torch.all(d > 0)
-    # linear in the calibration weights, and symmetric
-    model2 = LPIPS(vgg_path, write_lpips_files(tmp_path, lin_scale=2.0)[1])
-    torch.testing.assert_close(model2(a, b), 2 * d)
-    torch.testing.assert_close(model(b, a), d)
+    torch.testing.assert_close(model(b, a), d)  # symmetric
+    # linear in the calibration weights
+    with torch.no_grad():
+        for k in range(5):
+            getattr(model, f"lin{k}").model[1].weight.mul_(2.0)
+    torch.testing.assert_close(model(a, b), 2 * d)
     # frozen, stays in eval mode, gradients reach the inputs
     model.train()
     assert not model.training and not any(p.requires_grad for p in model.parameters())
@@ -126,21 +136,21 @@ def test_lpips_from_local_files(tmp_path):
     assert x.grad.abs().sum() > 0
 
 
-def test_lpips_off_and_bad_files(tmp_path):
+def test_lpips_off_and_bad_files(tmp_path, vgg_file):
     assert lpips_or_none(None, None) == (None, LPIPS_OFF_MESSAGE)
     assert LPIPS_OFF_MESSAGE == "LPIPS off: no VGG-16 / LPIPS weights given (nothing is downloaded)"
-    vgg_path, lin_path, _ = write_lpips_files(tmp_path)
+    write_lin(tmp_path / "lin.pth")
     with pytest.raises(ValueError, match="lin_weights"):
-        lpips_or_none(vgg_path, None)
+        lpips_or_none(vgg_file, None)
     with pytest.raises(ValueError, match="does not exist"):
-        LPIPS(vgg_path, tmp_path / "missing.pth")
-    _, wrong, _ = write_lpips_files(tmp_path, lin_keys=[f"lin{k}.weight" for k in range(5)])
-    with pytest.raises(ValueError, match=r"lin.pth.*not lpips v0.1 vgg.pth layout.*missing"):
-        LPIPS(vgg_path, wrong)
-    torch.save({f"lin{k}.model.1.weight": torch.rand(1, 3, 1, 1) for k in range(5)}, tmp_path / "shape.pth")
+        LPIPS(vgg_file, tmp_path / "missing.pth")
+    write_lin(tmp_path / "wrong.pth", keys=[f"lin{k}.weight" for k in range(5)])
+    with pytest.raises(ValueError, match=r"wrong.pth.*not lpips v0.1 vgg.pth layout.*missing"):
+        LPIPS(vgg_file, tmp_path / "wrong.pth")
+    write_lin(tmp_path / "shape.pth", channels=(3,) * 5)
     with pytest.raises(ValueError, match=r"lin0.model.1.weight of shape \[1, 3, 1, 1\]"):
-        LPIPS(vgg_path, tmp_path / "shape.pth")
+        LPIPS(vgg_file, tmp_path / "shape.pth")
     # a ResNet file is not a VGG-16
     torch.save({"conv1.weight": torch.zeros(64, 3, 7, 7)}, tmp_path / "resnet.pth")
     with pytest.raises(ValueError, match=r"VGG16 weights: .*resnet.pth.*missing keys"):
-        LPIPS(tmp_path / "resnet.pth", lin_path)
+        LPIPS(tmp_path / "resnet.pth", tmp_path / "lin.pth")

@@ -7,7 +7,7 @@ argument). Images are [B, C, H, W] floats, nominally in [0, 1].
 from __future__ import annotations
 
 import torch
-from kornia.filters import box_blur
+import torch.nn.functional as F
 from torch import Tensor
 
 __all__ = [
@@ -39,20 +39,30 @@ def check_image_pair(a: Tensor, b: Tensor, name_a: str = "a", name_b: str = "b",
         raise ValueError(f"{name_a} and {name_b}: shapes differ, {list(a.shape)} vs {list(b.shape)}")
 
 
+def _box3(x: Tensor) -> Tensor:
+    """3x3 mean of the reflection-padded x [B, C, H, W], as two separable shifted sums."""
+    x = F.pad(x, (1, 1, 1, 1), mode="reflect")
+    x = x[..., :, :-2] + x[..., :, 1:-1] + x[..., :, 2:]
+    return (x[..., :-2, :] + x[..., 1:-1, :] + x[..., 2:, :]) / 9.0
+
+
 def ssim_map3(a: Tensor, b: Tensor) -> Tensor:
-    """monodepth2's SSIM map: local statistics over a 3x3 box window (``kornia.filters.box_blur``)
-    of the reflection-padded images, C1 = 0.01², C2 = 0.03² (data range 1). Not kornia's
-    ``metrics.ssim``, whose window is Gaussian.
+    """monodepth2's SSIM map: local statistics over a 3x3 box window of the reflection-padded
+    images, C1 = 0.01², C2 = 0.03² (data range 1).
+
+    kornia's ``metrics.ssim`` has only a Gaussian window, so the box statistics are computed here
+    as shifted sums; they equal ``kornia.filters.box_blur(x, 3, border_type="reflect")`` (tested)
+    and run 3-10x faster on the CPU (forward and backward; /tmp bench in the report).
 
     a, b: [B, C, H, W] with H, W >= 2 -> SSIM [B, C, H, W], in [-1, 1] up to rounding.
     """
     check_image_pair(a, b, "a", "b")
     if min(a.shape[-2:]) < 2:
         raise ValueError(f"a: reflection padding needs H, W >= 2, got {list(a.shape[-2:])}")
-    mu_a, mu_b = box_blur(a, 3, border_type="reflect"), box_blur(b, 3, border_type="reflect")
-    var_a = box_blur(a * a, 3, border_type="reflect") - mu_a * mu_a
-    var_b = box_blur(b * b, 3, border_type="reflect") - mu_b * mu_b
-    cov = box_blur(a * b, 3, border_type="reflect") - mu_a * mu_b
+    mu_a, mu_b = _box3(a), _box3(b)
+    var_a = _box3(a * a) - mu_a * mu_a
+    var_b = _box3(b * b) - mu_b * mu_b
+    cov = _box3(a * b) - mu_a * mu_b
     num = (2 * mu_a * mu_b + SSIM_C1) * (2 * cov + SSIM_C2)
     den = (mu_a * mu_a + mu_b * mu_b + SSIM_C1) * (var_a + var_b + SSIM_C2)
     return num / den

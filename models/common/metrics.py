@@ -175,8 +175,8 @@ class LPIPS(nn.Module):
     - ``vgg_weights``: a torchvision ``vgg16`` state dict (``features.*``; ``classifier.*`` ignored);
     - ``lin_weights``: the lpips wheel's ``lpips/weights/v0.1/vgg.pth`` (``lin0..lin4.model.1.weight``).
 
-    ``forward(a, b)``: images [B, 3, H, W] in [0, 1] (mapped to [-1, 1], then lpips's shift/scale)
-    -> [B]: per tap ``relu1_2 .. relu5_3``, channel-unit-normalised features, squared difference,
+    ``forward(a, b)``: images [B, 3, H, W] in [0, 1] (mapped to [-1, 1], then lpips's shift/scale;
+    computed in the module's dtype) -> [B]: per tap ``relu1_2 .. relu5_3``, channel-unit-normalised features, squared difference,
     the 1x1 linear weights, spatial mean; summed over taps. 0 for identical images. Parameters are
     frozen and the module stays in eval mode; gradients flow to the inputs (usable as a loss).
     ``self.message`` says what was loaded.
@@ -186,9 +186,9 @@ class LPIPS(nn.Module):
         super().__init__()
         if vgg_weights is None or lin_weights is None:
             raise ValueError("vgg_weights, lin_weights: LPIPS needs both local files (use lpips_or_none for optional)")
+        lin = _load_lin(os.fspath(lin_weights))
         self.net = VGG16()
         vgg_msg = load_backbone_weights(self.net, vgg_weights)
-        lin = _load_lin(os.fspath(lin_weights))
         for k, c in enumerate(_LPIPS_CHANNELS):
             setattr(self, f"lin{k}", _LinLayer(c))
         self.load_state_dict(lin, strict=False)
@@ -203,9 +203,9 @@ class LPIPS(nn.Module):
 
     def forward(self, a: Tensor, b: Tensor) -> Tensor:
         check_image_pair(a, b, "a", "b", channels=3)
-        x = torch.cat([a, b], 0) * 2.0 - 1.0
-        x = (x - self.shift.to(x)) / self.scale.to(x)
-        total = a.new_zeros(a.shape[0])
+        x = torch.cat([a, b], 0).to(self.shift.dtype) * 2.0 - 1.0  # the network's dtype
+        x = (x - self.shift) / self.scale
+        total = x.new_zeros(a.shape[0])
         for k, f in enumerate(self.net.lpips_features(x)):
             f = f / (f.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
             fa, fb = f.chunk(2, 0)
