@@ -102,6 +102,11 @@ def test_chamfer_matches_brute_force_and_chunks():
     torch.testing.assert_close(chamfer_distance(p, q), want)
     torch.testing.assert_close(chamfer_distance(p, q, max_elems=1000), want)  # many small chunks
     assert torch.equal(chamfer_distance(p, p), torch.zeros(2, dtype=torch.float64))
+    # float32 world coordinates 5 km from the origin keep their precision (clouds are centred)
+    far_p, far_q = (p + 5000).float(), (q + 5000).float()
+    d64 = ((far_p.double()[:, :, None] - far_q.double()[:, None]) ** 2).sum(-1)
+    want64 = d64.min(2).values.mean(1) + d64.min(1).values.mean(1)
+    torch.testing.assert_close(chamfer_distance(far_p, far_q).double(), want64, rtol=1e-4, atol=0)
     pg = p.clone().requires_grad_(True)
     chamfer_distance(pg, q).sum().backward()
     assert torch.isfinite(pg.grad).all() and pg.grad.abs().sum() > 0
