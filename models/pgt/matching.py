@@ -74,8 +74,10 @@ def sample_along_rays(feats: Tensor, Ks: Tensor, cam_to_world: Tensor, u_hyp: Te
         grid = torch.stack([2 * uv[..., 0] / w - 1, 2 * uv[..., 1] / h - 1], -1)
         ok = (z > 1e-3) & (grid.abs() <= 1).all(-1)
         grid = torch.where(ok[..., None], grid, torch.full_like(grid, 2.0))
+        # border padding: a valid point within half a pixel of the edge is not blended with zeros
         s = F.grid_sample(feats[others], grid.reshape(len(others), D, h * w, 2), mode="bilinear",
-                          padding_mode="zeros", align_corners=False)  # [V-1, C, D, h*w]
+                          padding_mode="border", align_corners=False)  # [V-1, C, D, h*w]
+        s = s * ok.reshape(len(others), 1, D, h * w).to(s.dtype)
         samples.append(s.reshape(len(others), C, D, h, w).permute(0, 2, 1, 3, 4))
         valid.append(ok.reshape(len(others), D, h, w).to(feats.dtype))
     return torch.stack(samples), torch.stack(valid)
