@@ -140,7 +140,7 @@ def accumulate_lidar(seq: DrivingSequence, frame_ids: Sequence[int], box_margin:
         if f.lidar is None:
             continue
         pts = f.lidar.to_world(f.ego_to_world).points.astype(np.float64)
-        lab = None if point_labels is None else np.asarray(point_labels[i], dtype=np.uint8)
+        lab = None if point_labels is None or point_labels[i] is None else np.asarray(point_labels[i], np.uint8)
         if lab is not None and lab.shape[0] != pts.shape[0]:
             raise ValueError(f"data: frame {i} has {lab.shape[0]} LiDAR labels for {pts.shape[0]} points")
         keep = np.ones(len(pts), dtype=bool)

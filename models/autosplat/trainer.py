@@ -73,7 +73,7 @@ def _lidar_classes(seq: DrivingSequence, i: int, cam: str) -> np.ndarray:
     c = seq.camera(cam)
     out = np.full((c.height, c.width), UNKNOWN, np.uint8)
     f = seq.frames[i]
-    if labels is None or f.lidar is None:
+    if labels is None or labels[i] is None or f.lidar is None:
         return out
     pts = f.lidar.to_world(f.ego_to_world).points.astype(np.float64)
     lab = np.asarray(labels[i])
