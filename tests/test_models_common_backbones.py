@@ -34,8 +34,8 @@ def torchvision_vgg16_keys() -> list[str]:
     return keys + [f"classifier.{i}.{s}" for i in (0, 3, 6) for s in ("weight", "bias")]
 
 
-def fake_torchvision_file(tmp_path, model: torch.nn.Module, keys: list[str], extra=None, name="w.pth"):
-    """A file with exactly torchvision's keys: the model's own tensors (randomised) plus the heads."""
+def fake_torchvision_file(path, model: torch.nn.Module, keys: list[str], extra=None):
+    """A file with exactly torchvision's keys, random tensors of the model's shapes, plus ``extra``."""
     own = model.state_dict()
     g = torch.Generator().manual_seed(0)
     state = {}
@@ -49,23 +49,31 @@ def fake_torchvision_file(tmp_path, model: torch.nn.Module, keys: list[str], ext
             else:
                 state[k] = torch.randn(v.shape, generator=g) * 0.1
     state.update(extra or {})
-    path = tmp_path / name
     torch.save(state, path)
     return path, state
 
 
+@pytest.fixture(scope="module")
+def resnet_file(tmp_path_factory):
+    """(path, state): a torchvision-layout resnet18 file with a 1000-class fc, written once."""
+    fc = {"fc.weight": torch.randn(1000, 512), "fc.bias": torch.randn(1000)}
+    path = tmp_path_factory.mktemp("resnet") / "resnet18.pth"
+    return fake_torchvision_file(path, ResNet18(), torchvision_resnet18_keys(), fc)
+
+
 def test_resnet18_names_match_torchvision():
     keys = torchvision_resnet18_keys()
-    assert set(ResNet18(num_classes=1000).state_dict()) == set(keys)
+    headed = ResNet18(num_classes=1000)
+    assert set(headed.state_dict()) == set(keys)
     assert set(ResNet18().state_dict()) == set(keys) - {"fc.weight", "fc.bias"}
     # torchvision's resnet18 has 11,689,512 parameters
-    assert sum(p.numel() for p in ResNet18(num_classes=1000).parameters()) == 11_689_512
+    assert sum(p.numel() for p in headed.parameters()) == 11_689_512
+    assert headed(torch.rand(2, 3, 32, 32)).shape == (2, 1000)
 
 
-def test_resnet18_loads_torchvision_file_strict(tmp_path):
+def test_resnet18_loads_torchvision_file_strict(tmp_path, resnet_file):
+    path, state = resnet_file
     model = ResNet18()
-    fc = {"fc.weight": torch.zeros(1000, 512), "fc.bias": torch.zeros(1000)}
-    path, state = fake_torchvision_file(tmp_path, model, torchvision_resnet18_keys(), fc)
     msg = load_backbone_weights(model, path)
     assert msg.startswith(f"ResNet18: loaded weights from {path}") and "fc.bias" in msg
     for k, v in model.state_dict().items():
@@ -73,15 +81,15 @@ def test_resnet18_loads_torchvision_file_strict(tmp_path):
     # with a head, the fc entries load too
     headed = ResNet18(num_classes=1000)
     load_backbone_weights(headed, path)
-    assert torch.equal(headed.fc.weight, fc["fc.weight"])
+    assert torch.equal(headed.fc.weight, state["fc.weight"])
     # files without num_batches_tracked (older torchvision) load as well
     old = {k: v for k, v in state.items() if not k.endswith("num_batches_tracked")}
     torch.save(old, tmp_path / "old.pth")
-    load_backbone_weights(ResNet18(), tmp_path / "old.pth")
+    load_backbone_weights(model, tmp_path / "old.pth")
 
 
-def test_resnet18_six_channel_conv1_duplicated_and_halved(tmp_path):
-    path, state = fake_torchvision_file(tmp_path, ResNet18(), torchvision_resnet18_keys())
+def test_resnet18_six_channel_conv1_duplicated_and_halved(resnet_file):
+    path, state = resnet_file
     model = ResNet18(in_channels=6)
     msg = load_backbone_weights(model, path, in_channels=6)
     assert "6 input channels" in msg
@@ -94,19 +102,16 @@ def test_resnet18_six_channel_conv1_duplicated_and_halved(tmp_path):
     x = torch.rand(1, 3, 32, 32)
     torch.testing.assert_close(model.forward_features(torch.cat([x, x], 1))[0], three.forward_features(x)[0])
     with pytest.raises(ValueError, match="in_channels"):
-        load_backbone_weights(ResNet18(), path, in_channels=6)
-
-
-def test_resnet18_levels():
-    feats = ResNet18(in_channels=6).forward_features(torch.rand(2, 6, 64, 96))
+        load_backbone_weights(three, path, in_channels=6)
+    # levels of the pose network's encoder
+    feats = model.forward_features(torch.rand(2, 6, 64, 96))
     assert [tuple(f.shape) for f in feats] == [
         (2, 64, 32, 48), (2, 64, 16, 24), (2, 128, 8, 12), (2, 256, 4, 6), (2, 512, 2, 3)]
-    assert ResNet18(num_classes=7)(torch.rand(2, 3, 32, 32)).shape == (2, 7)
     with pytest.raises(ValueError, match="x: expected"):
-        ResNet18().forward_features(torch.rand(1, 6, 32, 32))
+        three.forward_features(torch.rand(1, 6, 32, 32))
 
 
-def test_load_errors_name_the_file(tmp_path):
+def test_load_errors_name_the_file(tmp_path, resnet_file):
     model = ResNet18()
     assert load_backbone_weights(model, None) == "ResNet18: random initialisation (no weights file given)"
     with pytest.raises(ValueError, match="does not exist"):
@@ -117,7 +122,7 @@ def test_load_errors_name_the_file(tmp_path):
     torch.save([torch.zeros(1)], tmp_path / "list.pth")
     with pytest.raises(ValueError, match="not a state dict"):
         load_backbone_weights(model, tmp_path / "list.pth")
-    path, state = fake_torchvision_file(tmp_path, model, torchvision_resnet18_keys())
+    state = {k: v for k, v in resnet_file[1].items() if not k.startswith("fc.")}
     renamed = {("module." + k if k.startswith("layer4") else k): v for k, v in state.items()}
     torch.save(renamed, tmp_path / "renamed.pth")
     with pytest.raises(ValueError, match=r"renamed.pth.*missing keys: layer4.*unexpected keys: module.layer4"):
@@ -134,7 +139,7 @@ def test_vgg16_names_slices_and_load(tmp_path):
     assert set(vgg.state_dict()) == {k for k in keys if k.startswith("features.")}
     assert sum(p.numel() for p in vgg.parameters()) == 14_714_688  # torchvision vgg16().features
     head = {k: torch.zeros(1) for k in keys if k.startswith("classifier.")}
-    path, state = fake_torchvision_file(tmp_path, vgg, keys, head)
+    path, state = fake_torchvision_file(tmp_path / "vgg16.pth", vgg, keys, head)
     assert load_backbone_weights(vgg, path).startswith("VGG16: loaded weights")
     assert torch.equal(vgg.features[28].weight, state["features.28.weight"])
     x = torch.rand(1, 3, 32, 48)

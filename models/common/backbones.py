@@ -116,7 +116,7 @@ class ResNet18(nn.Module):
         f4 = self.layer4(f3)
         return [f0, f1, f2, f3, f4]
 
-    def forward(self, x: Tensor):
+    def forward(self, x: Tensor) -> Tensor | list[Tensor]:
         feats = self.forward_features(x)
         if self.fc is None:
             return feats
@@ -165,14 +165,17 @@ class VGG16(nn.Module):
                 nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
                 nn.init.zeros_(m.bias)
 
+    @staticmethod
+    def _check(x: Tensor) -> None:
+        if not isinstance(x, Tensor) or x.dim() != 4 or x.shape[1] != 3:
+            raise ValueError(f"x: expected [B, 3, H, W], got {list(getattr(x, 'shape', []))}")
+
     def forward(self, x: Tensor) -> Tensor:
-        if x.dim() != 4 or x.shape[1] != 3:
-            raise ValueError(f"x: expected [B, 3, H, W], got {list(x.shape)}")
+        self._check(x)
         return self.features(x)
 
     def lpips_features(self, x: Tensor) -> list[Tensor]:
-        if x.dim() != 4 or x.shape[1] != 3:
-            raise ValueError(f"x: expected [B, 3, H, W], got {list(x.shape)}")
+        self._check(x)
         out = []
         for _, start, stop in VGG16_LPIPS_SLICES:
             for i in range(start, stop):
@@ -224,7 +227,7 @@ def load_backbone_weights(module: nn.Module, path: Optional[str | os.PathLike], 
     if in_channels is None:
         in_channels = own_in
     if in_channels != own_in:
-        raise ValueError(f"in_channels: {in_channels} requested but {name}.conv1 takes {own_in} channels")
+        raise ValueError(f"in_channels: {in_channels} requested but {name}'s first conv takes {own_in} channels")
     if not os.path.isfile(path):
         raise ValueError(f"{name} weights: file {path!r} does not exist")
     try:
