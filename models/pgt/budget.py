@@ -10,6 +10,8 @@
   the baselines the base opacity); :func:`random_mask`: the random-pruning baseline.
 * :func:`importance_target`: the 0/1 mask of pixels that survive when the lowest-gradient 4x4
   patches are merged into one pixel each, as many as K_v needs.
+* :func:`fill_gain`: how much a kept Gaussian grows to cover its pruned neighbours (not in
+  EcoSplat; applied to every pruning method alike, see :meth:`~.model.PGTOutput.gaussians`).
 * :func:`io_loss`: w_io·(w_op·BCE(opacity, target) + BCE(rendered alpha, 1)).
 * :func:`sample_kappa`: the progressive schedule κ ~ U(max(0.85 - 0.05·⌊step/interval⌋, 0.05), 0.95).
 """
@@ -25,7 +27,7 @@ from torch import Tensor, nn
 from .heads import GaussianHeads, RawGaussians
 
 __all__ = ["BudgetHeads", "check_kappa", "high_frequency_energy", "view_weights", "per_view_budgets",
-           "topk_mask", "random_mask", "importance_target", "io_loss", "sample_kappa"]
+           "topk_mask", "random_mask", "fill_gain", "importance_target", "io_loss", "sample_kappa"]
 
 
 def check_kappa(kappa) -> float:
@@ -118,6 +120,15 @@ def random_mask(budgets: Tensor, height: int, width: int, generator: torch.Gener
     V = budgets.shape[0]
     scores = torch.rand(V, height, width, generator=generator)
     return topk_mask(scores, budgets.cpu()).to(budgets.device)
+
+
+def fill_gain(keep: Tensor, window: int) -> Tensor:
+    """[V, H, W] scale factor 1/sqrt(d), d = the share of kept pixels in the ``window`` x ``window``
+    square around each pixel (at least one pixel's share): a kept Gaussian whose neighbourhood lost
+    a share 1 - d of its pixels covers 1/d times the area."""
+    d = F.avg_pool2d(keep.to(torch.float32)[:, None], window, stride=1, padding=window // 2,
+                     count_include_pad=False)[:, 0]
+    return d.clamp_min(1.0 / window ** 2).rsqrt()
 
 
 def importance_target(images: Tensor, budgets: Tensor, patch: int = 4) -> Tensor:

@@ -23,7 +23,7 @@ from clsplat.models.common.backbones import ResidualUNetEncoder
 from clsplat.models.common.gaussians import GaussianSet, rotate_sh
 from clsplat.models.common.geometry import check_rigid, matrix_to_quat, quat_multiply, unproject
 
-from .budget import BudgetHeads, check_kappa, per_view_budgets, topk_mask, view_weights
+from .budget import BudgetHeads, check_kappa, fill_gain, per_view_budgets, topk_mask, view_weights
 from .heads import Decoder, DepthResidualHead, GaussianHeads, activate
 from .matching import make_matcher, u_to_depth
 from .presets import PGTPreset
@@ -41,7 +41,9 @@ class PGTOutput:
     depth0, depth: the same as z-depth (metres); prob: [V, D, H/8, W/8] matching distribution;
     means [V, H, W, 3], quats [V, H, W, 4], scales [V, H, W, 3], opacities [V, H, W],
     sh [V, H, W, K, 3]: Gaussians in the world frame; keep: bool [V, H, W] (None: all kept);
-    budgets: long [V] per-view counts (None without a budget); kappa: the budget used.
+    budgets: long [V] per-view counts (None without a budget); kappa: the budget used;
+    footprint: [V, H, W] one pixel's width at the Gaussian's depth (depth / fx, metres);
+    fill_window, scale_cap: see :meth:`gaussians`.
     """
 
     u0: Tensor
@@ -57,12 +59,27 @@ class PGTOutput:
     keep: Tensor | None = None
     budgets: Tensor | None = None
     kappa: float = 1.0
+    footprint: Tensor | None = None
+    fill_window: int = 0
+    scale_cap: float = float("inf")
 
     def gaussians(self, keep: Tensor | None = None) -> GaussianSet:
         """The kept Gaussians (``keep`` [V, H, W] bool overrides :attr:`keep`; None keeps all),
-        view-major, row-major order."""
+        view-major, row-major order.
+
+        With a pruning mask and ``fill_window`` > 0, a kept Gaussian that stands for its pruned
+        neighbours is widened to cover them: with g = 1/sqrt(share of kept pixels in the
+        ``fill_window`` square around it) (:func:`~.budget.fill_gain`), its variance grows by
+        (g² - 1)·(footprint/2)², i.e. from one pixel's area to g² pixels' (capped at ``scale_cap``).
+        The same for every pruning method; nothing changes without a mask (or where g = 1).
+        """
         keep = self.keep if keep is None else keep
-        g = GaussianSet(self.means.reshape(-1, 3), self.quats.reshape(-1, 4), self.scales.reshape(-1, 3),
+        scales = self.scales
+        if keep is not None and self.fill_window > 0 and self.footprint is not None:
+            g2 = fill_gain(keep, self.fill_window) ** 2
+            extra = (g2 - 1.0) * (0.5 * self.footprint) ** 2
+            scales = (scales ** 2 + extra[..., None]).sqrt().clamp_max(self.scale_cap)
+        g = GaussianSet(self.means.reshape(-1, 3), self.quats.reshape(-1, 4), scales.reshape(-1, 3),
                         self.opacities.reshape(-1), self.sh.reshape(-1, *self.sh.shape[-2:]))
         return g if keep is None else g.index(keep.reshape(-1))
 
@@ -163,7 +180,8 @@ class PGT(nn.Module):
             sh = torch.stack([rotate_sh(sh[v].reshape(-1, Kc, 3), R[v]) for v in range(V)]).reshape(sh.shape)
         return PGTOutput(u0=u0, u=u, depth0=u_to_depth(u0, p.near, p.far), depth=depth, prob=prob, means=means,
                          quats=quats, scales=g["scales"], opacities=g["opacities"], sh=sh, keep=keep,
-                         budgets=budgets, kappa=kappa)
+                         budgets=budgets, kappa=kappa, footprint=depth / Ks[:, 0, 0, None, None],
+                         fill_window=p.fill_window, scale_cap=p.scale_cap_m)
 
     @staticmethod
     def expected_count(kappa: float, views: int, height: int, width: int) -> int:

@@ -39,7 +39,9 @@ class PGTPreset(Preset):
     Budget stage (EcoSplat): κ ~ U(max(``kappa_start`` - ``kappa_decay``·⌊step/``kappa_interval``⌋,
     ``kappa_min``), ``kappa_max``); per-view budgets softmax(HF energy / ``hf_temperature``);
     importance target from ``patch`` x ``patch`` patches; loss ``w_io``·(``w_io_opacity``·BCE(opacity,
-    target) + BCE(alpha, 1)) plus the render loss.
+    target) + BCE(alpha, 1)) plus the render loss. ``fill_window`` (0 = off): a pruned set's kept
+    Gaussians widen to cover the pixels pruned around them in that window (our addition, every
+    method alike; :meth:`~.model.PGTOutput.gaussians`).
     """
 
     name: str
@@ -87,6 +89,7 @@ class PGTPreset(Preset):
     hf_temperature: float = 0.3
     patch: int = 4
     rate_kernel: int = 7
+    fill_window: int = 9
     w_io: float = 0.1
     w_io_opacity: float = 0.1
 
@@ -118,6 +121,8 @@ class PGTPreset(Preset):
             raise bad("hf_temperature", "must be > 0")
         if self.rate_kernel % 2 == 0:
             raise bad("rate_kernel", "must be odd")
+        if self.fill_window < 0 or (self.fill_window and self.fill_window % 2 == 0):
+            raise bad("fill_window", "must be 0 (off) or odd")
         if self.height % self.patch or self.width % self.patch:
             raise bad("patch", "must divide height and width")
 
