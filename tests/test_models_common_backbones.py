@@ -172,6 +172,7 @@ def test_residual_unet_encoder_shapes_and_params():
     def block(i, o):
         return 9 * i * o + o + 9 * o * o + o + 4 * o + ((i * o + o + 2 * o) if i != o else 0)
     assert n == 25 * 32 + 32 + 64 + 2 * block(32, 32) + block(32, 48) + block(48, 48) + block(48, 96) + block(96, 96)
+    assert enc.stem[1].num_groups == 8 and enc.stage3[0].norm1.num_groups == 12  # GPS-Gaussian's groups
     small = ResidualUNetEncoder(3, (8, 12, 20), norm="batch")
     assert sum(p.numel() for p in small.parameters()) == ResidualUNetEncoder.num_params(3, (8, 12, 20), "batch")
     with pytest.raises(ValueError, match="x: expected"):

@@ -128,6 +128,8 @@ def test_lpips_from_local_files(tmp_path, vgg_file):
         for k in range(5):
             getattr(model, f"lin{k}").model[1].weight.mul_(2.0)
     torch.testing.assert_close(model(a, b), 2 * d)
+    with pytest.raises(ValueError, match="H, W >= 16"):
+        model(a[..., :8, :], b[..., :8, :])
     # frozen, stays in eval mode, gradients reach the inputs
     model.train()
     assert not model.training and not any(p.requires_grad for p in model.parameters())

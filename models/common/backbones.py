@@ -275,19 +275,20 @@ def load_backbone_weights(module: nn.Module, path: Optional[str | os.PathLike], 
 # --------------------------------------------------------------------------------------------
 # GPS-Gaussian residual U-Net encoder (RAFT-style residual blocks)
 # --------------------------------------------------------------------------------------------
-def _groups(channels: int, per_group: int = 8) -> int:
-    """GroupNorm group count: ``channels // 8`` (8 channels per group), lowered until it divides."""
-    g = max(1, channels // per_group)
+def _groups(channels: int, groups: Optional[int] = None) -> int:
+    """GroupNorm group count: ``groups`` if given, else ``channels // 8`` (8 channels per group,
+    RAFT's rule), lowered until it divides ``channels``."""
+    g = max(1, min(channels, groups if groups is not None else channels // 8))
     while channels % g:
         g -= 1
     return g
 
 
-def make_norm(norm: Optional[str], channels: int) -> nn.Module:
-    """``"group"`` (GroupNorm, 8 channels per group), ``"batch"``, ``"instance"`` (no affine) or
-    ``None`` (identity)."""
+def make_norm(norm: Optional[str], channels: int, groups: Optional[int] = None) -> nn.Module:
+    """``"group"`` (GroupNorm; ``groups`` groups, default 8 channels per group), ``"batch"``,
+    ``"instance"`` (no affine) or ``None`` (identity)."""
     if norm == "group":
-        return nn.GroupNorm(_groups(channels), channels)
+        return nn.GroupNorm(_groups(channels, groups), channels)
     if norm == "batch":
         return nn.BatchNorm2d(channels)
     if norm == "instance":
@@ -344,7 +345,7 @@ class ResidualBlock(nn.Module):
 
 class ResidualUNetEncoder(nn.Module):
     """The encoder half of GPS-Gaussian's residual U-Net (DrivingForward's depth encoder, PGT's
-    image encoder): a 5x5 stride-2 stem conv to ``channels[0]`` + norm + ReLU, then three stages
+    image encoder): a 5x5 stride-2 stem conv to ``channels[0]`` + norm (8 groups) + ReLU, then three stages
     of two :class:`ResidualBlock` each (the first of stages 2 and 3 with stride 2).
 
     ``forward(x [B, in_ch, H, W])`` -> ``[c0 @ H/2, c1 @ H/4, c2 @ H/8]`` (sizes round up).
@@ -365,7 +366,7 @@ class ResidualUNetEncoder(nn.Module):
         c0, c1, c2 = channels
         self.in_ch, self.channels, self.norm = in_ch, channels, norm
         self.stem = nn.Sequential(
-            nn.Conv2d(in_ch, c0, kernel_size=5, stride=2, padding=2), make_norm(norm, c0), nn.ReLU(inplace=True)
+            nn.Conv2d(in_ch, c0, kernel_size=5, stride=2, padding=2), make_norm(norm, c0, groups=8), nn.ReLU(inplace=True)
         )
         self.stage1 = nn.Sequential(ResidualBlock(c0, c0, 1, norm), ResidualBlock(c0, c0, 1, norm))
         self.stage2 = nn.Sequential(ResidualBlock(c0, c1, 2, norm), ResidualBlock(c1, c1, 1, norm))

@@ -175,7 +175,7 @@ class LPIPS(nn.Module):
     - ``vgg_weights``: a torchvision ``vgg16`` state dict (``features.*``; ``classifier.*`` ignored);
     - ``lin_weights``: the lpips wheel's ``lpips/weights/v0.1/vgg.pth`` (``lin0..lin4.model.1.weight``).
 
-    ``forward(a, b)``: images [B, 3, H, W] in [0, 1] (mapped to [-1, 1], then lpips's shift/scale;
+    ``forward(a, b)``: images [B, 3, H, W], H, W >= 16, in [0, 1] (mapped to [-1, 1], then lpips's shift/scale;
     computed in the module's dtype) -> [B]: per tap ``relu1_2 .. relu5_3``, channel-unit-normalised features, squared difference,
     the 1x1 linear weights, spatial mean; summed over taps. 0 for identical images. Parameters are
     frozen and the module stays in eval mode; gradients flow to the inputs (usable as a loss).
@@ -203,6 +203,8 @@ class LPIPS(nn.Module):
 
     def forward(self, a: Tensor, b: Tensor) -> Tensor:
         check_image_pair(a, b, "a", "b", channels=3)
+        if min(a.shape[-2:]) < 16:
+            raise ValueError(f"a: LPIPS's VGG-16 needs H, W >= 16 (four 2x2 pools), got {list(a.shape[-2:])}")
         x = torch.cat([a, b], 0).to(self.shift.dtype) * 2.0 - 1.0  # the network's dtype
         x = (x - self.shift) / self.scale
         total = x.new_zeros(a.shape[0])
