@@ -1,13 +1,13 @@
 """PGT benchmark figures and tables from a finished ``bench/pgt_run.sh`` run folder.
 
 Reads RUN/base/log.jsonl, RUN/budget/log.jsonl, RUN/eval/{budget.json,metrics.json} and
-RUN/speed/pgt_speed.json (whichever exist) and writes:
+RUN/speed/pgt_speed.json and RUN/matching/pgt_matching.json (whichever exist) and writes:
 
 * ``FIG/pgt_curves.png``: training curves of both stages (running mean over ``--window`` steps):
   base loss, render and depth terms; budget-stage render and L_io terms with the sampled κ;
 * ``FIG/pgt_budget.png``: a copy of the evaluation's budget curve (PSNR against count and render
   time, Pareto front);
-* markdown tables on stdout (budget curve, depth, speed) for bench/results/pgt.md.
+* markdown tables on stdout (budget curve, depth, speed, matchers) for bench/results/pgt.md.
 
 Run: ``python bench/pgt_figures.py bench/out/pgt --figures bench/figures``.
 """
@@ -111,6 +111,14 @@ def main() -> None:
         for r in json.loads(sp.read_text()):
             print(f"| {r['preset']} | {r['matching']} | {r['height']} x {r['width']} | {r['parameters']:,} | "
                   f"{r['step_s']:.3f} | {r['prediction_s']:.3f} |")
+    mt = run / "matching" / "pgt_matching.json"
+    if mt.is_file():
+        print("\n| matcher | steps | parameters | s / step | s / prediction | AbsRel D₀ | AbsRel D | δ<1.25 D₀ "
+              "| PSNR | SSIM |\n|---|---|---|---|---|---|---|---|---|---|")
+        for r in json.loads(mt.read_text()):
+            print(f"| {r['matching']} | {r['steps']} | {r['parameters']:,} | {r['step_s']:.2f} | "
+                  f"{r['prediction_s']:.3f} | {r['abs_rel_coarse']:.3f} | {r['abs_rel_refined']:.3f} | "
+                  f"{r['delta1_coarse']:.3f} | {r['psnr']:.2f} | {r['ssim']:.3f} |")
 
 
 if __name__ == "__main__":

@@ -1,13 +1,17 @@
 #!/bin/sh
 # The PGT benchmark: base stage, then EcoSplat's budget stage, on the small preset; the budget
-# curve on held-out synthetic streets; seconds per step and per prediction for every preset.
-# Usage: sh bench/pgt_run.sh OUT [BASE_STEPS] [BUDGET_STEPS] [SCENES]
-# Runs niced, one torch thread (the machine is shared; timings are under that load).
+# curve on held-out synthetic streets; seconds per step and per prediction for every preset; the
+# matcher comparison (plane sweep vs epipolar attention, MATCH_STEPS steps each; 0 skips it);
+# then the figures (bench/figures/pgt_curves.png, pgt_budget.png) and tables for the results page.
+# Usage: sh bench/pgt_run.sh OUT [BASE_STEPS] [BUDGET_STEPS] [SCENES] [MATCH_STEPS]
+# Runs niced, one torch thread (the machine is shared; timings are under that load). Every stage
+# resumes from its checkpoint, so a rerun after an interruption continues where it stopped.
 set -eu
-OUT=${1:?usage: sh bench/pgt_run.sh OUT [BASE_STEPS] [BUDGET_STEPS] [SCENES]}
+OUT=${1:?usage: sh bench/pgt_run.sh OUT [BASE_STEPS] [BUDGET_STEPS] [SCENES] [MATCH_STEPS]}
 BASE=${2:-700}
 BUDGET=${3:-250}
 SCENES=${4:-8}
+MATCH=${5:-100}
 PY=${PY:-.venv/bin/python}
 export POCL_MAX_WORK_GROUP_SIZE=256
 mkdir -p "$OUT"
@@ -22,3 +26,7 @@ nice -n 10 $PY -c "import sys; from clsplat.models.pgt.cli import evaluate; sys.
   --checkpoint "$OUT/budget/checkpoint.pt" --data synthetic --budgets 1,0.5,0.2,0.1,0.05 --num-scenes "$SCENES" \
   --threads 1 --out "$OUT/eval"
 nice -n 10 $PY bench/pgt_speed.py --out "$OUT/speed" --presets tiny,small,paper --repeats 3
+if [ "$MATCH" -gt 0 ]; then
+  nice -n 10 $PY bench/pgt_matching.py --preset small --steps "$MATCH" --num-scenes 4 --out "$OUT/matching"
+fi
+$PY bench/pgt_figures.py "$OUT" --figures bench/figures
