@@ -96,6 +96,12 @@ def test_bad_input_is_named(street, tmp_path):
         Trainer(prepare_data(bad, CAMS, 4), TINY, Switches(), tmp_path, progress=False)
     with pytest.raises(ValueError, match="--data"):
         train(["--data", "kitti:/x", "--out", str(tmp_path / "x"), "--no-progress"])
+    with pytest.raises(ValueError, match="--frames"):
+        train(["--frames", "4:2", "--out", str(tmp_path / "x"), "--no-progress"])
+    with pytest.raises(ValueError, match="--batch-size"):
+        train(["--batch-size", "2", "--out", str(tmp_path / "x"), "--no-progress"])
+    with pytest.raises(ValueError, match="--scale"):
+        train(["--scale", "0", "--out", str(tmp_path / "x"), "--no-progress"])
 
 
 @pytest.mark.filterwarnings("ignore:All-NaN slice")
