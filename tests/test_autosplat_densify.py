@@ -88,7 +88,7 @@ def test_fit_grows_the_set_where_the_image_has_detail():
         loss.backward()
         opt.step()
         stats.add(meta["means2d"].absgrad, meta["radii"], W, H, torch.arange(len(g)))
-        return float(loss)
+        return float(loss.detach())
 
     first = step()
     n0 = len(g)

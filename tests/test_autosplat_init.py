@@ -97,3 +97,34 @@ def test_dataset_lidar_labels_are_used_without_image_semantics():
         pix = seq.frames[i].semantics[seq.cameras[ci].name].reshape(-1)[lin]
         agree += int(_SEM_TO_BG[pix] == init.labels[k])
     assert agree / lidar.sum() > 0.97, agree / lidar.sum()
+
+
+def test_user_mask_folder_fills_semantics_and_names_bad_masks(tmp_path):
+    """Masks written as class-index PNGs (<CAM>/<NN>.png) load back exactly; a missing, wrongly
+    sized or out-of-range mask is a ValueError naming the file."""
+    from clsplat.data.scene import SEMANTIC_CLASSES, DrivingSequence, Frame
+    from clsplat.io.images import write_image
+    from clsplat.models.autosplat.init import load_mask_folder
+
+    seq = generate_sequence(height=16, width=24, num_frames=2, seed=0, dt=0.2)
+    for k, f in enumerate(seq.frames):
+        for c, m in f.semantics.items():
+            (tmp_path / c).mkdir(exist_ok=True)
+            write_image(tmp_path / c / f"{k + 3:02d}.png", m.astype(np.float32) / 255.0)
+    bare = DrivingSequence(seq.cameras, [Frame(f.timestamp, f.ego_to_world, f.images, lidar=f.lidar)
+                                         for f in seq.frames])
+    load_mask_folder(bare, tmp_path, [3, 4])  # source frames 3 and 4 -> NN = 03, 04
+    for f, g in zip(seq.frames, bare.frames):
+        for c in seq.camera_names:
+            assert np.array_equal(f.semantics[c], g.semantics[c])
+    with pytest.raises(ValueError, match="05.png' missing"):
+        load_mask_folder(bare, tmp_path, [4, 5])
+    with pytest.raises(ValueError, match="does not exist"):
+        load_mask_folder(bare, tmp_path / "nope", [3, 4])
+    cam = seq.camera_names[0]
+    write_image(tmp_path / cam / "03.png", np.zeros((8, 8), np.float32))
+    with pytest.raises(ValueError, match="03.png' is"):
+        load_mask_folder(bare, tmp_path, [3, 4])
+    write_image(tmp_path / cam / "03.png", np.full((16, 24), len(SEMANTIC_CLASSES) / 255.0, np.float32))
+    with pytest.raises(ValueError, match="holds class"):
+        load_mask_folder(bare, tmp_path, [3, 4])
