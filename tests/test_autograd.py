@@ -175,3 +175,26 @@ def test_replay_and_divide_agree(make_scene):
     g2, _ = _grads(clsplat.rasterization, scene, bwd_divide=True)
     for name, a, b in zip(NAMES, g1, g2):
         assert torch.allclose(a, b, rtol=1e-8, atol=1e-10 * (1 + b.abs().max().item())), name
+
+
+def test_a_render_with_gradients_is_freed_when_dropped(make_scene):
+    """The outputs must not hold their own autograd node through ctx (a cycle through C++ that
+    Python's collector cannot free): dropped, a render leaves no tensor behind, with or without
+    backward."""
+    import gc
+
+    def live_tensors() -> int:
+        gc.collect()
+        return sum(1 for o in gc.get_objects() if isinstance(o, torch.Tensor))
+
+    scene = make_scene(seed=2, N=20, C=2, width=32, height=24)
+    xs = _inputs(scene)
+    for backward in (False, True):
+        _render(clsplat.rasterization, xs, scene)  # first call: builds and caches
+        before = live_tensors()
+        for _ in range(3):
+            img, alpha, meta = _render(clsplat.rasterization, xs, scene)
+            if backward:
+                (img.sum() + alpha.sum()).backward()
+            del img, alpha, meta
+        assert live_tensors() == before, f"renders leaked tensors (backward={backward})"
