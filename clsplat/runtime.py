@@ -144,10 +144,9 @@ class Runtime:
         if mode != "auto":
             return mode == "share"
         try:
-            unified = bool(self.device.host_unified_memory)
-        except cl.Error:  # removed in some OpenCL 3.0 drivers
-            unified = False
-        return unified or bool(self.device.type & cl.device_type.CPU)
+            return bool(self.device.host_unified_memory)
+        except cl.Error:  # the query is deprecated in OpenCL 2.0: fall back to the type
+            return bool(self.device.type & cl.device_type.CPU)
 
     @property
     def is_cpu(self) -> bool:
@@ -289,8 +288,18 @@ class DeviceArray:
         if self.tensor.numel() == 0:  # OpenCL has no empty buffers; kernels never read it
             self.buffer = cl.Buffer(rt.context, mf.READ_WRITE, 16)
         elif self.zero_copy:
-            self.buffer = cl.Buffer(rt.context, mf.READ_WRITE | mf.USE_HOST_PTR,
-                                    hostbuf=self.tensor.numpy())
+            host = self.tensor.numpy()
+            self.buffer = cl.Buffer(rt.context, mf.READ_WRITE | mf.USE_HOST_PTR, hostbuf=host)
+            # Hand the tensor's contents to the device through a map for writing and its
+            # unmap: free where the memory is shared, and correct where the runtime keeps a
+            # copy of its own (or, like Oclgrind's checker, tracks what the host wrote).
+            # Non-blocking: the queue is in order, and no queued command can use this buffer.
+            mapped, ev = cl.enqueue_map_buffer(rt.queue, self.buffer, cl.map_flags.WRITE, 0,
+                                               host.shape, host.dtype, is_blocking=False)
+            if mapped.ctypes.data != host.ctypes.data:
+                ev.wait()
+                np.copyto(mapped, host)
+            mapped.base.release(rt.queue)
         else:
             self.buffer = cl.Buffer(rt.context, mf.READ_WRITE | mf.COPY_HOST_PTR,
                                     hostbuf=self.tensor.numpy())

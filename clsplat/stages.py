@@ -7,6 +7,7 @@ Nothing here validates user input: :mod:`clsplat.validate` has done that.
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -97,7 +98,15 @@ def sh_colors(rt: Runtime, cfg: RenderConfig, means: DeviceArray, viewmats: Devi
 
 
 def _scan_exclusive(rt: Runtime, src: DeviceArray, dst: DeviceArray, events) -> None:
+    """dst = exclusive prefix sum of src (int32), by pyopencl's scan on the device, or on the
+    host where ``CLSPLAT_HOST_SCAN=1`` (for tools that cannot run pyopencl's scan, such as
+    Oclgrind's uninitialised-memory checker)."""
     n = src.tensor.numel()
+    if os.environ.get("CLSPLAT_HOST_SCAN", "0") == "1":
+        c = src.host().to(torch.int64)
+        ex = (torch.cumsum(c, 0) - c).to(torch.int32).contiguous()
+        cl.enqueue_copy(rt.queue, dst.buffer, ex.numpy(), is_blocking=True)
+        return
     a = cl_array.Array(rt.queue, (n,), np.int32, data=src.buffer)
     b = cl_array.Array(rt.queue, (n,), np.int32, data=dst.buffer)
     rt.hold(src.buffer, dst.buffer)
@@ -240,12 +249,13 @@ CHANNEL_CHUNK = 32  # channels per compositing launch at most (gsplat's channel_
 
 def composite_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: int,
                      geom_grads: int = 0, color_grad: bool = False,
-                     backward: bool = False) -> tuple[int, int, int]:
-    """(pixels per work-item, batch size, channels per launch) for compositing here.
+                     backward: bool = False) -> tuple[int, int, int, int]:
+    """(pixels per work-item, batch size, channels per launch, waves) for compositing here.
 
     Sized for :attr:`Runtime.local_mem` (at most 48 KiB, what GPUs offer). ``geom_grads``
     geometry gradient values (backward only) and, with ``color_grad``, one colour gradient
-    per channel of a chunk are staged per item and sample in local memory too.
+    per channel of a chunk are staged per item and sample in local memory too, in ``waves``
+    waves of items (see kernels/composite_bwd.cl).
     """
     # 8 floats or 4 doubles fill one 256-bit AVX register; PoCL rejects wider double vectors
     # on CPUs without AVX-512 (no kernel is produced).
@@ -260,22 +270,30 @@ def composite_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: i
         raise ValueError(f"tile_size: {tile_size}x{tile_size} tiles need work-groups of {group} "
                          f"items with {pix} pixel(s) per item; the device allows {rt.max_group}")
 
-    def per_sample(chunk: int) -> int:  # local bytes per staged sample (see the kernels)
+    def per_sample(chunk: int, waves: int) -> int:  # local bytes per staged sample (kernels)
         if not backward:
             return (8 + chunk) * real
+        pg = geom_grads + chunk * color_grad
         staged_f = chunk if channels <= chunk else 1  # features for f . v_out (not WIDE)
-        return (8 + staged_f + group * (geom_grads + chunk * color_grad)) * real + 8
+        return (8 + staged_f + group // waves * pg + (pg if waves > 1 else 0)) * real + 8
 
     budget = rt.local_mem - 64  # the kernels' scalars
-    chunk = min(channels, CHANNEL_CHUNK)
-    while chunk > 1 and per_sample(chunk) > budget:
-        chunk = -(-chunk // 2)
-    if per_sample(chunk) > budget:
-        raise ValueError(f"tile_size: {tile_size}x{tile_size} tiles with {pix} pixel(s) per item "
-                         f"need {per_sample(chunk)} bytes of local memory per sample, over the "
-                         f"{rt.local_mem} available; use a smaller tile_size or a larger pix")
-    batch = max(1, min(32 if backward else group, budget // per_sample(chunk)))
-    return pix, batch, chunk
+    chunk, waves = min(channels, CHANNEL_CHUNK), 1
+    # Fewer channels per launch first (down to 8), then partials handed over in waves.
+    while per_sample(chunk, waves) > budget:
+        if chunk > 8:
+            chunk = -(-chunk // 2)
+        elif waves < group:
+            waves *= 2
+        elif chunk > 1:
+            chunk = -(-chunk // 2)
+        else:
+            raise ValueError(f"tile_size: {tile_size}x{tile_size} tiles with {pix} pixel(s) per "
+                             f"item need {per_sample(chunk, waves)} bytes of local memory per "
+                             f"sample, over the {rt.local_mem} available; use a smaller tile_size")
+    cap = (32 if waves == 1 else 4) if backward else group  # waves keep partials in registers
+    batch = max(1, min(cap, budget // per_sample(chunk, waves)))
+    return pix, batch, chunk, waves
 
 
 def _composite_kernel(rt: Runtime, cfg: RenderConfig, stage: str, defines: dict, group: int,
@@ -300,7 +318,7 @@ def composite(rt: Runtime, cfg: RenderConfig, means2d: DeviceArray, conics: Devi
     C = means2d.tensor.shape[0]
     CH = feats.tensor.shape[-1]
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
-    pix, batch, chunk = composite_layout(rt, cfg, tile_size, CH)
+    pix, batch, chunk, _ = composite_layout(rt, cfg, tile_size, CH)
     out = rt.empty((C, height, width, CH), cfg.dtype)
     T = rt.empty((C, height, width), cfg.dtype)
     last = rt.empty((C, height, width), torch.int32) if save_last else None
@@ -348,7 +366,7 @@ def composite_bwd(rt: Runtime, cfg: RenderConfig, fwd: dict, v_out: DeviceArray,
     M = fwd["keys"].tensor.numel()
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
     geom_cols = (8 if absgrad else 6) * geom
-    pix, batch, chunk = composite_layout(rt, cfg, tile_size, CH, geom_grads=geom_cols,
+    pix, batch, chunk, waves = composite_layout(rt, cfg, tile_size, CH, geom_grads=geom_cols,
                                          color_grad=color, backward=True)
     nbytes = M * G * (8 if cfg.precision == "float64" else 4)
     if nbytes > rt.device.max_mem_alloc_size:
@@ -365,7 +383,7 @@ def composite_bwd(rt: Runtime, cfg: RenderConfig, fwd: dict, v_out: DeviceArray,
         defines = cfg.defines(tile_size) | {
             "PIX": pix, "BATCH": batch, "CHANNELS": CH, "CCHUNK": chunk,
             "GEOM_GRAD": geom and ch0 == 0, "COLOR_GRAD": color, "ABSGRAD": absgrad,
-            "BWD_DIVIDE": divide, "SLOT_G": G, "SLOT_COLOR0": geom_cols}
+            "BWD_DIVIDE": divide, "SLOT_G": G, "SLOT_COLOR0": geom_cols, "WAVES": waves}
         k = _composite_kernel(rt, cfg, "composite_bwd", defines, group, tile_size)
         _record(events, "composite_bwd", rt.enqueue(
             k, C * tiles_x * tiles_y * group, group, np.int32(width), np.int32(height),

@@ -28,11 +28,16 @@
  *
  * The pixel sums of each sample's gradient are reduced inside the group in a fixed order and
  * written to that intersection's slot; no float atomics, so results are bitwise reproducible.
+ * The partials of a batch are summed over the group's items in item order. With WAVES > 1
+ * (large groups, e.g. 32x32 tiles at one pixel per item) each item keeps its partials in
+ * private memory and the items hand them over in WAVES waves of GROUP / WAVES, so local
+ * memory holds one wave; the sums, and so the results, are the same as with one wave.
+ *
  * Slot layout (SLOT_G values): [geometry: v_xy(2) v_conic(3) v_opacity(1) (|v_xy|(2))]
  * [colour: v_feat(CHANNELS)], the colour block starting at column SLOT_COLOR0.
  *
  * Build parameters: REAL_DOUBLE, TILE, PIX, BATCH, CHANNELS, CCHUNK, GEOM_GRAD, COLOR_GRAD,
- * ABSGRAD, BWD_DIVIDE, SLOT_G, SLOT_COLOR0, ALPHA_MIN, ALPHA_MAX.
+ * ABSGRAD, BWD_DIVIDE, SLOT_G, SLOT_COLOR0, WAVES, ALPHA_MIN, ALPHA_MAX.
  */
 
 #define GROUP (TILE * TILE / PIX)
@@ -40,6 +45,7 @@
 #define G_GEOM (GEOM_GRAD ? (ABSGRAD ? 8 : 6) : 0)
 #define PG (G_GEOM + (COLOR_GRAD ? CCHUNK : 0)) /* partials per item and sample, this launch */
 #define WIDE (CHANNELS > CCHUNK)
+#define WAVE (GROUP / WAVES)
 
 __kernel __attribute__((reqd_work_group_size(GROUP, 1, 1)))
 void composite_bwd(const int width, const int height, const int tiles_x, const int tiles_per_cam,
@@ -64,7 +70,11 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
     __local REAL l_f[(WIDE ? 1 : CCHUNK) * BATCH];
     __local int l_slot[BATCH];
     __local uint l_cg[BATCH];
-    __local REAL part[BATCH * GROUP * PG];
+    __local REAL part[BATCH * WAVE * PG];
+#if WAVES > 1
+    __local REAL l_acc[BATCH * PG];
+    REAL my_p[BATCH * PG];
+#endif
     __local int l_max_last;
 
     const int tile = get_group_id(0), lid = get_local_id(0);
@@ -153,7 +163,11 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
 #else
             const int k = kk;
 #endif
+#if WAVES == 1
             __local REAL *my = part + (k * GROUP + lid) * PG;
+#else
+            REAL *my = my_p + k * PG;
+#endif
             for (int j = 0; j < PG; ++j) my[j] = 0;
             if (outside_extent(l_xy[2 * k], l_xy[2 * k + 1], l_ext[2 * k], l_ext[2 * k + 1],
                                (REAL)px0 + (REAL)CLS_PIXEL_CENTRE,
@@ -224,12 +238,33 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
         }
         barrier(CLK_LOCAL_MEM_FENCE);
         /* Sum each sample's per-item partials in item order and write its slot. */
+#if WAVES == 1
         for (int idx = lid; idx < nb * PG; idx += GROUP) {
             const int k = idx / PG, j = idx - k * PG;
-            const int col = j < G_GEOM ? j : SLOT_COLOR0 + ch0 + (j - G_GEOM);
-            if (j >= G_GEOM && ch0 + (j - G_GEOM) >= CHANNELS) continue;
             REAL acc = 0;
             for (int w = 0; w < GROUP; ++w) acc += part[(k * GROUP + w) * PG + j];
+#else
+        for (int idx = lid; idx < nb * PG; idx += GROUP) l_acc[idx] = 0;
+        for (int wave = 0; wave < WAVES; ++wave) {
+            if (lid / WAVE == wave)
+                for (int k = 0; k < nb; ++k)
+                    for (int j = 0; j < PG; ++j)
+                        part[(k * WAVE + lid - wave * WAVE) * PG + j] = my_p[k * PG + j];
+            barrier(CLK_LOCAL_MEM_FENCE);
+            for (int idx = lid; idx < nb * PG; idx += GROUP) {
+                const int k = idx / PG, j = idx - k * PG;
+                REAL acc = l_acc[idx];
+                for (int w = 0; w < WAVE; ++w) acc += part[(k * WAVE + w) * PG + j];
+                l_acc[idx] = acc;
+            }
+            barrier(CLK_LOCAL_MEM_FENCE);
+        }
+        for (int idx = lid; idx < nb * PG; idx += GROUP) {
+            const int k = idx / PG, j = idx - k * PG;
+            const REAL acc = l_acc[idx];
+#endif
+            const int col = j < G_GEOM ? j : SLOT_COLOR0 + ch0 + (j - G_GEOM);
+            if (j >= G_GEOM && ch0 + (j - G_GEOM) >= CHANNELS) continue;
             slots[(size_t)l_slot[k] * SLOT_G + col] = acc;
         }
     }
