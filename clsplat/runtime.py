@@ -33,7 +33,7 @@ import torch
 
 __all__ = [
     "BuildError", "DeviceError", "Runtime", "DeviceArray", "get_runtime", "list_devices",
-    "describe_devices", "LOCAL_MEM_BUDGET", "INT32_MAX",
+    "describe_devices", "LOCAL_MEM_BUDGET", "INT32_MAX", "available_host_memory",
 ]
 
 _BASE_OPTIONS = ("-cl-std=CL1.2", "-cl-denorms-are-zero")
@@ -55,6 +55,23 @@ class BuildError(RuntimeError):
         super().__init__(
             f"building kernels/{stage}.cl for {device} failed\n"
             f"options: {' '.join(self.options)}\ncompiler log:\n{log}")
+
+
+def available_host_memory() -> int:
+    """Bytes of host memory available now (Linux ``MemAvailable``; elsewhere the physical
+    total). Every device array is backed by a host tensor, so allocations are checked against
+    it before they are made, never left to fail in the allocator."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        return 1 << 62
 
 
 def _kernel_source(name: str) -> str:
@@ -247,10 +264,27 @@ class Runtime:
         self.queue.finish()
         self._in_flight.clear()
 
+    def check_memory(self, nbytes: int, what: str) -> None:
+        """Refuse an allocation of ``nbytes`` for ``what`` (a message naming the argument to
+        blame) that exceeds the device's allocation limit, its global memory or the host
+        memory available now."""
+        host = available_host_memory()
+        limit = min(int(self.device.max_mem_alloc_size), int(self.device.global_mem_size), host)
+        if nbytes > limit:
+            raise ValueError(f"{what} needs {nbytes >> 20} MiB, over the {limit >> 20} MiB that can "
+                             f"be allocated (device allocation limit "
+                             f"{self.device.max_mem_alloc_size >> 20} MiB, host memory available "
+                             f"{host >> 20} MiB)")
+
     def array(self, tensor: torch.Tensor) -> "DeviceArray":
         return DeviceArray(self, tensor)
 
     def empty(self, shape, dtype: torch.dtype, zero: bool = True) -> "DeviceArray":
+        n = 1
+        for d in shape:
+            n *= int(d)
+        self.check_memory(n * torch.empty((), dtype=dtype).element_size(),
+                          f"an intermediate array {list(shape)} {dtype}")
         t = torch.zeros(shape, dtype=dtype) if zero else torch.empty(shape, dtype=dtype)
         return DeviceArray(self, t)
 

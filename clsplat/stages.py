@@ -134,10 +134,12 @@ def bin_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Device
     # scan would wrap silently, and counting ~1e9 intersections only to refuse them is slow.
     r = rects.host().reshape(-1, 4).to(torch.int64)
     total = int(((r[:, 2] - r[:, 0]) * (r[:, 3] - r[:, 1])).sum())
-    if total >= 2**31 - 1 or total * 8 > rt.device.max_mem_alloc_size:
+    if total >= 2**31 - 1:
         raise ValueError(f"means, scales: {total} (camera, Gaussian, tile) intersections exceed the "
-                         f"int32 index range or the device's {rt.device.max_mem_alloc_size >> 20} MiB "
-                         "allocation limit; render fewer cameras, fewer or smaller Gaussians per call")
+                         "int32 index range; render fewer cameras, fewer or smaller Gaussians per call")
+    # Keys and the sort's scratch: 16 bytes per intersection.
+    rt.check_memory(total * 16, f"means, scales: {total} (camera, Gaussian, tile) intersections "
+                    "(render fewer cameras, fewer or smaller Gaussians per call)")
     common = (np.int32(C * N), np.int32(tiles_x), np.int32(tpc), np.int32(N), rects.buffer)
     _record(events, "bin_count", rt.launch(rt.kernel("bin", "count_tiles", defines), C * N, LOCAL_1D,
                                            *common, counts.buffer))
@@ -368,11 +370,8 @@ def composite_bwd(rt: Runtime, cfg: RenderConfig, fwd: dict, v_out: DeviceArray,
     geom_cols = (8 if absgrad else 6) * geom
     pix, batch, chunk, waves = composite_layout(rt, cfg, tile_size, CH, geom_grads=geom_cols,
                                          color_grad=color, backward=True)
-    nbytes = M * G * (8 if cfg.precision == "float64" else 4)
-    if nbytes > rt.device.max_mem_alloc_size:
-        raise ValueError(f"means, scales: the backward needs {nbytes >> 20} MiB of gradient slots "
-                         f"({M} intersections x {G} values), over the device's "
-                         f"{rt.device.max_mem_alloc_size >> 20} MiB allocation limit")
+    rt.check_memory(M * G * (8 if cfg.precision == "float64" else 4),
+                    f"means, scales: the backward's gradient slots ({M} intersections x {G} values)")
     offs = isect_offsets(rt, fwd["rects"])
     slots = rt.empty((M, G), cfg.dtype)
     group = tile_size * tile_size // pix

@@ -9,7 +9,10 @@ import torch
 
 from . import constants as K
 
-__all__ = ["check_tensor", "check_finite", "check_int", "check_rasterization_inputs"]
+__all__ = ["check_tensor", "check_finite", "check_int", "check_index_range",
+           "check_rasterization_inputs"]
+
+INT32_MAX = 2**31 - 1
 
 _FLOATS = (torch.float32, torch.float64)
 
@@ -53,6 +56,19 @@ def _check_float(name: str, v: object) -> float:
     if v != v:
         raise ValueError(f"{name}: is NaN")
     return v
+
+
+def check_index_range(C: int, N: int, D: int, width: int, height: int) -> None:
+    """The kernels index (camera, Gaussian) pairs and pixels with int32 arithmetic, up to
+    3 values per pair (conics) and 4 per pixel row block; refuse sizes past that before any
+    allocation."""
+    if C * N * 4 > INT32_MAX:
+        raise ValueError(f"means, viewmats: {C} cameras x {N} Gaussians = {C * N} pairs exceed "
+                         f"the int32 index range of the kernels (at most {INT32_MAX // 4}); "
+                         "render fewer cameras or Gaussians per call")
+    if C * height * width > INT32_MAX or N * max(D, 3) > INT32_MAX:
+        raise ValueError(f"width, height, colors: {C}x{height}x{width} pixels or {N}x{D} "
+                         f"features exceed the int32 index range ({INT32_MAX})")
 
 
 def check_rasterization_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width,
@@ -123,6 +139,7 @@ def check_rasterization_inputs(means, quats, scales, opacities, colors, viewmats
     fx, fy = Ks[:, 0, 0], Ks[:, 1, 1]
     if bool(((fx <= 0) | (fy <= 0)).any()):
         raise ValueError("Ks: focal lengths Ks[:, 0, 0] and Ks[:, 1, 1] must be > 0")
+    check_index_range(C, N, D, width, height)
     # As in gsplat, only the top three rows of a view matrix are read (the last row gets a
     # zero gradient), so a perturbed last row is not an error.
     return {"C": C, "N": N, "D": D, "sh": sh_degree is not None}
