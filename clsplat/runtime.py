@@ -31,6 +31,8 @@ import numpy as np
 import pyopencl as cl
 import torch
 
+from .memory import available_host_memory
+
 __all__ = [
     "BuildError", "DeviceError", "Runtime", "DeviceArray", "get_runtime", "list_devices",
     "describe_devices", "LOCAL_MEM_BUDGET", "INT32_MAX", "available_host_memory",
@@ -55,23 +57,6 @@ class BuildError(RuntimeError):
         super().__init__(
             f"building kernels/{stage}.cl for {device} failed\n"
             f"options: {' '.join(self.options)}\ncompiler log:\n{log}")
-
-
-def available_host_memory() -> int:
-    """Bytes of host memory available now (Linux ``MemAvailable``; elsewhere the physical
-    total). Every device array is backed by a host tensor, so allocations are checked against
-    it before they are made, never left to fail in the allocator."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    try:
-        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (ValueError, OSError, AttributeError):
-        return 1 << 62
 
 
 def _kernel_source(name: str) -> str:

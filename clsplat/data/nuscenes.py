@@ -33,6 +33,7 @@ scene, sample, sample_data, sample_annotation, map) from a :class:`DrivingSequen
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 from pathlib import Path
@@ -40,6 +41,7 @@ from typing import Sequence
 
 import numpy as np
 
+from .files import path_inside, read_json
 from .scene import (
     CAMERA_NAMES,
     Box3D,
@@ -98,6 +100,8 @@ def load_tables(dataroot: str | Path, version: str = "v1.0-mini", use_devkit: bo
     without ``token``; ImportError (naming ``nuscenes-devkit``) if ``use_devkit`` and the devkit
     is not installed.
     """
+    if not isinstance(dataroot, (str, Path)) or not isinstance(version, str) or not version:
+        raise ValueError(f"dataroot, version: expected a folder path and a version name, got {dataroot!r}, {version!r}")
     root = Path(dataroot)
     if not root.is_dir():
         raise FileNotFoundError(f"nuScenes dataroot not found: {str(root)!r}")
@@ -113,11 +117,9 @@ def load_tables(dataroot: str | Path, version: str = "v1.0-mini", use_devkit: bo
         p = troot / f"{name}.json"
         if not p.is_file():
             raise FileNotFoundError(f"nuScenes table missing: {str(p)!r}")
-        try:
-            recs = json.loads(p.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise ValueError(f"nuScenes table {str(p)!r} is not valid JSON: {exc}") from None
-        if not isinstance(recs, list) or not all(isinstance(r, dict) and "token" in r for r in recs):
+        recs = read_json(p, "nuScenes table")
+        if not isinstance(recs, list) or not all(isinstance(r, dict) and isinstance(r.get("token"), str)
+                                                 for r in recs):
             raise ValueError(f"nuScenes table {str(p)!r} must be a JSON list of records with a 'token'")
         tables[name] = recs
     return _Tables(tables, root)
@@ -163,10 +165,14 @@ class _Reader:
     def image(self, sd: dict) -> np.ndarray:
         from ..io.images import read_image
 
-        return np.clip(read_image(self.t.root / sd["filename"], channels=3), 0.0, 1.0)
+        return np.clip(read_image(self.file(sd), channels=3), 0.0, 1.0)
+
+    def file(self, sd: dict) -> Path:
+        """The data file of a ``sample_data`` record; its ``filename`` must stay inside the root."""
+        return path_inside(self.t.root, sd.get("filename"), f"sample_data {sd.get('token')} filename")
 
     def lidar(self, sd: dict) -> LidarPoints:
-        p = self.t.root / sd["filename"]
+        p = self.file(sd)
         if not p.is_file():
             raise FileNotFoundError(f"nuScenes LiDAR file not found: {str(p)!r}")
         raw = np.fromfile(p, dtype=np.float32)
@@ -208,6 +214,20 @@ def _check_cams(cameras: Sequence[str]) -> list[str]:
     return cams
 
 
+def _malformed_as_value_error(fn):
+    """Turn the KeyError/TypeError/... of a record lacking a field, or holding the wrong type,
+    into a ValueError that names the table folder."""
+    @functools.wraps(fn)
+    def wrapper(dataroot, version="v1.0-mini", *args, **kwargs):
+        try:
+            return fn(dataroot, version, *args, **kwargs)
+        except (KeyError, TypeError, AttributeError, IndexError) as exc:
+            raise ValueError(f"nuScenes tables in {str(Path(dataroot) / str(version))!r}: a record is malformed "
+                             f"({type(exc).__name__}: {exc})") from None
+    return wrapper
+
+
+@_malformed_as_value_error
 def load_nuscenes_scene(dataroot: str | Path, version: str = "v1.0-mini", scene: int | str = 0,
                         cameras: Sequence[str] = CAMERA_NAMES, load_lidar: bool = True, load_boxes: bool = True,
                         short_labels: bool = True, use_devkit: bool = False) -> DrivingSequence:
@@ -237,7 +257,12 @@ def load_nuscenes_scene(dataroot: str | Path, version: str = "v1.0-mini", scene:
         srec = match[0]
     frames, camera_objs = [], None
     tok = srec["first_sample_token"]
+    seen: set[str] = set()
     while tok:
+        if tok in seen:
+            raise ValueError(f"nuScenes table 'sample': the 'next' links of scene {srec['token']} form a loop "
+                             f"back to sample {tok}")
+        seen.add(tok)
         smp = t.get("sample", tok)
         data = r.key_data.get(tok, {})
         missing = [c for c in cams if c not in data]
@@ -254,6 +279,7 @@ def load_nuscenes_scene(dataroot: str | Path, version: str = "v1.0-mini", scene:
                            metadata={"source": "nuscenes", "scene_token": srec["token"]})
 
 
+@_malformed_as_value_error
 def load_nuscenes_sample(dataroot: str | Path, version: str, sample_token: str, cameras: Sequence[str] = CAMERA_NAMES,
                          neighbors: int = 1, load_lidar: bool = True, load_boxes: bool = True,
                          short_labels: bool = True, use_devkit: bool = False) -> DrivingSequence:
