@@ -10,6 +10,8 @@ argument, unsupported extension, corrupt or truncated file), naming the path.
 """
 from __future__ import annotations
 
+import errno
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -126,7 +128,22 @@ def write_image(path: str | Path, image, quality: int = 95, bits: int = 8) -> Pa
         if ext in (".jpg", ".jpeg"):
             spec.attribute("Compression", f"jpeg:{quality}")
             spec.attribute("jpeg:subsampling", "4:4:4")  # no chroma subsampling
+    _check_free_space(p, data.nbytes)
     return atomic_write(p, lambda tmp: _write_oiio(tmp, spec, data))
+
+
+def _check_free_space(p: Path, raw_bytes: int) -> None:
+    """OSError(ENOSPC) naming ``p`` unless its file system has room for the uncompressed pixels
+    (an upper bound on the encoded file, plus a margin). libjpeg, as OpenImageIO builds it, ends
+    the whole process on a failed write instead of reporting it, so a full disk is found first."""
+    need = raw_bytes + raw_bytes // 10 + (64 << 10)
+    try:
+        free = shutil.disk_usage(p.parent).free
+    except OSError:
+        return
+    if free < need:
+        raise OSError(errno.ENOSPC, f"not enough disk space to write {str(p)!r}: needs up to {need >> 10} KiB, "
+                                    f"{free >> 10} KiB free; the previous {p.name} is unchanged")
 
 
 def _write_oiio(p: Path, spec, data: np.ndarray) -> None:
@@ -137,10 +154,19 @@ def _write_oiio(p: Path, spec, data: np.ndarray) -> None:
         if not out.open(str(p), spec):
             raise ValueError(f"cannot open {str(p)!r} for writing: {out.geterror()}")
         if not out.write_image(data):
-            raise ValueError(f"cannot write {str(p)!r}: {out.geterror()}")
+            raise OSError(errno.EIO, f"cannot write {str(p)!r}: {out.geterror()}")
     finally:
         if not out.close():
-            raise ValueError(f"cannot finish {str(p)!r}: {out.geterror()}")
+            raise OSError(errno.EIO, f"cannot finish {str(p)!r}: {out.geterror()}")
+    # OpenImageIO's PNG and JPEG writers do not report a failed fwrite (a full disk, a file
+    # size limit): read the file back, so that a truncated file is never renamed into place.
+    try:
+        back = _read(p)
+    except ValueError as e:
+        raise OSError(errno.EIO, f"the written file is incomplete (disk full?): {e}") from None
+    if back.shape != (spec.height, spec.width, spec.nchannels):
+        raise OSError(errno.EIO, f"the written file reads back as {list(back.shape)}, not "
+                                 f"{[spec.height, spec.width, spec.nchannels]} (disk full?)")
 
 
 def read_depth(path: str | Path) -> np.ndarray:

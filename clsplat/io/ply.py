@@ -189,7 +189,7 @@ def read_ply(path: str | Path) -> GaussianPly:
         if tok[0] == "format":
             fmt = tok[1] if len(tok) > 1 else None
         elif tok[0] == "element":
-            if len(tok) != 3 or not tok[2].isdigit():
+            if len(tok) != 3 or not tok[2].isdigit() or len(tok[2]) > 15:
                 raise ValueError(f"{str(p)!r}: bad PLY element line {ln!r}")
             elements.append([tok[1], int(tok[2]), []])
         elif tok[0] == "property":
@@ -233,11 +233,13 @@ def read_ply(path: str | Path) -> GaussianPly:
     check_host_memory(3 * need, f"{str(p)!r}: {n} vertices of {len(names)} properties")
     dt = np.dtype("<f4" if fmt == "binary_little_endian" else ">f4")
     arr = np.fromfile(p, dtype=dt, count=n * len(names), offset=header_bytes).reshape(n, len(names)).astype(np.float32)
-    if not np.isfinite(arr).all():
-        rows, cols = np.nonzero(~np.isfinite(arr))
-        raise ValueError(f"{str(p)!r}: {rows.size} NaN or Inf value(s), first in vertex {rows[0]} "
-                         f"property {names[cols[0]]!r}")
     col = {nm: i for i, nm in enumerate(names)}
+    used = [col[nm] for nm in required + rest]  # other properties (normals, extras) are ignored
+    finite = np.isfinite(arr[:, used])
+    if not finite.all():
+        rows, cols = np.nonzero(~finite)
+        raise ValueError(f"{str(p)!r}: {rows.size} NaN or Inf value(s), first in vertex {rows[0]} "
+                         f"property {names[used[cols[0]]]!r}")
 
     def get(*nms: str) -> np.ndarray:
         return arr[:, [col[x] for x in nms]]
