@@ -27,14 +27,14 @@ __all__ = ["read_json", "path_inside", "read_pickled_dataframe", "safe_pickle_de
 MAX_JSON_BYTES = 4 << 30
 
 
-def read_json(path: Path, what: str = "JSON file", max_bytes: int = MAX_JSON_BYTES):
+def read_json(path: Path, what: str = "JSON file"):
     """Parse ``path`` as JSON; FileNotFoundError or ValueError naming ``path`` on any failure."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{what} not found: {str(path)!r}")
     size = path.stat().st_size
-    if size > max_bytes:
-        raise ValueError(f"{what} {str(path)!r} is {size >> 20} MiB, over the {max_bytes >> 20} MiB limit")
+    if size > MAX_JSON_BYTES:
+        raise ValueError(f"{what} {str(path)!r} has {size} bytes, over the {MAX_JSON_BYTES}-byte limit")
     try:
         return json.loads(path.read_bytes())
     except RecursionError:

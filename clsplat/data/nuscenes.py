@@ -127,9 +127,13 @@ def load_tables(dataroot: str | Path, version: str = "v1.0-mini", use_devkit: bo
 
 def _pose(rec: dict, where: str) -> np.ndarray:
     try:
-        return make_transform(quat=rec["rotation"], t=rec["translation"])
-    except (KeyError, ValueError) as exc:
-        raise ValueError(f"{where}: needs 'rotation' (wxyz) and 'translation' [3]: {exc}") from None
+        q = np.asarray(rec["rotation"], dtype=np.float64)
+        t = np.asarray(rec["translation"], dtype=np.float64)
+        if q.shape != (4,) or t.shape != (3,) or not (np.isfinite(q).all() and np.isfinite(t).all()):
+            raise ValueError(f"got rotation {rec['rotation']!r}, translation {rec['translation']!r}")
+        return make_transform(quat=q, t=t)
+    except (KeyError, ValueError, TypeError) as exc:
+        raise ValueError(f"{where}: needs finite 'rotation' (wxyz) [4] and 'translation' [3]: {exc}") from None
 
 
 class _Reader:
@@ -157,9 +161,12 @@ class _Reader:
 
     def camera(self, sd: dict, img: np.ndarray) -> Camera:
         cs = self.t.get("calibrated_sensor", sd["calibrated_sensor_token"])
-        K = np.asarray(cs.get("camera_intrinsic") or [], dtype=np.float64)
-        if K.shape != (3, 3):
-            raise ValueError(f"calibrated_sensor {cs['token']} of {self.channel(sd)} has no 3x3 camera_intrinsic")
+        try:
+            K = np.asarray(cs.get("camera_intrinsic") or [], dtype=np.float64)
+        except (ValueError, TypeError):
+            K = np.zeros(0)
+        if K.shape != (3, 3) or not np.isfinite(K).all():
+            raise ValueError(f"calibrated_sensor {cs['token']} of {self.channel(sd)} has no finite 3x3 camera_intrinsic")
         return Camera(self.channel(sd), K, _pose(cs, "calibrated_sensor"), img.shape[1], img.shape[0])
 
     def image(self, sd: dict) -> np.ndarray:

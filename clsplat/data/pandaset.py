@@ -185,6 +185,8 @@ def load_pandaset(
     """
     from ..io.images import read_image
 
+    if not isinstance(seq_dir, (str, Path)) or not str(seq_dir):
+        raise ValueError(f"seq_dir: expected a sequence folder path, got {seq_dir!r}")
     root = Path(seq_dir)
     if not root.is_dir():
         raise FileNotFoundError(f"PandaSet sequence folder not found: {str(root)!r}")
