@@ -83,3 +83,12 @@ def test_argparse_errors_name_the_argument(argv, capsys):
     assert e.value.code == 2
     err = capsys.readouterr().err
     assert any(w in err for w in ("out_dir", "--gaussians", "--seed", "nope"))
+
+
+def test_missing_optional_package_names_the_extra(tmp_path, monkeypatch):
+    import sys
+    monkeypatch.setitem(sys.modules, "OpenImageIO", None)  # as if the io extra were not installed
+    monkeypatch.delitem(sys.modules, "clsplat.io.images", raising=False)
+    monkeypatch.delitem(sys.modules, "clsplat.io", raising=False)
+    with pytest.raises(SystemExit, match=r"needs the optional package 'OpenImageIO'.*clsplat\[io\]"):
+        main(["fit", str(tmp_path / "o"), *TINY])
