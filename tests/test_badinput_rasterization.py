@@ -117,3 +117,11 @@ def test_half_and_integer_tensors_named():
         clsplat.rasterization(**dict(s, means=s["means"].half()))
     with pytest.raises(ValueError, match="^opacities: expected dtype"):
         clsplat.rasterization(**dict(s, opacities=torch.ones(4, dtype=torch.int64)))
+
+
+@pytest.mark.parametrize("kw,name", [({"pix": 2.0}, "pix"), ({"pix": True}, "pix"), ({"sort_local": "8"}, "sort_local"),
+                                     ({"alpha_min": "0.1"}, "alpha_min"), ({"t_min": None}, "t_min"),
+                                     ({"fast_math": "yes"}, "fast_math")])
+def test_render_config_field_types(kw, name):
+    with pytest.raises(ValueError, match=f"^{name}: expected"):
+        clsplat.RenderConfig(**kw)
