@@ -357,6 +357,7 @@ def write_nuscenes(seq: DrivingSequence, dataroot: str | Path, version: str = "v
     Boxes become ``sample_annotation`` records (key frames only) grouped by ``track_id``.
     Returns the ``<dataroot>/<version>`` folder.
     """
+    from ..io.atomic import write_text_atomic
     from ..io.images import write_image
 
     if not isinstance(seq, DrivingSequence):
@@ -479,5 +480,5 @@ def write_nuscenes(seq: DrivingSequence, dataroot: str | Path, version: str = "v
                                "nbr_annotations": len(recs), "first_annotation_token": recs[0]["token"],
                                "last_annotation_token": recs[-1]["token"]})
     for n, recs in tb.items():
-        (troot / f"{n}.json").write_text(json.dumps(recs, indent=0))
+        write_text_atomic(troot / f"{n}.json", json.dumps(recs, indent=0))
     return troot

@@ -342,6 +342,7 @@ def write_pandaset(seq: DrivingSequence, out_dir: str | Path, jpeg_quality: int 
     ``<lowercase name>_camera``.  LiDAR is written in world frame with ``i = 255 * intensity``,
     ``t = frame timestamp``, ``d = 0``.  Boxes must be yaw-only rotations (about z).
     """
+    from ..io.atomic import write_text_atomic
     from ..io.images import write_image
 
     pd = _pd()
@@ -359,20 +360,20 @@ def write_pandaset(seq: DrivingSequence, out_dir: str | Path, jpeg_quality: int 
         cdir = root / "camera" / d
         cdir.mkdir(parents=True, exist_ok=True)
         K = cam.K
-        (cdir / "intrinsics.json").write_text(json.dumps(
+        write_text_atomic(cdir / "intrinsics.json", json.dumps(
             {"fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2])}))
-        (cdir / "poses.json").write_text(json.dumps([_pose_to_json(seq.cam_to_world(i, cam.name))
-                                                      for i in range(len(seq.frames))]))
-        (cdir / "timestamps.json").write_text(json.dumps([f.timestamp for f in seq.frames]))
+        write_text_atomic(cdir / "poses.json", json.dumps([_pose_to_json(seq.cam_to_world(i, cam.name))
+                                                           for i in range(len(seq.frames))]))
+        write_text_atomic(cdir / "timestamps.json", json.dumps([f.timestamp for f in seq.frames]))
         for i, f in enumerate(seq.frames):
             write_image(cdir / f"{i:02d}.jpg", f.images[cam.name], quality=jpeg_quality)
-    (root / "lidar" / "poses.json").write_text(json.dumps([_pose_to_json(f.ego_to_world) for f in seq.frames]))
-    (root / "lidar" / "timestamps.json").write_text(json.dumps([f.timestamp for f in seq.frames]))
+    write_text_atomic(root / "lidar" / "poses.json", json.dumps([_pose_to_json(f.ego_to_world) for f in seq.frames]))
+    write_text_atomic(root / "lidar" / "timestamps.json", json.dumps([f.timestamp for f in seq.frames]))
     sem = seq.metadata.get("lidar_semantics")
     if sem is not None:
         (root / "annotations" / "semseg").mkdir(parents=True, exist_ok=True)
-        (root / "annotations" / "semseg" / "classes.json").write_text(
-            json.dumps({str(k): v for k, v in PANDASET_CLASSES.items()}))
+        write_text_atomic(root / "annotations" / "semseg" / "classes.json",
+                          json.dumps({str(k): v for k, v in PANDASET_CLASSES.items()}))
     for i, f in enumerate(seq.frames):
         if f.lidar is not None and sem is not None and sem[i] is not None:
             lab = np.asarray(sem[i])

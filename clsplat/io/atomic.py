@@ -14,7 +14,7 @@ import os
 from pathlib import Path
 from typing import Callable, Iterable
 
-__all__ = ["write_atomically", "atomic_write", "temp_path"]
+__all__ = ["write_atomically", "atomic_write", "write_text_atomic", "temp_path"]
 
 
 def temp_path(path: Path) -> Path:
@@ -60,3 +60,8 @@ def write_atomically(items: Iterable[tuple[str | Path, Callable[[Path], object]]
 def atomic_write(path: str | Path, write_fn: Callable[[Path], object]) -> Path:
     """:func:`write_atomically` for one file."""
     return write_atomically([(path, write_fn)])[0]
+
+
+def write_text_atomic(path: str | Path, text: str) -> Path:
+    """``Path.write_text`` through :func:`atomic_write` (JSON tables, metrics)."""
+    return atomic_write(path, lambda tmp: tmp.write_text(text))
