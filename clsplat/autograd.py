@@ -147,7 +147,7 @@ class RasterizeFn(torch.autograd.Function):
         ctx.s = s
         ctx.fwd = dict(a, offsets=offsets, keys=keys, out=out, T=T, last=last) if want_grad else None
         ctx.means2d = means2d  # receives .absgrad, as gsplat's densification expects
-        s.isect = (offsets.tensor, keys.tensor)
+        s.isect = (offsets.host(), keys.host())  # read back: meta returns them
         if want_grad:  # ctx.fwd holds out_t and T_t; returned as they are, they would hold this
             # node (grad_fn -> ctx -> tensor -> grad_fn), a cycle through C++ that Python's
             # garbage collector cannot see, and every render's buffers would leak.

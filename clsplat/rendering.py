@@ -14,7 +14,7 @@ import torch
 from .autograd import ProjectFn, RasterizeFn, Settings, ShFn
 from .config import RenderConfig
 from .runtime import Runtime, get_runtime
-from .validate import check_rasterization_inputs
+from .validate import check_options, check_rasterization_inputs, check_screen_extent, rescale_large_quats
 
 __all__ = ["rasterization"]
 
@@ -94,6 +94,7 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
         raise ValueError("covars: explicit covariances are not supported; pass quats and scales")
     if distributed:
         raise ValueError("distributed: multi-process rendering is not supported")
+    check_options(config, events)
     if precision is None:
         precision = (config.precision if config is not None else None) or (
             "float64" if means.dtype == torch.float64 else "float32")
@@ -101,6 +102,8 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
     rt = get_runtime(device)
     if cfg.precision == "float64" and not rt.has_fp64:
         raise ValueError(f"precision: float64 needs cl_khr_fp64, which {rt.name} lacks")
+    quats = rescale_large_quats(quats)
+    check_screen_extent(means, scales, viewmats, Ks, float(near_plane), float(far_plane), cfg.precision)
     C, N, D = info["C"], info["N"], info["D"]
     n_col, depth_col = _channels(render_mode, D)
     CH = n_col + (depth_col >= 0)
