@@ -17,7 +17,7 @@
   road's local frame for the flatness term. Sky has no LiDAR: it is a hemisphere of Gaussians
   (``dome_points``, Fibonacci lattice, radius ``dome_radius`` about the trajectory), coloured
   from sky pixels; their reference normal is radial. (Alternative: ``sky="color"``, no dome and
-  a learnt background colour; measured in bench/results/autosplat.md.)
+  a learnt background colour; measured in bench/RESULTS.md (AutoSplat).)
 """
 from __future__ import annotations
 

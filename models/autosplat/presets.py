@@ -4,7 +4,7 @@
 10k fusion; MODELS.md §3) at full resolution; ``standard`` is a longer run for a workstation;
 ``demo`` (the default: ``make demo`` and the ablation benchmark) fits the 2-core CPU machine in
 minutes; ``tiny`` is for tests. λ = 0.2 is 3DGS's value; β (flatness), the residual-SH sparsity weight
-and the sky model are not published and were chosen by measurement (bench/results/autosplat.md).
+and the sky model are not published and were chosen by measurement (bench/RESULTS.md (AutoSplat)).
 """
 from __future__ import annotations
 

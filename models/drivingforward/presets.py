@@ -11,7 +11,7 @@ The Gaussian scale cap: the paper caps the Softplus scale at 0.01 m, which at 35
 of a few metres is about one pixel's footprint. At 64x112 a pixel at 10 m covers about 0.13 m, so a
 1 cm cap leaves holes between the Gaussians; ``scale_cap`` is therefore a preset field (paper
 value 0.01 m) and the small presets cap at half a pixel's footprint at 40 m (small 0.25 m, tiny
-0.5 m); bench/results/drivingforward.md measures the effect of the cap with oracle depth.
+0.5 m); bench/RESULTS.md (DrivingForward) measures the effect of the cap with oracle depth.
 
 The far plane: the release culls beyond 80 m, but the depth mapping reaches 80 m x fx/focal_ref
 (122 m on the synthetic rig), so the small presets use 200 m and never cull a predicted Gaussian.
