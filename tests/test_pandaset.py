@@ -95,3 +95,41 @@ def test_errors(written, tmp_path):
         load_pandaset(bad)
     with pytest.raises(ValueError, match="seq must be a DrivingSequence"):
         write_pandaset("seq", tmp_path / "x")
+
+
+def test_semseg_labels_follow_the_points(tmp_path):
+    """Per-point labels round-trip through annotations/semseg, are mapped from PandaSet's 42
+    classes by name, and stay aligned with the points when another device's rows are dropped."""
+    import pandas as pd
+
+    from clsplat.data.pandaset import PANDASET_CLASSES, pandaset_class_to_clsplat
+    from clsplat.data.scene import SEMANTIC_CLASSES
+
+    seq = generate_sequence(height=16, width=32, num_frames=2, seed=3)
+    road, other = SEMANTIC_CLASSES.index("road"), SEMANTIC_CLASSES.index("other")
+    labels = []
+    for f in seq.frames:
+        p = f.lidar.to_world(f.ego_to_world).points
+        labels.append(np.where((np.abs(p[:, 2]) < 0.05) & (np.abs(p[:, 1]) < 7), road, other).astype(np.uint8))
+    seq.metadata["lidar_semantics"] = labels
+    root = write_pandaset(seq, tmp_path / "002", jpeg_quality=90)
+    # a second device (d = 1) with its own labels, interleaved: the loader must drop both together
+    lid = pd.read_pickle(root / "lidar/00.pkl.gz", compression="gzip")
+    sem = pd.read_pickle(root / "annotations/semseg/00.pkl.gz", compression="gzip")
+    extra = lid.iloc[:50].copy()
+    extra["d"] = 1
+    pd.concat([extra, lid]).to_pickle(root / "lidar/00.pkl.gz", compression="gzip")
+    pd.concat([pd.DataFrame({"class": np.full(50, 41)}), sem]).to_pickle(root / "annotations/semseg/00.pkl.gz",
+                                                                          compression="gzip")
+    got = load_pandaset(root)
+    for k in range(2):
+        assert got.frames[k].lidar.points.shape[0] == labels[k].shape[0]
+        assert np.array_equal(got.metadata["lidar_semantics"][k], labels[k])
+    assert len(PANDASET_CLASSES) == 42
+    names = {v: pandaset_class_to_clsplat(v) for v in PANDASET_CLASSES.values()}
+    assert names["Lane Line Marking"] == road and names["Road Barriers"] == other
+    assert names["Other Vehicle - Pedicab"] == SEMANTIC_CLASSES.index("vehicle")
+    assert names["Building"] == SEMANTIC_CLASSES.index("building")
+    pd.DataFrame({"class": np.zeros(3, np.int64)}).to_pickle(root / "annotations/semseg/01.pkl.gz", compression="gzip")
+    with pytest.raises(ValueError, match="one row per LiDAR point"):
+        load_pandaset(root)

@@ -10,6 +10,9 @@ Layout of one sequence folder (as in the PandaSet devkit)::
     <seq>/lidar/NN.pkl.gz                        pandas DataFrame x, y, z (world), i, t, d
     <seq>/lidar/poses.json, timestamps.json      LiDAR (= our ego) pose per frame
     <seq>/annotations/cuboids/NN.pkl.gz          pandas DataFrame, one row per box
+    <seq>/annotations/semseg/NN.pkl.gz           pandas DataFrame, column ``class``: one label per
+                                                 LiDAR point (both devices, same row order)
+    <seq>/annotations/semseg/classes.json        {"1": "Smoke", ..., "42": "Other Static Object"}
 
 Mapping to :class:`~clsplat.data.scene.DrivingSequence`:
 
@@ -28,6 +31,15 @@ Mapping to :class:`~clsplat.data.scene.DrivingSequence`:
   geometry), so ``Box3D.size = (dimensions.x, dimensions.y, dimensions.z)``.  Track ids are the
   ``uuid`` strings numbered 1.. in order of first appearance; ``Box3D.uuid`` keeps the string.
 
+* Semantic segmentation (when ``annotations/semseg`` exists): the per-point class ids are
+  filtered with the same device mask as the points, mapped by name onto
+  :data:`~clsplat.data.scene.SEMANTIC_CLASSES` (:func:`pandaset_class_to_clsplat`: road surface
+  and markings -> road, Sidewalk -> sidewalk, Building -> building, every vehicle class ->
+  vehicle, the rest -> other; LiDAR never returns sky) and stored aligned with ``Frame.lidar``
+  in ``seq.metadata["lidar_semantics"]`` (a list of uint8 ``[M]`` per frame, None for a frame
+  without labels).  The writer writes them back (road -> Road, sidewalk -> Sidewalk, building
+  -> Building, vehicle -> Car, other -> Other Static Object).
+
 Pickled DataFrames execute code on load: only read sequences from sources you trust.
 """
 from __future__ import annotations
@@ -40,6 +52,7 @@ from typing import Sequence
 import numpy as np
 
 from .scene import (
+    SEMANTIC_CLASSES,
     Box3D,
     Camera,
     DrivingSequence,
@@ -51,7 +64,8 @@ from .scene import (
     rotmat_to_quat,
 )
 
-__all__ = ["load_pandaset", "write_pandaset", "PANDASET_TO_NUSCENES"]
+__all__ = ["load_pandaset", "write_pandaset", "PANDASET_TO_NUSCENES", "pandaset_class_to_clsplat",
+           "PANDASET_CLASSES"]
 
 PANDASET_TO_NUSCENES = {
     "front_camera": "CAM_FRONT",
@@ -62,6 +76,35 @@ PANDASET_TO_NUSCENES = {
     "back_camera": "CAM_BACK",
 }
 _NUSCENES_TO_PANDASET = {v: k for k, v in PANDASET_TO_NUSCENES.items()}
+#: PandaSet's 42 semantic-segmentation classes (the devkit's classes.json).
+PANDASET_CLASSES: dict[int, str] = dict(enumerate([
+    "Smoke", "Exhaust", "Spray or rain", "Reflection", "Vegetation", "Ground", "Road", "Lane Line Marking",
+    "Stop Line Marking", "Other Road Marking", "Sidewalk", "Driveway", "Car", "Pickup Truck", "Medium-sized Truck",
+    "Semi-truck", "Towed Object", "Motorcycle", "Other Vehicle - Construction Vehicle", "Other Vehicle - Uncommon",
+    "Other Vehicle - Pedicab", "Emergency Vehicle", "Bus", "Personal Mobility Device", "Motorized Scooter",
+    "Bicycle", "Train", "Trolley", "Tram / Subway", "Pedestrian", "Pedestrian with Object", "Animals - Bird",
+    "Animals - Other", "Pylons", "Road Barriers", "Signs", "Cones", "Construction Signs",
+    "Temporary Construction Barriers", "Rolling Containers", "Building", "Other Static Object"], start=1))
+_ROAD_CLASSES = {"road", "lane line marking", "stop line marking", "other road marking", "driveway"}
+_VEHICLE_CLASSES = {"car", "pickup truck", "medium-sized truck", "semi-truck", "towed object", "motorcycle",
+                    "emergency vehicle", "bus", "train", "trolley", "tram / subway"}
+_WRITE_CLASS = {"road": 7, "sidewalk": 11, "building": 41, "vehicle": 13, "other": 42, "sky": 42}
+
+
+def pandaset_class_to_clsplat(name: str) -> int:
+    """Index into :data:`~clsplat.data.scene.SEMANTIC_CLASSES` of a PandaSet class name."""
+    n = str(name).strip().lower()
+    if n in _ROAD_CLASSES:
+        return SEMANTIC_CLASSES.index("road")
+    if n == "sidewalk":
+        return SEMANTIC_CLASSES.index("sidewalk")
+    if n == "building":
+        return SEMANTIC_CLASSES.index("building")
+    if n in _VEHICLE_CLASSES or n.startswith("other vehicle"):
+        return SEMANTIC_CLASSES.index("vehicle")
+    return SEMANTIC_CLASSES.index("other")
+
+
 _CUBOID_COLUMNS = ["uuid", "label", "yaw", "stationary", "camera_used", "position.x", "position.y", "position.z",
                    "dimensions.x", "dimensions.y", "dimensions.z", "attributes.object_motion",
                    "cuboids.sibling_id", "cuboids.sensor_id"]
@@ -125,6 +168,7 @@ def load_pandaset(
     load_lidar: bool = True,
     load_cuboids: bool = True,
     lidar_device: int = 0,
+    load_semseg: bool = True,
 ) -> DrivingSequence:
     """Load one PandaSet sequence folder.
 
@@ -135,6 +179,8 @@ def load_pandaset(
         frames: frame indices to load (default all frames with an image in every camera).
         load_lidar: read ``lidar/NN.pkl.gz`` into ``Frame.lidar`` (world frame).
         load_cuboids: read ``annotations/cuboids/NN.pkl.gz`` into ``Frame.boxes`` when present.
+        load_semseg: read ``annotations/semseg/NN.pkl.gz`` (with ``classes.json``) into
+            ``metadata["lidar_semantics"]`` when present (needs ``load_lidar``).
         lidar_device: keep LiDAR points with this ``d`` value.
     Returns:
         a :class:`DrivingSequence`.
@@ -189,6 +235,22 @@ def load_pandaset(
             raise ValueError(f"frames: index {i} out of range, sequence {str(root)!r} has {n_avail} complete frames")
     if not idx:
         raise ValueError("frames must select at least one frame")
+    sem_root = root / "annotations" / "semseg"
+    sem_lut = None
+    if load_semseg and load_lidar and (sem_root / "classes.json").is_file():
+        classes = _read_json(sem_root / "classes.json")
+        if not isinstance(classes, dict):
+            raise ValueError(f"{str(sem_root / 'classes.json')!r} must map class ids to names")
+        try:
+            ids = {int(k): str(v) for k, v in classes.items()}
+        except ValueError:
+            raise ValueError(f"{str(sem_root / 'classes.json')!r}: class ids must be integers") from None
+        sem_lut = np.full(max(ids) + 1, SEMANTIC_CLASSES.index("other"), np.uint8)
+        for k, v in ids.items():
+            if k < 0:
+                raise ValueError(f"{str(sem_root / 'classes.json')!r}: class id {k} is negative")
+            sem_lut[k] = pandaset_class_to_clsplat(v)
+    lidar_semantics: list = []
     out_frames = []
     cams: list[Camera] = []
     uuids: dict[str, int] = {}
@@ -208,8 +270,20 @@ def load_pandaset(
             miss = [c for c in ("x", "y", "z", "i") if c not in df.columns]
             if miss:
                 raise ValueError(f"{str(lid_root / f'{i:02d}.pkl.gz')!r} lacks columns {miss}")
-            if "d" in df.columns:
-                df = df[df["d"] == lidar_device]
+            keep = (df["d"] == lidar_device).to_numpy() if "d" in df.columns else np.ones(len(df), bool)
+            sem_file = sem_root / f"{i:02d}.pkl.gz"
+            if sem_lut is not None and sem_file.is_file():
+                sdf = _read_pickle(sem_file)
+                if "class" not in sdf.columns or len(sdf) != len(df):
+                    raise ValueError(f"{str(sem_file)!r} must hold a 'class' column with one row per LiDAR point "
+                                     f"({len(df)} in {str(lid_root / f'{i:02d}.pkl.gz')!r}), got {len(sdf)} rows")
+                cls = sdf["class"].to_numpy().astype(np.int64)
+                if cls.size and (cls.min() < 0 or cls.max() >= len(sem_lut)):
+                    raise ValueError(f"{str(sem_file)!r} holds class ids outside classes.json")
+                lidar_semantics.append(sem_lut[cls[keep]])
+            else:
+                lidar_semantics.append(None)
+            df = df[keep]
             pts = df[["x", "y", "z"]].to_numpy(np.float32)
             lidar = LidarPoints(pts, np.clip(df["i"].to_numpy(np.float32) / 255.0, 0, 1), "world")
         boxes = []
@@ -230,7 +304,10 @@ def load_pandaset(
                 boxes.append(Box3D(tid, str(r["label"]), [r["dimensions.x"], r["dimensions.y"], r["dimensions.z"]],
                                    [r["position.x"], r["position.y"], r["position.z"]], q, uuid=u))
         out_frames.append(Frame(float(ego_ts[i]), E, imgs, lidar=lidar, boxes=boxes, camera_poses=cposes))
-    return DrivingSequence(cams, out_frames, name=root.name, metadata={"source": "pandaset", "path": str(root)})
+    meta = {"source": "pandaset", "path": str(root)}
+    if any(x is not None for x in lidar_semantics):
+        meta["lidar_semantics"] = lidar_semantics
+    return DrivingSequence(cams, out_frames, name=root.name, metadata=meta)
 
 
 def write_pandaset(seq: DrivingSequence, out_dir: str | Path, jpeg_quality: int = 95) -> Path:
@@ -266,7 +343,19 @@ def write_pandaset(seq: DrivingSequence, out_dir: str | Path, jpeg_quality: int 
             write_image(cdir / f"{i:02d}.jpg", f.images[cam.name], quality=jpeg_quality)
     (root / "lidar" / "poses.json").write_text(json.dumps([_pose_to_json(f.ego_to_world) for f in seq.frames]))
     (root / "lidar" / "timestamps.json").write_text(json.dumps([f.timestamp for f in seq.frames]))
+    sem = seq.metadata.get("lidar_semantics")
+    if sem is not None:
+        (root / "annotations" / "semseg").mkdir(parents=True, exist_ok=True)
+        (root / "annotations" / "semseg" / "classes.json").write_text(
+            json.dumps({str(k): v for k, v in PANDASET_CLASSES.items()}))
     for i, f in enumerate(seq.frames):
+        if f.lidar is not None and sem is not None and sem[i] is not None:
+            lab = np.asarray(sem[i])
+            if lab.shape != (f.lidar.points.shape[0],):
+                raise ValueError(f"seq.metadata['lidar_semantics'][{i}] must hold one label per LiDAR point")
+            ids = np.array([_WRITE_CLASS[SEMANTIC_CLASSES[c]] for c in range(len(SEMANTIC_CLASSES))])[lab]
+            pd.DataFrame({"class": ids.astype(np.int64)}).to_pickle(
+                root / "annotations" / "semseg" / f"{i:02d}.pkl.gz", compression="gzip")
         if f.lidar is not None:
             lw = f.lidar.to_world(f.ego_to_world)
             m = lw.points.shape[0]

@@ -106,6 +106,9 @@ class SyntheticConfig:
         hfov_deg, back_hfov_deg: horizontal FOV of the five front/side cameras and of CAM_BACK.
         lateral_shift: shift of the whole camera rig along ego +y (novel-view evaluation).
         blink_period: period of the hazard lights of vehicle 1, seconds.
+        cameras: names of the cameras to render (a subset of CAMERA_NAMES, in any order); the
+            default renders all six. Cameras left out are never rendered.
+        t0: time of frame 0 in seconds (frame k is at ``t0 + k * dt``).
     """
 
     height: int = 176
@@ -126,6 +129,8 @@ class SyntheticConfig:
     back_hfov_deg: float = 85.0
     lateral_shift: float = 0.0
     blink_period: float = 1.0
+    cameras: tuple[str, ...] | None = None
+    t0: float = 0.0
 
     def validate(self) -> None:
         """Raise ValueError naming the first bad field."""
@@ -151,6 +156,14 @@ class SyntheticConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and 1.0 <= v <= 170.0):
                 raise ValueError(f"SyntheticConfig.{name} must be in [1, 170] degrees, got {v!r}")
+        if self.cameras is not None:
+            names = list(self.cameras) if isinstance(self.cameras, (list, tuple)) else None
+            bad = [c for c in names or [] if c not in CAMERA_NAMES]
+            if names is None or not names or bad or len(set(names)) != len(names):
+                raise ValueError(f"SyntheticConfig.cameras must be distinct names from {list(CAMERA_NAMES)}, "
+                                 f"got {self.cameras!r}")
+        if not (isinstance(self.t0, (int, float)) and math.isfinite(self.t0) and self.t0 >= 0):
+            raise ValueError(f"SyntheticConfig.t0 must be a non-negative number, got {self.t0!r}")
         if not (isinstance(self.lateral_shift, (int, float)) and abs(self.lateral_shift) <= 5.0):
             raise ValueError(f"SyntheticConfig.lateral_shift must be a number in [-5, 5] m, got {self.lateral_shift!r}")
 
@@ -735,13 +748,16 @@ def generate_sequence(config: SyntheticConfig | None = None, **overrides) -> Dri
             raise ValueError(f"unknown SyntheticConfig fields {bad}")
         cfg = SyntheticConfig(**{**cfg.__dict__, **overrides})
     cfg.validate()
-    duration = cfg.dt * (cfg.num_frames - 1)
+    duration = cfg.t0 + cfg.dt * (cfg.num_frames - 1)
     scene = StreetScene(cfg.seed, (-80.0, cfg.speed * duration + 160.0), cfg.num_parked, cfg.num_moving,
                         cfg.poles, cfg.trees, cfg.blink_period, cfg.speed)
     cams = make_rig(cfg.width, cfg.height, cfg.hfov_deg, cfg.back_hfov_deg, cfg.lateral_shift)
+    if cfg.cameras is not None:
+        by_name = {c.name: c for c in cams}
+        cams = [by_name[n] for n in cfg.cameras]
     frames = []
     for k in range(cfg.num_frames):
-        t = k * cfg.dt
+        t = cfg.t0 + k * cfg.dt
         E = ego_pose(t, cfg.speed, cfg.lane_change, cfg.lane_change_duration)
         imgs, deps, sems, insts = {}, {}, {}, {}
         for c in cams:

@@ -1,0 +1,96 @@
+"""Background losses: the photometric loss of both phases and the flatness constraint C.
+
+Phase 1 renders the road set and the sky set **alone** and supervises each on its own pixels;
+phase 2 renders all background Gaussians and supervises every pixel that is not foreground
+(a tracked object's instance pixel, or a pixel whose ray hits a tracked box).
+
+``L = (1 - λ) L1 + λ (1 - SSIM) + β C`` with SSIM over an 11x11 Gaussian window (kornia, as 3DGS),
+both photometric terms averaged over the mask.
+
+Flatness (MODELS.md §3): ``C = mean over road and sky Gaussians of |roll| + |pitch| + |s_z|``,
+angles and the vertical scale expressed in each Gaussian's reference frame (road: the road's
+local frame, z = the local road normal from LiDAR; sky: the dome's tangent frame, z radial).
+Roll and pitch are measured modulo π (a disc flipped upside down is still flat).
+"""
+from __future__ import annotations
+
+import kornia
+import numpy as np
+import torch
+
+from clsplat.data.scene import DrivingSequence
+
+from ..common.geometry import quat_to_matrix
+
+__all__ = ["masked_photometric", "flatness", "reference_frames", "foreground_mask"]
+
+
+def masked_photometric(render: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None,
+                       lambda_dssim: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(loss, l1, dssim)`` of ``render`` vs ``target`` ``[C, H, W, 3]`` over ``mask`` ``[C, H, W]`` (bool)."""
+    a = render.permute(0, 3, 1, 2)
+    b = target.permute(0, 3, 1, 2)
+    l1_map = (a - b).abs().mean(1)
+    ssim_map = kornia.metrics.ssim(a, b, window_size=11, max_val=1.0).mean(1)
+    if mask is None:
+        l1, dssim = l1_map.mean(), 1 - ssim_map.mean()
+    else:
+        m = mask.to(a.dtype)
+        denom = m.sum().clamp_min(1.0)
+        l1 = (l1_map * m).sum() / denom
+        dssim = ((1 - ssim_map) * m).sum() / denom
+    return (1 - lambda_dssim) * l1 + lambda_dssim * dssim, l1, dssim
+
+
+def reference_frames(normals: torch.Tensor) -> torch.Tensor:
+    """``[N, 3, 3]`` rotations whose third column is the unit normal ``[N, 3]`` (columns = frame axes)."""
+    z = torch.nn.functional.normalize(normals, dim=-1)
+    helper = torch.where((z[:, :1].abs() < 0.9), z.new_tensor([1.0, 0, 0]), z.new_tensor([0, 1.0, 0]))
+    x = torch.nn.functional.normalize(torch.cross(helper, z, dim=-1), dim=-1)
+    y = torch.cross(z, x, dim=-1)
+    return torch.stack([x, y, z], -1)
+
+
+def flatness(quats: torch.Tensor, scales: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
+    """Mean of ``|roll| + |pitch| + |s_z|`` of Gaussians ``quats [N,4]``, ``scales [N,3]`` in
+    reference ``frames [N,3,3]`` (0 for N = 0)."""
+    if quats.shape[0] == 0:
+        return quats.sum() * 0
+    R = frames.transpose(1, 2) @ quat_to_matrix(torch.nn.functional.normalize(quats, dim=-1))
+    # ZYX Euler angles of the Gaussian's frame in the reference frame, modulo pi
+    sign = torch.where(R[:, 2, 2] < 0, -1.0, 1.0)
+    roll = torch.atan2(R[:, 2, 1] * sign, R[:, 2, 2].abs().clamp_min(1e-12))
+    pitch = torch.asin((-R[:, 2, 0]).clamp(-1 + 1e-6, 1 - 1e-6))
+    return (roll.abs() + pitch.abs() + scales[:, 2].abs()).mean()
+
+
+def foreground_mask(seq: DrivingSequence, frame: int, cameras: list[str]) -> np.ndarray:
+    """``[C, H, W]`` bool: pixels of tracked objects at ``frame`` (instance masks when the data has
+    them, else pixels whose ray hits a tracked box)."""
+    f = seq.frames[frame]
+    out = []
+    for c in cameras:
+        cam = seq.camera(c)
+        if c in f.instances:
+            out.append(f.instances[c] > 0)
+            continue
+        m = np.zeros((cam.height, cam.width), bool)
+        if f.boxes:
+            T = seq.cam_to_world(frame, c)
+            u, v = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
+            d = np.stack([(u - cam.K[0, 2]) / cam.K[0, 0], (v - cam.K[1, 2]) / cam.K[1, 1], np.ones_like(u)], -1)
+            d = d @ T[:3, :3].T
+            o = T[:3, 3]
+            for b in f.boxes:
+                B = np.linalg.inv(b.box_to_world)
+                ol = B[:3, :3] @ o + B[:3, 3]
+                dl = d @ B[:3, :3].T
+                half = b.size / 2
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    t1 = (-half - ol) / dl
+                    t2 = (half - ol) / dl
+                tn = np.nanmax(np.minimum(t1, t2), -1)
+                tf = np.nanmin(np.maximum(t1, t2), -1)
+                m |= (tn <= tf) & (tf > 0)
+        out.append(m)
+    return np.stack(out)

@@ -1,0 +1,181 @@
+"""``clsplat train autosplat ...``: reconstruct one sequence, evaluate it, write the run folder.
+
+    clsplat train autosplat --data synthetic|pandaset:PATH|nuscenes:PATH [--cameras CAM ...]
+        [--frames A:B] [--scale S] [--preset NAME] [--holdout K] [--no-flatness] [--no-symmetry]
+        [--no-residual-sh] [--no-pose-correction] [--no-densify] [--no-decompose] [--masks DIR]
+        --out DIR [--resume] [--stop-after N]
+
+``--no-decompose`` is plain 3DGS from LiDAR (one static set, no objects, no phase 1).
+
+Writes ``DIR/metrics.json`` (test/train PSNR and SSIM per camera and overall, LPIPS when weights
+are given, lateral-shift errors, Gaussian counts per class, seconds per stage), ``DIR/scene.ply``,
+``DIR/checkpoint.pt``, ``DIR/log.jsonl``, ``DIR/loss.png``, ``DIR/contact_sheet.png`` and
+``DIR/lateral_shift_{1,2,3}m.png``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from clsplat.data.scene import DrivingSequence
+
+__all__ = ["train", "reconstruct", "load_sequence", "parse_frames", "SYNTHETIC_DT"]
+
+#: frame interval of the built-in street (seconds): 16 frames cover 3 s of driving.
+SYNTHETIC_DT = 0.2
+_SYNTHETIC_FRAMES = 16
+
+
+def parse_frames(text: str | None) -> tuple[int, int] | None:
+    """``"A:B"`` -> (A, B) with 0 <= A < B; ValueError naming ``--frames`` otherwise."""
+    if text is None:
+        return None
+    try:
+        a, b = (int(x) for x in text.split(":"))
+    except ValueError:
+        raise ValueError(f"--frames: expected A:B with integers A < B, got {text!r}") from None
+    if a < 0 or b <= a:
+        raise ValueError(f"--frames: the range {text!r} is empty or negative; expected 0 <= A < B")
+    return a, b
+
+
+def load_sequence(spec: str, cameras: list[str] | None, frames: tuple[int, int] | None, scale: float,
+                  seed: int = 0) -> DrivingSequence:
+    """The sequence named by ``--data``, cut to ``frames`` and scaled by ``scale``."""
+    if not (isinstance(scale, (int, float)) and 0 < scale <= 4):
+        raise ValueError(f"--scale: expected a number in (0, 4], got {scale!r}")
+    if spec == "synthetic":
+        from clsplat.data.synthetic import SyntheticConfig, generate_sequence
+        a, b = frames or (0, _SYNTHETIC_FRAMES)
+        cfg = SyntheticConfig(height=max(8, round(176 * scale)), width=max(8, round(320 * scale)), num_frames=b,
+                              seed=seed, dt=SYNTHETIC_DT)
+        seq = generate_sequence(cfg)
+        if a:
+            seq = DrivingSequence(seq.cameras, seq.frames[a:b], seq.name, seq.metadata)
+    elif spec.startswith("pandaset:"):
+        from clsplat.data.pandaset import load_pandaset
+        idx = None if frames is None else list(range(*frames))
+        seq = load_pandaset(spec.split(":", 1)[1], cameras=cameras, frames=idx)
+    elif spec.startswith("nuscenes:"):
+        from clsplat.data.nuscenes import load_nuscenes_scene
+        seq = load_nuscenes_scene(spec.split(":", 1)[1])
+        if frames is not None:
+            if frames[1] > len(seq.frames):
+                raise ValueError(f"--frames: {frames[0]}:{frames[1]} is past the scene's {len(seq.frames)} frames")
+            seq = DrivingSequence(seq.cameras, seq.frames[frames[0]:frames[1]], seq.name, seq.metadata)
+    else:
+        raise ValueError(f"--data: expected synthetic, pandaset:PATH or nuscenes:PATH, got {spec!r}")
+    if frames is not None and spec != "synthetic" and not seq.frames:
+        raise ValueError(f"--frames: {frames[0]}:{frames[1]} selects no frame")
+    if spec != "synthetic" and scale != 1:
+        from ..common.data import resize_sequence
+        c0 = seq.cameras[0]
+        seq = resize_sequence(seq, max(8, round(c0.height * scale)), max(8, round(c0.width * scale)))
+    return seq
+
+
+def _parser() -> argparse.ArgumentParser:
+    from ..common.cli import add_common_args
+    p = argparse.ArgumentParser(prog="clsplat train autosplat", description=__doc__.split("\n")[0])
+    add_common_args(p, default_preset="demo")
+    p.add_argument("--cameras", nargs="+", default=None, help="camera names (default: all)")
+    p.add_argument("--frames", default=None, help="frame range A:B (default: the whole sequence; synthetic 0:16)")
+    p.add_argument("--scale", type=float, default=None, help="image scale (default: the preset's)")
+    p.add_argument("--holdout", type=int, default=None, help="hold out every K-th frame (default: the preset's)")
+    p.add_argument("--masks", default=None, help="folder of semantic masks <CAM>/<NN>.png (class indices)")
+    for flag in ("decompose", "flatness", "symmetry", "residual-sh", "pose-correction", "densify"):
+        p.add_argument(f"--no-{flag}", action="store_true", help=f"switch the {flag.replace('-', ' ')} constraint off")
+    p.add_argument("--lpips-vgg", default=None, help="local VGG-16 weights for LPIPS (else LPIPS is off)")
+    p.add_argument("--lpips-lin", default=None, help="local LPIPS v0.1 linear-layer weights")
+    p.add_argument("--stop-after", type=int, default=None,
+                   help="stop after this many iterations in all (checkpointed; continue with --resume)")
+    p.add_argument("--no-progress", action="store_true")
+    return p
+
+
+def reconstruct(data, preset, switches, out: Path, *, device=None, progress: bool = True,
+                checkpoint_every: int = 100, resume: bool = False, stop_after: int | None = None,
+                lpips=(None, "LPIPS off: no weights given"), extra: dict | None = None) -> dict | None:
+    """Train (or resume) and evaluate one run; writes metrics.json and scene.ply into ``out``.
+
+    Returns the metrics, or None when ``stop_after`` stopped the schedule early.
+    """
+    from ..common.train import atomic_write
+    from .trainer import STAGES, Trainer
+
+    t_start = time.perf_counter()
+    trainer = Trainer(data, preset, switches, out, device=device, progress=progress,
+                      checkpoint_every=checkpoint_every)
+    trainer.fit(resume=resume, stop_at=stop_after)
+    if trainer.step < trainer.total:
+        print(f"stopped after {trainer.step} of {trainer.total} iterations; continue with --resume")
+        return None
+    steps = [json.loads(x) for x in (out / "log.jsonl").read_text().splitlines() if x.strip()]
+    it = [r["time_s"] for r in steps]
+    train_s = sum(it)
+    metrics = trainer.evaluate(lpips=lpips[0])
+    metrics["lpips"] = lpips[1]
+    metrics.update({
+        **(extra or {}), "preset": preset.name, "switches": switches.to_dict(),
+        "seconds_per_stage": {**({"load": extra["load_seconds"]} if extra and "load_seconds" in extra else {}),
+                              **trainer.stage_seconds, "eval": metrics["eval_seconds"]},
+        "iterations": trainer.total,
+        "seconds_per_iteration": float(np.median(it)) if it else None,
+        # kernels' device time (forward + backward) from OpenCL profiling events, over step wall time
+        "renderer_device_share": float(sum(r["renderer_device_s"] for r in steps) / train_s) if it else None,
+        # wall time inside the rasterisation calls and loss.backward (an upper bound), over step wall time
+        "renderer_wall_share": float(sum(r["render_wall_s"] + r["backward_s"] for r in steps) / train_s) if it else None,
+        "wall_seconds": time.perf_counter() - t_start,
+    })
+    show = data.test_frames[len(data.test_frames) // 2] if data.test_frames else data.train_frames[0]
+    trainer.scene_gaussians(show).save_ply(out / "scene.ply")
+    atomic_write(out / "metrics.json", lambda p: p.write_text(json.dumps(metrics, indent=2)))
+    return metrics
+
+
+def train(argv: list[str]) -> int:
+    """Entry point of ``clsplat train autosplat``; returns the exit status."""
+    from ..common.metrics import lpips_or_none
+    from ..common.presets import get_preset
+    from ..common.train import set_threads
+    from .model import Switches
+    from .trainer import prepare_data
+
+    a = _parser().parse_args(argv)
+    preset = get_preset("autosplat", a.preset)
+    if a.steps is not None:
+        raise ValueError("--steps: AutoSplat's schedule has four stages; choose a --preset instead")
+    set_threads(a.threads, a.device)
+    preset = preset.replace(seed=a.seed) if a.seed != preset.seed else preset
+    if a.holdout is not None:
+        preset = preset.replace(holdout=a.holdout)
+    scale = preset.scale if a.scale is None else a.scale
+    switches = Switches(decompose=not a.no_decompose, flatness=not a.no_flatness, symmetry=not a.no_symmetry,
+                        residual_sh=not a.no_residual_sh, pose_correction=not a.no_pose_correction,
+                        densify=not a.no_densify)
+    frames = parse_frames(a.frames)
+    t0 = time.perf_counter()
+    seq = load_sequence(a.data, a.cameras, frames, scale, seed=a.seed)
+    if a.masks:
+        from .init import load_mask_folder
+        load_mask_folder(seq, a.masks, list(range(*(frames or (0, len(seq.frames))))))
+    data = prepare_data(seq, a.cameras, preset.holdout)
+    load_s = time.perf_counter() - t0
+    if not a.no_progress:
+        print(preset.describe())
+    if a.stop_after is not None and a.stop_after < 1:
+        raise ValueError(f"--stop-after: expected a positive number of iterations, got {a.stop_after}")
+    lp, msg = lpips_or_none(a.lpips_vgg, a.lpips_lin)
+    metrics = reconstruct(data, preset, switches, Path(a.out), device=a.device, progress=not a.no_progress,
+                          checkpoint_every=a.checkpoint_every, resume=a.resume, stop_after=a.stop_after,
+                          lpips=(lp, msg), extra={"data": a.data, "scale": scale, "load_seconds": load_s})
+    if metrics is None:
+        return 0
+    print(f"held-out PSNR {metrics.get('test_psnr', float('nan')):.2f} dB  SSIM {metrics.get('test_ssim', float('nan')):.3f}"
+          f"  (train PSNR {metrics.get('train_psnr', float('nan')):.2f} dB); {metrics['gaussians']['total']} Gaussians; "
+          f"outputs in {a.out}")
+    return 0

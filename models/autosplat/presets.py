@@ -1,0 +1,101 @@
+"""AutoSplat presets: every knob of a run in one frozen dataclass, registered by name.
+
+``paper`` holds the paper's schedule (30k background iterations in two phases, 5k foreground,
+10k fusion; MODELS.md §3) at full resolution; ``standard`` is a longer run for a workstation;
+``demo`` (the default: ``make demo`` and the ablation benchmark) fits the 2-core CPU machine in
+minutes; ``tiny`` is for tests. λ = 0.2 is 3DGS's value; β (flatness), the residual-SH sparsity weight
+and the sky model are not published and were chosen by measurement (bench/results/autosplat.md).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+from ..common.presets import Preset, register
+
+__all__ = ["AutoSplatPreset", "PRESETS"]
+
+
+@dataclass(frozen=True)
+class AutoSplatPreset(Preset):
+    """One AutoSplat configuration.
+
+    Schedule (iterations; one iteration renders every selected camera of one training frame):
+        bg_phase1_steps: road and sky sets alone, on their own pixels, with flatness.
+        bg_phase2_steps: all background Gaussians jointly, foreground pixels masked out.
+        fg_steps: object sets (background frozen), on full images.
+        fusion_steps: everything together, with per-object per-frame pose corrections.
+    Loss: ``(1 - lambda_dssim) L1 + lambda_dssim (1 - SSIM) + beta_flatness C
+        + sparsity_weight |residual SH|``.
+    """
+
+    name: str = "demo"
+    scale: float = 0.5                # image scale relative to the data's native size
+    sh_degree: int = 1
+    bg_phase1_steps: int = 40
+    bg_phase2_steps: int = 80
+    fg_steps: int = 30
+    fusion_steps: int = 70
+    lambda_dssim: float = 0.2
+    beta_flatness: float = 0.1
+    sparsity_weight: float = 0.01
+    # initialisation
+    lidar_voxel: float = 0.25         # metres; one Gaussian per occupied voxel
+    max_bg_points: int = 12000
+    box_margin: float = 0.15          # LiDAR points this close to a tracked box are foreground
+    sky: str = "dome"                 # "dome": Gaussians on a far hemisphere; "color": learnt background colour
+    dome_radius: float = 400.0
+    dome_points: int = 1500
+    template: str = "car"             # "car" template for cars, box surface otherwise; "box" always
+    object_points: int = 400
+    # optimisation (Adam; learning rates per parameter kind)
+    lr_means: float = 2e-3            # metres; decays x0.1 exponentially over the run
+    lr_scales: float = 1e-2
+    lr_quats: float = 2e-3
+    lr_opacity: float = 5e-2
+    lr_sh0: float = 5e-3
+    lr_shN: float = 2.5e-4
+    lr_residual: float = 1e-3
+    lr_pose: float = 2e-3
+    lr_sky: float = 1e-2
+    residual_width: int = 64
+    time_frequencies: int = 4
+    position_frequencies: int = 2
+    # densification (gsplat default strategy, absgrad criterion)
+    densify_every: int = 30
+    densify_start: int = 30           # steps into each stage that trains the set
+    grad_threshold: float = 0.0008
+    split_scale: float = 0.15         # metres: above it a selected Gaussian splits, below it clones
+    object_split_scale: float = 0.05
+    prune_opacity: float = 0.01
+    prune_scale: float = 8.0          # metres (sky excluded)
+    max_gaussians: int = 30000
+    # data
+    holdout: int = 4                  # every k-th frame of each camera is held out
+    dynamic_threshold: float = 0.5    # metres of track displacement above which a track is dynamic
+    seed: int = 0
+
+    def stage_steps(self) -> dict[str, int]:
+        """Iterations per stage, in order."""
+        return {"bg_phase1": self.bg_phase1_steps, "bg_phase2": self.bg_phase2_steps,
+                "foreground": self.fg_steps, "fusion": self.fusion_steps}
+
+
+PRESETS: dict[str, AutoSplatPreset] = {}
+
+
+def _add(p: AutoSplatPreset) -> None:
+    PRESETS[p.name] = p
+    register("autosplat", p)
+
+
+_add(AutoSplatPreset())
+_add(AutoSplatPreset(name="paper", scale=1.0, sh_degree=3, bg_phase1_steps=15000, bg_phase2_steps=15000,
+                     fg_steps=5000, fusion_steps=10000, lidar_voxel=0.1, max_bg_points=1_000_000,
+                     dome_points=20000, object_points=5000, lr_means=1.6e-4 * 50, densify_every=100,
+                     densify_start=500, max_gaussians=3_000_000, holdout=10))
+_add(replace(PRESETS["demo"], name="standard", scale=1.0, sh_degree=2, bg_phase1_steps=1000,
+             bg_phase2_steps=2000, fg_steps=500, fusion_steps=1500, lidar_voxel=0.15, max_bg_points=80000,
+             dome_points=6000, object_points=1500, densify_every=100, densify_start=200, max_gaussians=200000))
+_add(replace(PRESETS["demo"], name="tiny", scale=0.25, bg_phase1_steps=4, bg_phase2_steps=4, fg_steps=4,
+             fusion_steps=4, lidar_voxel=0.5, max_bg_points=3000, dome_points=300, object_points=200,
+             densify_every=3, densify_start=2, max_gaussians=8000))

@@ -1,0 +1,74 @@
+"""What every ``clsplat train FAMILY`` / ``clsplat eval FAMILY`` command shares.
+
+:func:`dispatch` routes ``clsplat train|eval FAMILY ...`` to ``clsplat.models.FAMILY.cli``'s
+``train(argv)`` / ``evaluate(argv)``. :func:`add_common_args` adds the arguments every family
+takes, so that the commands read alike::
+
+    clsplat train drivingforward --data synthetic --preset tiny --steps 100 --out runs/df
+    clsplat eval pgt --checkpoint runs/pgt/checkpoint.pt --data synthetic --out runs/pgt-eval
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+__all__ = ["dispatch", "add_common_args", "add_eval_args", "positive_int"]
+
+
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {v}")
+    return v
+
+
+def add_common_args(p: argparse.ArgumentParser, default_preset: str = "small") -> None:
+    """--data, --preset, --steps, --out, --resume, --seed, --device, --threads,
+    --checkpoint-every, --batch-size."""
+    p.add_argument("--data", default="synthetic",
+                   help="synthetic | pandaset:PATH | nuscenes:PATH (default: synthetic)")
+    p.add_argument("--preset", default=default_preset, help=f"preset name (default: {default_preset})")
+    p.add_argument("--steps", type=positive_int, default=None, help="training steps (default: the preset's)")
+    p.add_argument("--out", required=True, help="run directory (checkpoint.pt, log.jsonl, loss.png, metrics.json)")
+    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt, bitwise")
+    p.add_argument("--seed", type=int, default=0, help="seed for initialisation and data (default: 0)")
+    p.add_argument("--device", default=None, help="OpenCL device (default: CLSPLAT_DEVICE, else GPU, else PoCL)")
+    p.add_argument("--threads", type=positive_int, default=None,
+                   help="torch threads (default: 1 on a CPU OpenCL device, where PoCL needs the cores)")
+    p.add_argument("--checkpoint-every", type=positive_int, default=100, help="steps between checkpoints")
+    p.add_argument("--batch-size", type=positive_int, default=None, help="global batch (default: the preset's)")
+
+
+def add_eval_args(p: argparse.ArgumentParser) -> None:
+    """--checkpoint, --data, --out, --device, --threads, --seed, --num-scenes."""
+    p.add_argument("--checkpoint", required=True, help="checkpoint.pt written by clsplat train")
+    p.add_argument("--data", default="synthetic", help="synthetic | pandaset:PATH | nuscenes:PATH")
+    p.add_argument("--out", required=True, help="output folder (metrics.json, contact sheets)")
+    p.add_argument("--device", default=None, help="OpenCL device")
+    p.add_argument("--threads", type=positive_int, default=None, help="torch threads")
+    p.add_argument("--seed", type=int, default=0, help="seed of the held-out scenes")
+    p.add_argument("--num-scenes", type=positive_int, default=4, help="held-out scenes to evaluate")
+
+
+def dispatch(command: str, argv: list[str]) -> int:
+    """Run ``clsplat.models.<family>.cli.train`` (command "train") or ``.evaluate`` ("eval")."""
+    from .. import FAMILIES
+    usage = f"usage: clsplat {command} {{{','.join(FAMILIES)}}} [options]   (--help after the family for its options)"
+    if not argv or argv[0] in ("-h", "--help"):
+        print(usage)
+        return 0 if argv else 2
+    family = argv[0]
+    if family not in FAMILIES:
+        print(f"clsplat {command}: unknown model family {family!r}; known: {', '.join(FAMILIES)}", file=sys.stderr)
+        return 2
+    mod = importlib.import_module(f"clsplat.models.{family}.cli")
+    fn = getattr(mod, "train" if command == "train" else "evaluate", None)
+    if fn is None:
+        print(f"clsplat {command} {family}: this family has no {command} command", file=sys.stderr)
+        return 2
+    return int(fn(argv[1:]) or 0)

@@ -1,0 +1,99 @@
+"""Presets: one frozen dataclass per model family, registered by name.
+
+A preset holds every size and constant of a run (resolution, channels, loss weights, schedule).
+It is printed in full at the start of a run (:meth:`Preset.describe`) and stored in every
+checkpoint (:meth:`Preset.to_dict`); :func:`check_preset_matches` refuses a checkpoint made with
+another preset. Families declare theirs as::
+
+    @dataclass(frozen=True)
+    class DFPreset(Preset):
+        name: str
+        height: int
+        ...
+
+    register("drivingforward", DFPreset(name="tiny", height=32, ...))
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+from typing import Any
+
+__all__ = ["Preset", "register", "get_preset", "preset_names", "check_preset_matches"]
+
+_REGISTRY: dict[str, dict[str, "Preset"]] = {}  # family -> name -> preset (filled at import)
+
+
+class Preset:
+    """Mixin for ``@dataclass(frozen=True)`` presets; the first field must be ``name: str``."""
+
+    def to_dict(self) -> dict[str, Any]:
+        """Every field as plain Python values (tuples become lists), for checkpoints and JSON."""
+        return json.loads(json.dumps(dataclasses.asdict(self)))  # type: ignore[arg-type]
+
+    def describe(self) -> str:
+        """Every field, one per line, to print at the start of a run."""
+        d = dataclasses.asdict(self)  # type: ignore[arg-type]
+        w = max(map(len, d))
+        lines = [f"preset {type(self).__name__}({d.get('name', '?')!r}):"]
+        lines += [f"  {k:<{w}} = {v!r}" for k, v in d.items()]
+        return "\n".join(lines)
+
+    def replace(self, **changes: Any) -> "Preset":
+        """A copy with some fields changed (unknown fields are a ValueError naming them)."""
+        fields = {f.name for f in dataclasses.fields(self)}  # type: ignore[arg-type]
+        bad = sorted(set(changes) - fields)
+        if bad:
+            raise ValueError(f"{type(self).__name__}: unknown fields {bad}; known: {sorted(fields)}")
+        return dataclasses.replace(self, **changes)  # type: ignore[type-var]
+
+
+def register(family: str, preset: Preset) -> Preset:
+    """Add ``preset`` to ``family``'s registry under ``preset.name``; returns it."""
+    if not dataclasses.is_dataclass(preset) or not getattr(preset, "__dataclass_params__").frozen:
+        raise TypeError(f"register: {type(preset).__name__} must be a frozen dataclass")
+    _REGISTRY.setdefault(family, {})[preset.name] = preset  # type: ignore[attr-defined]
+    return preset
+
+
+def preset_names(family: str) -> list[str]:
+    """Names registered for ``family`` (importing the family's presets module registers them)."""
+    _import_family(family)
+    return list(_REGISTRY.get(family, {}))
+
+
+def get_preset(family: str, name: str) -> Preset:
+    """The preset ``name`` of ``family``; ValueError listing the known names otherwise."""
+    _import_family(family)
+    known = _REGISTRY.get(family, {})
+    if name not in known:
+        raise ValueError(f"preset: unknown preset {name!r} for {family}; known: {sorted(known)}")
+    return known[name]
+
+
+def check_preset_matches(saved: dict, preset: Preset, where: str) -> None:
+    """Raise ValueError if the preset stored in a checkpoint (``saved``) differs from ``preset``.
+
+    Args:
+        saved: the ``preset`` dict stored in the checkpoint.
+        preset: the preset the caller runs with.
+        where: the checkpoint path, for the message.
+    """
+    mine = preset.to_dict()
+    if saved == mine:
+        return
+    if not isinstance(saved, dict):
+        raise ValueError(f"{where}: checkpoint has no preset record")
+    diff = sorted(k for k in set(saved) | set(mine) if saved.get(k) != mine.get(k))
+    shown = ", ".join(f"{k}: {saved.get(k)!r} != {mine.get(k)!r}" for k in diff[:5])
+    raise ValueError(f"{where}: checkpoint was made with preset {saved.get('name')!r}, not "
+                     f"{mine.get('name')!r} ({shown}{', ...' if len(diff) > 5 else ''})")
+
+
+def _import_family(family: str) -> None:
+    """Import ``clsplat.models.<family>.presets`` so that its presets register themselves."""
+    from .. import FAMILIES
+    if family not in FAMILIES:
+        raise ValueError(f"family: unknown model family {family!r}; known: {list(FAMILIES)}")
+    import importlib
+    importlib.import_module(f"clsplat.models.{family}.presets")

@@ -1,0 +1,1 @@
+"""clsplat.models.drivingforward (in progress)."""

@@ -1,0 +1,150 @@
+"""``clsplat train drivingforward`` and ``clsplat eval drivingforward``.
+
+    clsplat train drivingforward --data synthetic|pandaset:PATH|nuscenes:PATH --preset tiny|small|paper
+                                 --steps N --out DIR [--resume] [--weights RESNET18.pth]
+                                 [--vgg-weights VGG.pth --lin-weights LIN.pth] [--eval-scenes K]
+    clsplat eval drivingforward --checkpoint FILE --data ... [--cameras ...] [--frames ...] --out DIR
+
+Training uses the shared loop (``clsplat.models.common.train``): Adam at the preset's learning
+rate, one new window (synthetic: a new street) per sample, colour jitter on the network inputs
+drawn from the sample's own generator, JSONL log, loss PNG, checkpoints with optimiser and RNG
+state, bitwise ``--resume``, DDP under ``torchrun``. After training, ``DIR/metrics.json`` holds the
+evaluation on ``--eval-scenes`` held-out windows.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+import torch
+
+from ..common.cli import add_common_args, add_eval_args
+from ..common.data import parse_data
+from ..common.presets import get_preset
+
+__all__ = ["train", "evaluate", "build_model", "make_sample_loss"]
+
+FAMILY = "drivingforward"
+
+
+def _add_model_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--weights", default=None, help="local torchvision ResNet-18 state dict for both encoders")
+    p.add_argument("--vgg-weights", default=None, help="local torchvision VGG-16 state dict (LPIPS)")
+    p.add_argument("--lin-weights", default=None, help="local lpips v0.1 vgg.pth linear layers (LPIPS)")
+    p.add_argument("--cameras", nargs="+", default=None, help="camera names (default: all, rig order)")
+
+
+def build_model(preset, weights=None, device=None):
+    """A :class:`DrivingForward` for ``preset``; prints which backbone initialisation it used."""
+    from .model import DrivingForward
+
+    model = DrivingForward(preset, weights=weights, device=device)
+    print(model.init_message, flush=True)
+    return model
+
+
+def make_sample_loss(source, preset, seed: int, cameras=None, lpips=None):
+    """``sample_loss(model, step, index)`` for :func:`clsplat.models.common.train.train`: window
+    ``index`` of the train split, jitter and automask noise from the sample's own generator."""
+    from ..common.train import sample_generator
+    from .data import colour_jitter, load_triplet
+
+    def sample_loss(model, step: int, index: int) -> dict:
+        s = load_triplet(source, index, preset, "train", cameras)
+        g = sample_generator(seed, index)
+        net = colour_jitter(s["images"], g, preset.jitter)
+        V = s["Ks"].shape[0]
+        noise = torch.randn(V, 2, preset.height, preset.width, generator=g) * preset.automask_noise
+        return model.training_losses(s["images"], net, s["Ks"], s["cam_to_ego"], noise, lpips)
+
+    return sample_loss
+
+
+def _lpips(args):
+    from ..common.metrics import lpips_or_none
+
+    module, message = lpips_or_none(args.vgg_weights, args.lin_weights)
+    print(message, flush=True)
+    return module
+
+
+def train(argv: list[str]) -> int:
+    """Entry point of ``clsplat train drivingforward``; returns the exit code."""
+    from ..common.train import TrainSpec, seed_everything, set_threads, train as run
+    from .evaluation import evaluate_model
+
+    p = argparse.ArgumentParser(prog="clsplat train drivingforward", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_common_args(p, default_preset="small")
+    _add_model_args(p)
+    p.add_argument("--eval-scenes", type=int, default=2, help="held-out windows evaluated at the end (0: none)")
+    p.add_argument("--no-progress", action="store_true", help="no tqdm bar")
+    args = p.parse_args(argv)
+    try:
+        preset = get_preset(FAMILY, args.preset)
+        source = parse_data(args.data, seed=args.seed)
+        threads = set_threads(args.threads, args.device)
+        seed_everything(args.seed)
+        model = build_model(preset, args.weights, args.device)
+        lpips = _lpips(args)
+        opt = torch.optim.Adam(model.parameters(), lr=preset.lr)
+        spec = TrainSpec(out_dir=args.out, steps=args.steps or preset.steps,
+                         batch_size=args.batch_size or preset.batch_size, checkpoint_every=args.checkpoint_every,
+                         seed=args.seed, resume=args.resume, progress=not args.no_progress)
+        print(f"data {source.name}, torch threads {threads}", flush=True)
+        run(model, opt, spec, preset, FAMILY, make_sample_loss(source, preset, args.seed, args.cameras, lpips))
+        from ..common.train import distributed_info
+        if args.eval_scenes > 0 and distributed_info()[0] == 0:
+            m = evaluate_model(model, source, args.eval_scenes, args.cameras, lpips=lpips, out_dir=args.out)
+            print(_summary(m), flush=True)
+    except ValueError as e:
+        print(f"clsplat train drivingforward: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+def _summary(m: dict) -> str:
+    keys = ("psnr", "ssim", "lpips", "abs_rel", "sq_rel", "rmse", "delta1", "scale_ratio", "oracle_psnr")
+    return "eval all: " + ", ".join(f"{k} {m[k]:.4g}" for k in keys if k in m)
+
+
+def load_model(path: str, device=None, preset_name: str | None = None):
+    """(model, preset) from a checkpoint written by ``clsplat train drivingforward``."""
+    from ..common.train import load_checkpoint
+
+    ck = load_checkpoint(path, FAMILY)
+    saved = ck.get("preset") or {}
+    preset = get_preset(FAMILY, preset_name or saved.get("name", "?"))
+    load_checkpoint(path, FAMILY, preset)  # refuses a checkpoint of another preset
+    model = build_model(preset, None, device)
+    model.load_state_dict(ck["model"])
+    return model, preset
+
+
+def evaluate(argv: list[str]) -> int:
+    """Entry point of ``clsplat eval drivingforward``; returns the exit code."""
+    from ..common.train import set_threads
+    from .evaluation import evaluate_model
+
+    p = argparse.ArgumentParser(prog="clsplat eval drivingforward")
+    add_eval_args(p)
+    _add_model_args(p)
+    p.add_argument("--preset", default=None, help="expected preset (default: the checkpoint's)")
+    p.add_argument("--frames", nargs="+", type=int, default=None,
+                   help="input frame offsets in {-1, 0, 1} (default SF: 0; MF: -1 1)")
+    p.add_argument("--target", type=int, default=None, help="rendered frame offset (default SF: 1; MF: 0)")
+    p.add_argument("--no-oracle", action="store_true", help="skip the oracle-depth baseline")
+    args = p.parse_args(argv)
+    try:
+        set_threads(args.threads, args.device)
+        model, preset = load_model(args.checkpoint, args.device, args.preset)
+        source = parse_data(args.data, seed=args.seed)
+        lpips = _lpips(args)
+        m = evaluate_model(model, source, args.num_scenes, args.cameras, args.frames, args.target, lpips,
+                           out_dir=args.out, oracle=not args.no_oracle, progress=True)
+        print(_summary(m))
+        print(f"wrote {args.out}/metrics.json, contact_sheet.png, depth_sheet.png")
+    except ValueError as e:
+        print(f"clsplat eval drivingforward: {e}", file=sys.stderr)
+        return 2
+    return 0

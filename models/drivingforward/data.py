@@ -1,0 +1,81 @@
+"""Samples for DrivingForward: frame triplets (t-1, t, t+1) and colour jitter on network inputs.
+
+:func:`load_triplet` asks a ``--data`` source (``clsplat.models.common.data``) for window
+``index`` of three frames at the preset's size and returns tensors; :func:`colour_jitter` applies
+the paper's jitter (brightness, contrast, saturation 0.2, hue 0.05) with factors drawn from a
+given generator, the same factors for every image of the sample (as monodepth2 does), so that a
+sample's randomness derives from its index alone.
+"""
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import torch
+from torch import Tensor
+
+from ..common.data import DataSource, to_torch_frame
+
+__all__ = ["load_triplet", "colour_jitter", "gt_ego_motion"]
+
+
+def load_triplet(source: DataSource, index: int, preset, split: str = "train",
+                 cameras: Sequence[str] | None = None) -> dict[str, Tensor]:
+    """Frames t-1, t, t+1 of window ``index`` as tensors.
+
+    Args:
+        source: a :class:`DataSource` (synthetic: a new street per index).
+        index: window / street index; preset: gives the image size and the frame interval.
+        split: "train" or "test"; cameras: camera names (default: all, rig order).
+    Returns:
+        ``images [3, V, 3, H, W]``, ``Ks [V, 3, 3]``, ``cam_to_ego [V, 4, 4]``, ``depths [3, V, H, W]``
+        (when the data has depth; inf = sky), ``viewmats [3, V, 4, 4]`` world-to-camera,
+        ``ego_to_world [3, 4, 4]``, ``names`` (list of camera names).
+    """
+    kw = {"dt": preset.scenes_dt} if source.kind == "synthetic" else {}
+    seq = source.sequence(index, num_frames=3, height=preset.height, width=preset.width, split=split,
+                          cameras=cameras, **kw)
+    frames = [to_torch_frame(seq, f) for f in range(3)]
+    out = {"images": torch.stack([f["images"] for f in frames]), "Ks": frames[1]["Ks"],
+           "cam_to_ego": frames[1]["cam_to_ego"], "viewmats": torch.stack([f["viewmats"] for f in frames]),
+           "ego_to_world": torch.stack([f["ego_to_world"] for f in frames]), "names": list(seq.camera_names)}
+    if all("depths" in f for f in frames):
+        out["depths"] = torch.stack([f["depths"] for f in frames])
+    return out
+
+
+def gt_ego_motion(sample: dict[str, Tensor], ref: int = 1) -> list[Tensor]:
+    """True ego motion ``M_{ref->f}`` ``[4, 4]`` (ego coordinates at ``ref`` to ego at f) for every frame."""
+    E = sample["ego_to_world"].double()
+    return [(torch.linalg.inv(E[f]) @ E[ref]).to(sample["Ks"].dtype) for f in range(E.shape[0])]
+
+
+def colour_jitter(images: Tensor, generator: torch.Generator,
+                  strength: tuple[float, float, float, float] = (0.2, 0.2, 0.2, 0.05)) -> Tensor:
+    """Random brightness, contrast, saturation and hue, one draw for all images.
+
+    Args:
+        images: ``[..., 3, H, W]`` in [0, 1].
+        generator: the sample's generator.
+        strength: (brightness, contrast, saturation, hue); factors are drawn uniformly from
+            [1 - s, 1 + s] (hue: a shift in [-s, s] turns), applied in that order.
+    Returns:
+        images of the same shape, clamped to [0, 1].
+    """
+    import kornia
+
+    b, c, s, h = strength
+    u = torch.rand(4, generator=generator, dtype=torch.float64)
+    fb, fc, fs = (1 + (2 * u[i] - 1) * v for i, v in enumerate((b, c, s)))
+    fh = (2 * u[3] - 1) * h
+    shape = images.shape
+    x = images.reshape(-1, 3, *shape[-2:])
+    x = (x * float(fb)).clamp(0, 1)
+    grey = kornia.color.rgb_to_grayscale(x)
+    mean = grey.mean(dim=(1, 2, 3), keepdim=True)
+    x = (mean + float(fc) * (x - mean)).clamp(0, 1)
+    grey = kornia.color.rgb_to_grayscale(x)
+    x = (grey + float(fs) * (x - grey)).clamp(0, 1)
+    if fh != 0:
+        x = kornia.enhance.adjust_hue(x, float(fh) * 2 * math.pi).clamp(0, 1)
+    return x.reshape(shape)

@@ -1,0 +1,123 @@
+"""The depth network: ResNet-18 encoder, volumetric fusion, ELU decoder, metric depth mapping.
+
+Per image, a ResNet-18 (``clsplat.models.common.backbones``) gives features at 1/2 .. 1/32;
+levels 2-4 (128 + 256 + 512 channels) are resized to 1/8 and reduced to 256 by a 1x1 conv
+(:class:`MultiLevelReduce`). The surround cameras of one instant are fused in the voxel grid
+(:class:`~.fusion.VolumetricFusion`, depth mode), giving a 128-channel 1/8 feature per camera.
+The decoder (16, 32, 64, 128, 256 channels, ELU, no skips) upsamples it to full resolution and
+ends in one sigmoid ``sigma``; depth = 1 / (1/max + (1/min - 1/max) sigma) * fx / focal_ref.
+Input images are normalised as (x - 0.45) / 0.225.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+import torch.nn.functional as F
+
+from ..common.backbones import ResNet18
+from .fusion import VolumetricFusion, scale_intrinsics
+
+__all__ = ["MultiLevelReduce", "DepthDecoder", "DepthNetwork", "sigma_to_depth", "normalise_image"]
+
+
+def normalise_image(x: Tensor) -> Tensor:
+    """(x - 0.45) / 0.225, the input normalisation of both ResNet encoders."""
+    return (x - 0.45) / 0.225
+
+
+class MultiLevelReduce(nn.Module):
+    """ResNet levels 2-4 resized to 1/8 and reduced by a 1x1 conv: ``[B, 896, h, w] -> [B, out, h, w]``."""
+
+    def __init__(self, in_channels: tuple[int, ...] = (128, 256, 512), out_channels: int = 256) -> None:
+        super().__init__()
+        self.conv = nn.Conv2d(sum(in_channels), out_channels, 1)
+
+    def forward(self, levels: list[Tensor]) -> Tensor:
+        size = levels[0].shape[-2:]
+        up = [levels[0]] + [F.interpolate(f, size=size, mode="bilinear", align_corners=False) for f in levels[1:]]
+        return self.conv(torch.cat(up, 1))
+
+
+def _conv3(cin: int, cout: int) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, 1, 1, padding_mode="reflect"), nn.ELU(inplace=True))
+
+
+class DepthDecoder(nn.Module):
+    """ELU decoder without skips, from a 1/8 feature to a full-resolution sigmoid.
+
+    Five stages, widest first (256, 128, 64, 32, 16); each is conv3x3 + ELU, (x2 nearest upsampling
+    for the last three, which take 1/8 to full resolution), conv3x3 + ELU. Then conv3x3 -> 1, sigmoid.
+
+    Args:
+        in_channels: the fused feature's channels (128).
+        channels: decoder widths, full resolution first: (16, 32, 64, 128, 256).
+    """
+
+    def __init__(self, in_channels: int = 128, channels: tuple[int, ...] = (16, 32, 64, 128, 256)) -> None:
+        super().__init__()
+        widths = list(reversed(channels))                       # 256, 128, 64, 32, 16
+        self.stages = nn.ModuleList()
+        self.upsample = []
+        cin = in_channels
+        for i, c in enumerate(widths):
+            self.stages.append(nn.ModuleDict({"upconv_0": _conv3(cin, c), "upconv_1": _conv3(c, c)}))
+            self.upsample.append(i >= len(widths) - 3)
+            cin = c
+        self.dispconv = nn.Conv2d(cin, 1, 3, 1, 1, padding_mode="reflect")
+
+    def forward(self, x: Tensor) -> Tensor:
+        """``[B, in, h, w] -> sigma [B, 1, 8h, 8w]`` in (0, 1)."""
+        for stage, up in zip(self.stages, self.upsample):
+            x = stage["upconv_0"](x)
+            if up:
+                x = F.interpolate(x, scale_factor=2, mode="nearest")
+            x = stage["upconv_1"](x)
+        return torch.sigmoid(self.dispconv(x))
+
+
+def sigma_to_depth(sigma: Tensor, fx: Tensor, min_depth: float, max_depth: float, focal_ref: float) -> Tensor:
+    """Metric depth from the decoder's sigmoid.
+
+    Args:
+        sigma: ``[V, 1, H, W]`` in (0, 1); fx: ``[V]`` focal length (pixels) of the input images.
+    Returns:
+        ``[V, 1, H, W]`` depth = 1 / (1/max + (1/min - 1/max) sigma) * fx / focal_ref.
+    """
+    inv = 1.0 / max_depth + (1.0 / min_depth - 1.0 / max_depth) * sigma
+    return (1.0 / inv) * (fx / focal_ref).view(-1, 1, 1, 1)
+
+
+class DepthNetwork(nn.Module):
+    """ResNet-18 + volumetric fusion + ELU decoder (VFDepth), for one instant's cameras.
+
+    Args:
+        preset: a :class:`~.presets.DFPreset` (grid, bins, channels, depth range).
+    """
+
+    def __init__(self, preset) -> None:
+        super().__init__()
+        self.preset = preset
+        self.encoder = ResNet18(in_channels=3)
+        self.reduce = MultiLevelReduce((128, 256, 512), preset.fusion_channels)
+        self.fusion = VolumetricFusion(preset.fusion_channels, "depth", preset.voxel_origin, preset.voxel_size,
+                                       preset.voxel_shape, preset.voxel_channels, preset.proj_channels,
+                                       preset.depth_bins, preset.bin_near, preset.bin_far)
+        self.decoder = DepthDecoder(preset.proj_channels[1], preset.depth_decoder_channels)
+
+    def forward(self, images: Tensor, Ks: Tensor, cam_to_ego: Tensor) -> dict[str, Tensor]:
+        """Depth of every camera of one instant.
+
+        Args:
+            images: ``[V, 3, H, W]`` in [0, 1]; Ks: ``[V, 3, 3]`` (of the H x W images);
+            cam_to_ego: ``[V, 4, 4]``.
+        Returns:
+            ``depth [V, 1, H, W]`` metres, ``sigma [V, 1, H, W]``, and the features the Gaussian
+            network uses: ``f2 [V, 64, H/2, W/2]``, ``f4 [V, 64, H/4, W/4]``, ``f8 [V, 128, H/8, W/8]``.
+        """
+        f = self.encoder.forward_features(normalise_image(images))
+        feat8 = self.reduce(f[2:5])
+        fused = self.fusion(feat8, scale_intrinsics(Ks, 1.0 / 8), cam_to_ego)
+        sigma = self.decoder(fused)
+        p = self.preset
+        depth = sigma_to_depth(sigma, Ks[:, 0, 0], p.min_depth, p.max_depth, p.focal_ref)
+        return {"depth": depth, "sigma": sigma, "f2": f[0], "f4": f[1], "f8": fused}

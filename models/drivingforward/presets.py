@@ -1,0 +1,136 @@
+"""DrivingForward presets: every size and constant of a run, as one frozen dataclass.
+
+``paper`` holds the published configuration (MODELS.md §1: 352x640, the 100x100x20 voxel grid of
+1x1x1.5 m from (-50, -50, -15) m, 50 depth bins from 2 to 50 m, depth range 1.5-80 m, loss
+weights 0.001 / 0.03 / 0.1 / 0.01, Adam 1e-4, batch 1). ``small`` and ``tiny`` keep every network
+width of the paper and shrink only the image, the voxel grid and the number of depth bins, so
+that a training step fits the 2-core development machine (``small``: a few seconds per step;
+``tiny``: well under a second, for tests).
+
+The Gaussian scale cap: the paper caps the Softplus scale at 0.01 m, which at 352x640 and depths
+of a few metres is about one pixel's footprint. At 64x112 a pixel at 10 m covers about 0.13 m, so a
+1 cm cap leaves holes between the Gaussians; ``scale_cap`` is therefore a preset field (paper
+value 0.01 m) and the small presets cap at half a pixel's footprint at 40 m (small 0.25 m, tiny
+0.5 m); bench/results/drivingforward.md measures the effect of the cap with oracle depth.
+
+The far plane: the release culls beyond 80 m, but the depth mapping reaches 80 m x fx/focal_ref
+(122 m on the synthetic rig), so the small presets use 200 m and never cull a predicted Gaussian.
+
+The focal-length scaling of the depth (``depth x fx / focal_ref``, paper: focal_ref = 300 px at
+640 px wide images) makes metric depth follow the camera; a lower-resolution preset scales
+``focal_ref`` by its width / 640, so that the same camera gives the same depth range (1.5-80 m
+times fx/focal_ref) as in the paper rather than a range shrunk by the resolution.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ..common.presets import Preset, register
+
+__all__ = ["DFPreset", "PAPER", "SMALL", "TINY"]
+
+
+@dataclass(frozen=True)
+class DFPreset(Preset):
+    """A DrivingForward configuration (all lengths in metres, sizes in pixels).
+
+    Attributes:
+        name: registry name.
+        height, width: network input size; images must have exactly this size.
+        mode: "SF" (6 images at t -> Gaussians, render t-1 and t+1) or "MF" (frames t-1 and t+1
+            of each camera -> Gaussians that render t).
+        voxel_origin, voxel_size, voxel_shape: the ego-frame voxel grid of the fusion
+            (corner of the first voxel; voxel edge lengths x, y, z; voxel counts x, y, z).
+        depth_bins, bin_near, bin_far: samples per ray in the voxel -> image step.
+        fusion_channels: 1/8-resolution feature channels entering the fusion (levels 2-4 reduced).
+        voxel_channels: channels of a fused voxel (one- and two-camera 1x1 convs).
+        proj_channels: the voxel -> image reduction (3x3 convs), last = the fused 1/8 feature.
+        pose_bev_channels: the pose-mode bird's-eye reduction (stride-2 3x3 convs).
+        pose_decoder_channels: hidden width of the pose decoder.
+        pose_scale, max_translation: pose outputs are multiplied by pose_scale, translation clamped.
+        depth_decoder_channels: ELU decoder widths, full resolution first (16 .. 256).
+        min_depth, max_depth, focal_ref: depth = 1/(1/max + (1/min - 1/max) sigma) * fx / focal_ref.
+        gs_encoder_channels, gs_decoder_channels, gs_head_channels: Gaussian network widths.
+        sh_degree, sh_damping, sh_damping_decay: SH degree predicted and rendered; degree l >= 1 is
+            multiplied by sh_damping * sh_damping_decay**l.
+        scale_cap: upper bound of a Gaussian's scale (metres; paper: 0.01).
+        scale_beta: Softplus beta of the scale head.
+        w_smooth, w_spatial, w_spatio_temporal, w_render, w_lpips: loss weights (reprojection = 1).
+        automask_noise: the monodepth2 tie-break noise added to the identity reprojection error.
+        background: render background colour (white in the release).
+        near_plane, far_plane: renderer clipping.
+        lr, batch_size, steps: Adam learning rate, global batch and default step count.
+        jitter: colour jitter (brightness, contrast, saturation, hue) on network inputs only.
+        scenes_dt: seconds between frames t-1, t, t+1 of a synthetic sample.
+    """
+
+    name: str
+    height: int
+    width: int
+    mode: str = "SF"
+    voxel_origin: tuple[float, float, float] = (-50.0, -50.0, -15.0)
+    voxel_size: tuple[float, float, float] = (1.0, 1.0, 1.5)
+    voxel_shape: tuple[int, int, int] = (100, 100, 20)
+    depth_bins: int = 50
+    bin_near: float = 2.0
+    bin_far: float = 50.0
+    fusion_channels: int = 256
+    voxel_channels: int = 64
+    proj_channels: tuple[int, int] = (256, 128)
+    pose_bev_channels: tuple[int, int] = (256, 128)
+    pose_decoder_channels: int = 256
+    pose_scale: float = 0.01
+    max_translation: float = 4.0
+    depth_decoder_channels: tuple[int, int, int, int, int] = (16, 32, 64, 128, 256)
+    min_depth: float = 1.5
+    max_depth: float = 80.0
+    focal_ref: float = 300.0
+    gs_encoder_channels: tuple[int, int, int] = (32, 48, 96)
+    gs_decoder_channels: tuple[int, int, int] = (96, 64, 48)
+    gs_head_channels: int = 32
+    sh_degree: int = 3
+    sh_damping: float = 0.1
+    sh_damping_decay: float = 0.25
+    scale_cap: float = 0.01
+    scale_beta: float = 100.0
+    w_smooth: float = 0.001
+    w_spatial: float = 0.03
+    w_spatio_temporal: float = 0.1
+    w_render: float = 0.01
+    w_lpips: float = 0.05
+    automask_noise: float = 1e-5
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    near_plane: float = 0.01
+    far_plane: float = 80.0
+    lr: float = 1e-4
+    batch_size: int = 1
+    steps: int = 1000
+    jitter: tuple[float, float, float, float] = (0.2, 0.2, 0.2, 0.05)
+    scenes_dt: float = 0.1
+
+    def __post_init__(self) -> None:
+        if self.height % 8 or self.width % 8 or self.height < 16 or self.width < 16:
+            raise ValueError(f"preset {self.name}: height and width must be multiples of 8 and >= 16, "
+                             f"got {self.height}x{self.width}")
+        if self.mode not in ("SF", "MF"):
+            raise ValueError(f"preset {self.name}: mode must be 'SF' or 'MF', got {self.mode!r}")
+        if not 0 <= self.sh_degree <= 3:
+            raise ValueError(f"preset {self.name}: sh_degree must be 0..3, got {self.sh_degree}")
+        if not 0 < self.min_depth < self.max_depth:
+            raise ValueError(f"preset {self.name}: need 0 < min_depth < max_depth")
+
+
+PAPER = register("drivingforward", DFPreset(name="paper", height=352, width=640, steps=100000))
+
+# 64x112: 1/8 features 8x14; a 40 x 40 x 6 grid of 2.5 m voxels (+-50 m, -5..10 m) and 16 depth
+# bins keep the fusion convs (the bulk of a step besides the encoders) at ~1/30 of the paper's
+# cost. A pixel at 10 m spans ~0.13 m.
+SMALL = register("drivingforward", DFPreset(
+    name="small", height=64, width=112,
+    voxel_origin=(-50.0, -50.0, -5.0), voxel_size=(2.5, 2.5, 2.5), voxel_shape=(40, 40, 6),
+    depth_bins=16, scale_cap=0.25, focal_ref=300.0 * 112 / 640, far_plane=200.0, steps=2000))
+
+TINY = register("drivingforward", DFPreset(
+    name="tiny", height=32, width=56,
+    voxel_origin=(-40.0, -40.0, -5.0), voxel_size=(5.0, 5.0, 5.0), voxel_shape=(16, 16, 4),
+    depth_bins=8, scale_cap=0.5, focal_ref=300.0 * 56 / 640, far_plane=200.0, steps=20))

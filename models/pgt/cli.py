@@ -1,0 +1,132 @@
+"""``clsplat train pgt`` and ``clsplat eval pgt``.
+
+    clsplat train pgt --stage base   --data synthetic --preset small --steps 1200 --out runs/pgt-base
+    clsplat train pgt --stage budget --init runs/pgt-base/checkpoint.pt --data synthetic \\
+                      --preset small --steps 400 --out runs/pgt-budget
+    clsplat eval pgt --checkpoint runs/pgt-budget/checkpoint.pt --data synthetic \\
+                     --budgets 1,0.5,0.2,0.1,0.05 --out runs/pgt-eval
+
+``train`` writes the run folder of :func:`clsplat.models.common.train.train` (checkpoint.pt,
+log.jsonl, loss.png). ``eval`` writes budget.json (rows: method, budget, n_gaussians, psnr, ssim,
+render_ms), budget.png (quality against Gaussian count and render time, Pareto front),
+metrics.json (full-set quality, depth AbsRel with and without the residual head, seconds per
+prediction) and contact_sheet.png.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from clsplat.models.common.cli import add_common_args, add_eval_args
+from clsplat.models.common.data import parse_data
+from clsplat.models.common.presets import check_preset_matches, get_preset
+from clsplat.models.common.train import TrainSpec, load_checkpoint, seed_everything, set_threads
+from clsplat.models.common.train import train as run_train
+
+from .budget import check_kappa
+from .model import PGT
+
+__all__ = ["train", "evaluate", "parse_budgets"]
+
+FAMILY = "pgt"
+
+
+def parse_budgets(text: str) -> list[float]:
+    """"1,0.5,0.2" -> [1.0, 0.5, 0.2]; ValueError naming --budgets for anything outside (0, 1]."""
+    try:
+        values = [float(t) for t in text.split(",") if t.strip()]
+    except ValueError:
+        raise ValueError(f"--budgets: expected comma-separated numbers in (0, 1], got {text!r}") from None
+    if not values:
+        raise ValueError(f"--budgets: expected at least one budget, got {text!r}")
+    for v in values:
+        try:
+            check_kappa(v)
+        except ValueError:
+            raise ValueError(f"--budgets: every budget must be in (0, 1], got {v!r}") from None
+    return values
+
+
+def _lpips(args):
+    from clsplat.models.common.metrics import lpips_or_none
+    lp, msg = lpips_or_none(args.lpips_vgg, args.lpips_lin)
+    print(msg, flush=True)
+    return lp
+
+
+def train(argv: list[str]) -> int:
+    """``clsplat train pgt ...``; returns the exit status."""
+    p = argparse.ArgumentParser(prog="clsplat train pgt", description="Train PGT (base) or EcoSplat's budget stage.")
+    add_common_args(p, default_preset="small")
+    p.add_argument("--stage", choices=("base", "budget"), default="base",
+                   help="base: the pixel-aligned predictor; budget: EcoSplat stage 2 from --init")
+    p.add_argument("--init", default=None, help="base checkpoint to start the budget stage from")
+    p.add_argument("--lpips-vgg", default=None, help="local VGG-16 weights (torchvision layout) for LPIPS")
+    p.add_argument("--lpips-lin", default=None, help="local LPIPS v0.1 linear-layer weights (vgg.pth)")
+    args = p.parse_args(argv)
+    try:
+        preset = get_preset(FAMILY, args.preset)
+        if args.stage == "budget" and args.init is None and not args.resume:
+            raise ValueError("--init: the budget stage starts from a base checkpoint; give --init FILE")
+        source = parse_data(args.data, seed=args.seed)
+        set_threads(args.threads, args.device)
+        seed_everything(args.seed)
+        model = PGT(preset)
+        if args.stage == "budget":
+            if args.init is not None:
+                ck = load_checkpoint(args.init, FAMILY, preset)
+                state = {k: v for k, v in ck["model"].items() if not k.startswith("budget.")}
+                model.load_state_dict(state)
+            model.enable_budget()
+        steps = args.steps or (preset.steps if args.stage == "base" else preset.budget_steps)
+        from .training import make_optimizer, make_sample_loss
+        opt, sched = make_optimizer(model, preset, steps, args.stage)
+        spec = TrainSpec(out_dir=args.out, steps=steps, batch_size=args.batch_size or preset.batch_size,
+                         checkpoint_every=args.checkpoint_every, seed=args.seed, grad_clip=preset.grad_clip,
+                         resume=args.resume)
+        lpips = _lpips(args) if preset.w_lpips else None
+        run_train(model, opt, spec, preset, FAMILY, make_sample_loss(source, preset, args.stage, args.seed, lpips),
+                  scheduler=sched, extra_state={"stage": args.stage})
+    except ValueError as e:
+        print(f"clsplat train pgt: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+def evaluate(argv: list[str]) -> int:
+    """``clsplat eval pgt ...``; returns the exit status."""
+    p = argparse.ArgumentParser(prog="clsplat eval pgt", description="Evaluate PGT on held-out data: budget curve.")
+    add_eval_args(p)
+    p.add_argument("--budgets", default="1,0.5,0.2,0.1,0.05", help="comma-separated κ in (0, 1]")
+    p.add_argument("--repeats", type=int, default=3, help="timed renders per point (median)")
+    args = p.parse_args(argv)
+    try:
+        budgets = parse_budgets(args.budgets)
+        ck = load_checkpoint(args.checkpoint, FAMILY)
+        preset = get_preset(FAMILY, ck["preset"]["name"])
+        check_preset_matches(ck["preset"], preset, str(args.checkpoint))
+        source = parse_data(args.data, seed=args.seed)
+        set_threads(args.threads, args.device)
+        model = PGT(preset)
+        if any(k.startswith("budget.") for k in ck["model"]):
+            model.enable_budget()
+        model.load_state_dict(ck["model"])
+        from .evaluate import evaluate_model, write_results
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+        res = evaluate_model(model, source, preset, budgets, args.num_scenes, args.seed, args.repeats,
+                             sheet=Path(args.out) / "contact_sheet.png")
+        res["metrics"]["checkpoint"] = str(args.checkpoint)
+        res["metrics"]["step"] = int(ck["step"])
+        write_results(res, args.out, f"PGT {preset.name} (step {ck['step']}) on held-out {source.name}")
+        m = res["metrics"]
+        print(f"full set: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.3f}; depth AbsRel "
+              f"{m['depth_without_residual'].get('abs_rel', float('nan')):.3f} (coarse) -> "
+              f"{m['depth_with_residual'].get('abs_rel', float('nan')):.3f} (residual)")
+        for r in res["rows"]:
+            print(f"  {r['method']:>9} kappa={r['budget']:<5g} n={r['n_gaussians']:>8.0f} PSNR {r['psnr']:.2f} "
+                  f"SSIM {r['ssim']:.3f} render {r['render_ms']:.1f} ms")
+    except ValueError as e:
+        print(f"clsplat eval pgt: {e}", file=sys.stderr)
+        return 2
+    return 0

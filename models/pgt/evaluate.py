@@ -1,0 +1,166 @@
+"""Held-out evaluation of a PGT checkpoint: image quality, depth and the budget curve.
+
+For each held-out sample: the base prediction renders the target view(s) (PSNR, SSIM), its depth
+is compared with ground truth before (u0) and after the residual head; then for every budget κ the
+same number of Gaussians per view, K_v from the high-frequency weighting, is kept three ways:
+
+* ``finetuned``: EcoSplat's stage-2 heads at κ (only with a budget checkpoint),
+* ``opacity``: top-K_v by the base model's opacity, no finetuning,
+* ``random``: K_v uniformly random pixels per view,
+
+and rendered (PSNR, SSIM, median render milliseconds of the forward rasterisation). κ = 1 is
+the base model for every method. Rows are averaged over samples.
+"""
+from __future__ import annotations
+
+import json
+import math
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from clsplat.models.common.metrics import depth_metrics, psnr, ssim
+
+from .budget import per_view_budgets, random_mask, topk_mask, view_weights
+from .data import make_sample
+from .model import PGT
+from .presets import PGTPreset
+from .training import render_views
+
+__all__ = ["evaluate_model", "plot_budget", "pareto_front", "write_results", "METHODS"]
+
+METHODS = ("finetuned", "opacity", "random")
+
+
+def _timed_render(g, s, preset: PGTPreset, repeats: int) -> tuple[torch.Tensor, float]:
+    times = []
+    rgb = None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        rgb, _ = render_views(g, s.target_viewmats, s.target_Ks, preset.width, preset.height)
+        times.append(time.perf_counter() - t0)
+    return rgb, 1000.0 * statistics.median(times)
+
+
+def evaluate_model(model: PGT, source, preset: PGTPreset, budgets: list[float], num_scenes: int = 4,
+                   seed: int = 0, repeats: int = 3, sheet: str | Path | None = None) -> dict:
+    """Evaluate ``model`` on held-out samples 0..num_scenes-1 (split "test").
+
+    Returns {"rows": budget rows (method, budget, n_gaussians, psnr, ssim, render_ms),
+    "metrics": full-set PSNR/SSIM, depth metrics with and without the residual head, seconds per
+    prediction}. With ``sheet``, a contact sheet of sample 0 (full set and each method at the
+    smallest budget against the ground truth).
+    """
+    model.eval()
+    methods = [m for m in METHODS if m != "finetuned" or model.budget is not None]
+    acc: dict[tuple[str, float], list[dict]] = {}
+    full, d_coarse, d_fine, pred_s = [], [], [], []
+    for i in range(num_scenes):
+        s = make_sample(source, preset, i, "test", None)
+        V, _, H, W = s.images.shape
+        with torch.no_grad():
+            t0 = time.perf_counter()
+            base = model(s.images, s.Ks, s.cam_to_world)
+            pred_s.append(time.perf_counter() - t0)
+            rgb, ms = _timed_render(base.gaussians(), s, preset, repeats)
+            full.append({"psnr": float(psnr(rgb, s.target_images).mean()), "ssim": float(ssim(rgb, s.target_images).mean()),
+                         "render_ms": ms})
+            if s.depths is not None:
+                d_coarse.append(depth_metrics(base.depth0, s.depths, max_depth=preset.far))
+                d_fine.append(depth_metrics(base.depth, s.depths, max_depth=preset.far))
+            weights = view_weights(s.images, preset.hf_temperature)
+            sheet_rows = [rgb[0]]
+            for kappa in budgets:
+                K = per_view_budgets(kappa, weights, H, W)
+                for m in methods:
+                    if kappa == 1.0:
+                        g, r, t = base.gaussians(), rgb, ms
+                    else:
+                        if m == "finetuned":
+                            g = model(s.images, s.Ks, s.cam_to_world, kappa=kappa).gaussians()
+                        elif m == "opacity":
+                            g = base.gaussians(topk_mask(base.opacities, K))
+                        else:
+                            gen = torch.Generator().manual_seed(seed * 1_000_003 + i * 1009 + int(kappa * 1e6))
+                            g = base.gaussians(random_mask(K, H, W, gen))
+                        r, t = _timed_render(g, s, preset, repeats)
+                    acc.setdefault((m, kappa), []).append({
+                        "n_gaussians": len(g), "psnr": float(psnr(r, s.target_images).mean()),
+                        "ssim": float(ssim(r, s.target_images).mean()), "render_ms": t})
+                    if kappa == min(budgets) and i == 0:
+                        sheet_rows.append(r[0])
+            if sheet is not None and i == 0:
+                from clsplat.io.contact_sheet import make_contact_sheet
+                rows = torch.stack(sheet_rows).permute(0, 2, 3, 1).clamp(0, 1)
+                names = ["full"] + [f"{m} k={min(budgets)}" for m in methods]
+                make_contact_sheet(rows, s.target_images[:1].permute(0, 2, 3, 1).expand_as(rows), sheet, names=names,
+                                   title=f"PGT {preset.name}: {s.name}")
+    rows = [{"method": m, "budget": k, **{key: float(np.mean([r[key] for r in v]))
+                                          for key in ("n_gaussians", "psnr", "ssim", "render_ms")}}
+            for (m, k), v in acc.items()]
+
+    def mean_depth(ds: list[dict]) -> dict:
+        keys = ("abs_rel", "sq_rel", "rmse", "delta1")
+        return {k: float(np.nanmean([d[k] for d in ds])) for k in keys} if ds else {}
+
+    metrics = {
+        "num_scenes": num_scenes,
+        "psnr": float(np.mean([f["psnr"] for f in full])), "ssim": float(np.mean([f["ssim"] for f in full])),
+        "render_ms": float(np.median([f["render_ms"] for f in full])),
+        "seconds_per_prediction": float(np.median(pred_s)),
+        "depth_without_residual": mean_depth(d_coarse), "depth_with_residual": mean_depth(d_fine),
+    }
+    return {"rows": rows, "metrics": metrics}
+
+
+def pareto_front(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """The points (cost, quality) not dominated by one of lower-or-equal cost and higher quality,
+    sorted by cost."""
+    front, best = [], -math.inf
+    for c, q in sorted(points, key=lambda p: (p[0], -p[1])):
+        if q > best:
+            front.append((c, q))
+            best = q
+    return front
+
+
+def plot_budget(rows: list[dict], png: str | Path, title: str = "PGT budget curve") -> Path:
+    """PSNR against Gaussian count and against render time, per method, with the Pareto front."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4), dpi=110)
+    for ax, xkey, xlabel in ((axes[0], "n_gaussians", "Gaussians kept"), (axes[1], "render_ms", "render time (ms)")):
+        for m, style in zip(METHODS, ("o-", "s--", "^:")):
+            rs = sorted((r for r in rows if r["method"] == m), key=lambda r: r[xkey])
+            if rs:
+                ax.plot([r[xkey] for r in rs], [r["psnr"] for r in rs], style, label=m)
+                for r in rs:
+                    ax.annotate(f"{r['budget']:g}", (r[xkey], r["psnr"]), fontsize=6, alpha=0.6)
+        front = pareto_front([(r[xkey], r["psnr"]) for r in rows])
+        ax.step([c for c, _ in front], [q for _, q in front], where="post", color="k", lw=2, alpha=0.25,
+                label="Pareto front")
+        ax.set_xscale("log")
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("PSNR (dB)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    png = Path(png)
+    fig.savefig(png)
+    plt.close(fig)
+    return png
+
+
+def write_results(result: dict, out_dir: str | Path, title: str) -> None:
+    """out_dir/budget.json (rows), budget.png, metrics.json."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "budget.json").write_text(json.dumps(result["rows"], indent=1))
+    (out / "metrics.json").write_text(json.dumps(result["metrics"], indent=1))
+    plot_budget(result["rows"], out / "budget.png", title)
+

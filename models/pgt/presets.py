@@ -1,0 +1,144 @@
+"""PGT presets: every size and constant of a pixel-aligned Gaussian run, as frozen dataclasses.
+
+``tiny`` is for tests (seconds on two CPU cores), ``small`` for the CPU benchmark, ``paper`` for
+GPS-Gaussian+'s sizes (encoder 32/48/96, 2 attention layers of 96 channels and 8 heads) at
+DrivingForward's 176x320 nuScenes-like resolution. Registered under family ``"pgt"``.
+
+Depth is handled in *normalised inverse depth* u in [0, 1] over ``[near, far]`` metres
+(u = 1 at ``near``, u = 0 at ``far``): the plane sweep's hypotheses are uniform in u, the
+residual head adds 0.5·tanh(r) in u (half the scene's depth range at most), sky (infinite
+depth) is u = 0 clamped, i.e. ``far``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from clsplat.models.common.presets import Preset, register
+
+__all__ = ["PGTPreset", "MATCHINGS", "COLOURS"]
+
+MATCHINGS = ("plane_sweep", "epipolar_attention")
+COLOURS = ("pixel", "sh")
+
+
+@dataclass(frozen=True)
+class PGTPreset(Preset):
+    """One PGT configuration.
+
+    Data: ``height`` x ``width`` images; ``num_views`` source views per sample. ``views="frames"``:
+    frames t-g .. t+g (g = ``frame_gap``; the middle frame is the target) of one camera drawn from
+    ``cameras``; ``views="cameras"``: one frame of adjacent rig cameras, target the next frame.
+    Network: encoder ``channels`` at 1/2, 1/4, 1/8; matching at 1/8 with ``num_depths``
+    hypotheses; decoder ``decoder_channels`` (1/8, 1/4, 1/2) up to full resolution, heads of
+    ``head_channels``. Gaussians: scale = min(softplus(s)·depth/fx, ``scale_cap_m``) metres;
+    colour from the source pixel or an SH head of ``sh_degree``.
+    Losses: ``w_l1``·L1 + ``w_ssim``·(1-SSIM) (+ ``w_mse``·MSE + ``w_lpips``·LPIPS with weight
+    files), ``w_depth``·L1 on u (coarse and refined) when the data has depth, otherwise
+    ``w_chamfer``·Chamfer of ``chamfer_points`` lifted points per view.
+    Optimiser: AdamW(``lr``, ``weight_decay``), one-cycle, clip ``grad_clip``.
+    Budget stage (EcoSplat): κ ~ U(max(``kappa_start`` - ``kappa_decay``·⌊step/``kappa_interval``⌋,
+    ``kappa_min``), ``kappa_max``); per-view budgets softmax(HF energy / ``hf_temperature``);
+    importance target from ``patch`` x ``patch`` patches; loss ``w_io``·(``w_io_opacity``·BCE(opacity,
+    target) + BCE(alpha, 1)) plus the render loss. ``fill_window`` (0 = off): a pruned set's kept
+    Gaussians widen to cover the pixels pruned around them in that window (our addition, every
+    method alike; :meth:`~.model.PGTOutput.gaussians`).
+    """
+
+    name: str
+    height: int
+    width: int
+    num_views: int = 2
+    views: str = "frames"
+    frame_gap: int = 1
+    cameras: tuple[str, ...] = ("CAM_FRONT", "CAM_FRONT_LEFT", "CAM_FRONT_RIGHT", "CAM_BACK_LEFT",
+                                "CAM_BACK_RIGHT", "CAM_BACK")
+    channels: tuple[int, int, int] = (32, 48, 96)
+    norm: str = "group"
+    matching: str = "plane_sweep"
+    num_depths: int = 32
+    near: float = 1.0
+    far: float = 80.0
+    attn_layers: int = 2
+    attn_heads: int = 8
+    cost_channels: int = 64
+    decoder_channels: tuple[int, int, int] = (96, 64, 48)
+    head_channels: int = 32
+    residual: bool = True
+    colour: str = "pixel"
+    sh_degree: int = 0
+    scale_cap_m: float = 0.5
+    w_l1: float = 0.8
+    w_ssim: float = 0.2
+    w_mse: float = 0.0
+    w_lpips: float = 0.0
+    w_depth: float = 1.0
+    w_chamfer: float = 0.5
+    chamfer_points: int = 10000
+    lr: float = 2e-4
+    weight_decay: float = 1e-5
+    grad_clip: float = 1.0
+    steps: int = 1000
+    batch_size: int = 1
+    budget_steps: int = 500
+    budget_lr: float = 2e-4
+    kappa_start: float = 0.85
+    kappa_decay: float = 0.05
+    kappa_interval: int = 1000
+    kappa_min: float = 0.05
+    kappa_max: float = 0.95
+    hf_temperature: float = 0.3
+    patch: int = 4
+    rate_kernel: int = 7
+    fill_window: int = 9
+    w_io: float = 0.1
+    w_io_opacity: float = 0.1
+
+    def __post_init__(self) -> None:
+        def bad(field: str, why: str) -> ValueError:
+            return ValueError(f"PGTPreset({self.name!r}).{field}: {why}, got {getattr(self, field)!r}")
+        for f in ("height", "width"):
+            if getattr(self, f) < 8 or getattr(self, f) % 8:
+                raise bad(f, "must be a positive multiple of 8")
+        if self.num_views < 2:
+            raise bad("num_views", "PGT needs at least 2 source views")
+        if self.views not in ("frames", "cameras"):
+            raise bad("views", "expected 'frames' or 'cameras'")
+        if self.matching not in MATCHINGS:
+            raise bad("matching", f"expected one of {MATCHINGS}")
+        if self.colour not in COLOURS:
+            raise bad("colour", f"expected one of {COLOURS}")
+        if not 0 <= self.sh_degree <= 3 or (self.colour == "pixel" and self.sh_degree):
+            raise bad("sh_degree", "expected 0..3, and 0 with colour='pixel'")
+        if not 0 < self.near < self.far:
+            raise bad("near", f"must satisfy 0 < near < far={self.far}")
+        if self.num_depths < 2:
+            raise bad("num_depths", "need at least 2 depth hypotheses")
+        if self.channels[2] % self.attn_heads:
+            raise bad("attn_heads", f"must divide channels[2]={self.channels[2]}")
+        if not 0 < self.kappa_min <= self.kappa_start <= self.kappa_max <= 1:
+            raise bad("kappa_start", "need 0 < kappa_min <= kappa_start <= kappa_max <= 1")
+        if self.hf_temperature <= 0:
+            raise bad("hf_temperature", "must be > 0")
+        if self.rate_kernel % 2 == 0:
+            raise bad("rate_kernel", "must be odd")
+        if self.fill_window < 0 or (self.fill_window and self.fill_window % 2 == 0):
+            raise bad("fill_window", "must be 0 (off) or odd")
+        if self.height % self.patch or self.width % self.patch:
+            raise bad("patch", "must divide height and width")
+
+    @property
+    def sh_coeffs(self) -> int:
+        """K = (sh_degree + 1)²."""
+        return (self.sh_degree + 1) ** 2
+
+
+TINY = register("pgt", PGTPreset(
+    name="tiny", height=32, width=48, channels=(16, 24, 32), num_depths=8, attn_layers=1,
+    attn_heads=4, cost_channels=16, decoder_channels=(32, 24, 16), head_channels=16,
+    chamfer_points=512, steps=20, budget_steps=10, kappa_interval=5))
+SMALL = register("pgt", PGTPreset(
+    name="small", height=64, width=112, num_depths=32, attn_heads=8, cost_channels=48,
+    steps=1200, budget_steps=400, kappa_interval=20, chamfer_points=4096))
+PAPER = register("pgt", PGTPreset(
+    name="paper", height=176, width=320, num_depths=64, cost_channels=64, steps=30000,
+    budget_steps=10000, kappa_interval=1000, colour="sh", sh_degree=1))

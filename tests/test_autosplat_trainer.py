@@ -1,0 +1,96 @@
+"""AutoSplat end to end on a tiny street: CLI outputs, bitwise resume, skipped stages, bad input."""
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from clsplat.data.scene import Box3D, DrivingSequence, Frame
+from clsplat.data.synthetic import generate_sequence
+from clsplat.models.autosplat.cli import parse_frames, train
+from clsplat.models.autosplat.model import Switches
+from clsplat.models.autosplat.presets import PRESETS
+from clsplat.models.autosplat.trainer import Trainer, prepare_data
+
+TINY = PRESETS["tiny"]
+CAMS = ["CAM_FRONT", "CAM_BACK_LEFT"]
+
+
+@pytest.fixture(scope="module")
+def street():
+    return generate_sequence(height=32, width=56, num_frames=4, seed=1, dt=0.2)
+
+
+def test_resume_is_bitwise(street, tmp_path):
+    data = prepare_data(street, CAMS, holdout=4)
+    full = Trainer(data, TINY, Switches(), tmp_path / "full", progress=False)
+    full.fit()
+    part = Trainer(data, TINY, Switches(), tmp_path / "part", progress=False)
+    part.fit(stop_at=7)  # mid-foreground, after densification changed the set sizes
+    assert part.step == 7
+    resumed = Trainer(data, TINY, Switches(), tmp_path / "part", progress=False)
+    resumed.fit(resume=True)
+    assert resumed.step == full.step == full.total
+    a, b = full.model.state_dict(), resumed.model.state_dict()
+    assert a.keys() == b.keys()
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+    assert full.model.sizes() != {"background": 0}
+    logs = [json.loads(x) for x in (tmp_path / "part" / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in logs] == list(range(1, full.total + 1))
+    with pytest.raises(ValueError, match="switches"):
+        Trainer(data, TINY, Switches(symmetry=False), tmp_path / "part", progress=False).fit(resume=True)
+
+
+def test_sequence_without_tracks_skips_foreground_and_static_tracks_get_no_residual(street, tmp_path):
+    frames = [Frame(f.timestamp, f.ego_to_world, f.images, f.depths, f.semantics,
+                    {c: np.zeros_like(v) for c, v in f.instances.items()}, f.lidar, []) for f in street.frames]
+    seq = DrivingSequence(street.cameras, frames, "no-tracks", dict(street.metadata))
+    t = Trainer(prepare_data(seq, CAMS, 4), TINY, Switches(), tmp_path, progress=False)
+    assert t.steps["foreground"] == 0 and not t.tracks
+    t2 = Trainer(prepare_data(street, CAMS, 4), TINY, Switches(), tmp_path, progress=False)
+    dyn = {str(k) for k, tr in enumerate(t2.tracks) if tr.dynamic}
+    assert dyn and set(t2.model.residuals.keys()) == dyn and len(dyn) < len(t2.tracks)
+
+
+def test_cli_writes_the_run_folder(tmp_path):
+    out = tmp_path / "run"
+    rc = train(["--data", "synthetic", "--preset", "tiny", "--frames", "0:4", "--scale", "0.2",
+                "--cameras", "CAM_FRONT", "CAM_BACK", "--no-progress", "--out", str(out)])
+    assert rc == 0
+    for name in ("metrics.json", "scene.ply", "checkpoint.pt", "loss.png", "log.jsonl", "contact_sheet.png",
+                 "lateral_shift_1m.png", "lateral_shift_2m.png", "lateral_shift_3m.png"):
+        assert (out / name).is_file(), name
+    m = json.loads((out / "metrics.json").read_text())
+    for k in ("test_psnr", "test_ssim", "train_psnr"):
+        assert np.isfinite(m[k])
+    assert set(m["per_camera"]) == {"CAM_FRONT", "CAM_BACK"}
+    assert set(m["lateral_shift"]) == {"1m", "2m", "3m"} and m["lateral_shift"]["2m"]["psnr"] > 5
+    assert m["gaussians"]["road"] > 0 and m["gaussians"]["sky"] > 0 and m["gaussians"]["objects"] > 0
+    assert set(m["seconds_per_stage"]) >= {"load", "init", "bg_phase1", "bg_phase2", "foreground", "fusion"}
+
+
+def test_bad_input_is_named(street, tmp_path):
+    with pytest.raises(ValueError, match="cameras: 'CAM_NOPE' is not in the data"):
+        prepare_data(street, ["CAM_NOPE"], 4)
+    with pytest.raises(ValueError, match="--frames"):
+        parse_frames("3:3")
+    with pytest.raises(ValueError, match="--frames"):
+        parse_frames("a:b")
+    with pytest.raises(ValueError, match="holdout"):
+        prepare_data(street, CAMS, 1)
+    # no LiDAR: a clear error (there is no image-only initialisation)
+    nolidar = DrivingSequence(street.cameras, [Frame(f.timestamp, f.ego_to_world, f.images, f.depths, f.semantics,
+                                                     f.instances, None, f.boxes) for f in street.frames])
+    with pytest.raises(ValueError, match="no LiDAR"):
+        Trainer(prepare_data(nolidar, CAMS, 4), TINY, Switches(), tmp_path, progress=False).fit()
+    # boxes that are not tracks: two boxes with one id in a frame
+    f0 = street.frames[0]
+    b = f0.boxes[0]
+    dup = Box3D(b.track_id, b.label, b.size, b.center + np.array([10.0, 0, 0]), b.quat)
+    bad = DrivingSequence(street.cameras, [Frame(f0.timestamp, f0.ego_to_world, f0.images, lidar=f0.lidar,
+                                                 boxes=[b, dup])] + street.frames[1:])
+    with pytest.raises(ValueError, match="track id"):
+        Trainer(prepare_data(bad, CAMS, 4), TINY, Switches(), tmp_path, progress=False)
+    with pytest.raises(ValueError, match="--data"):
+        train(["--data", "kitti:/x", "--out", str(tmp_path / "x"), "--no-progress"])

@@ -1,0 +1,104 @@
+"""DrivingForward geometry and losses (pose.py carrying, losses.py) on the synthetic generator's
+ground truth: the carried pose equals every camera's true motion, the warp with true depth and
+pose reproduces the target where visible, and the losses prefer the true depth and scale."""
+import numpy as np
+import pytest
+import torch
+
+from clsplat.models.common.data import parse_data, to_torch_frame
+from clsplat.models.common.geometry import invert_rigid, warp
+from clsplat.models.common.losses import photometric_error
+from clsplat.models.drivingforward import losses as L
+from clsplat.models.drivingforward.pose import carry_pose, ego_motion
+
+H, W = 64, 112
+
+
+@pytest.fixture(scope="module")
+def seq():
+    s = parse_data("synthetic").sequence(3, num_frames=3, height=H, width=W, dt=0.1)
+    frames = [to_torch_frame(s, f) for f in range(3)]
+    # static, finite-depth pixels of frame t (moving vehicles are not explained by ego motion)
+    moving = [v.track_id for v in s.metadata["scene"].vehicles if v.speed > 0]
+    f1 = s.frames[1]
+    static = np.stack([~np.isin(f1.instances[c], moving) & np.isfinite(f1.depths[c]) for c in s.camera_names])
+    return {"frames": frames, "static": torch.from_numpy(static)[:, None].float(), "names": s.camera_names}
+
+
+def _true_camera_motion(frames, src):
+    """Every camera's true motion t -> src: p_src = viewmat_src cam_to_world_t p_t."""
+    return frames[src]["viewmats"].double() @ frames[1]["cam_to_world"].double()
+
+
+def test_carried_pose_is_every_cameras_true_motion(seq):
+    fr = seq["frames"]
+    E = fr[1]["cam_to_ego"].double()
+    for src in (0, 2):
+        T = _true_camera_motion(fr, src)
+        assert torch.allclose(carry_pose(T[0], E), T, atol=1e-6)
+        # the ego motion from the front camera's is the true ego motion ego_t -> ego_src
+        M = torch.linalg.inv(fr[src]["ego_to_world"].double()) @ fr[1]["ego_to_world"].double()
+        assert torch.allclose(ego_motion(T[0], E[0]), M, atol=1e-6)
+    # and the formula is not trivially satisfied: the side cameras' motion differs from the front's
+    T = _true_camera_motion(fr, 2)
+    assert (T[1, :3, 3] - T[0, :3, 3]).norm() > 0.3
+
+
+def test_warp_with_true_depth_and_pose_reproduces_the_target(seq):
+    fr, static = seq["frames"], seq["static"]
+    tgt, depth, Ks = fr[1]["images"], fr[1]["depths"].clamp(max=1e3), fr[1]["Ks"]
+    for src in (0, 2):
+        T = _true_camera_motion(fr, src).float()
+        warped, valid = warp(fr[src]["images"], depth, Ks, Ks, T)
+        m = valid * static
+        l1 = ((warped - tgt).abs().mean(1, keepdim=True) * m).sum() / m.sum()
+        pe = (photometric_error(warped, tgt) * m).sum() / m.sum()
+        ident = (photometric_error(fr[src]["images"], tgt) * m).sum() / m.sum()
+        print(f"temporal warp t{src - 1:+d} -> t: L1 {l1:.4f}, photometric {pe:.4f} "
+              f"(unwarped {ident:.4f}) over {float(m.mean()):.0%} of pixels")
+        assert l1 < 0.03 and pe < 0.5 * ident
+    # spatial: the neighbouring cameras at t through the rig extrinsics
+    E = fr[1]["cam_to_ego"]
+    pairs = L.rig_neighbours(E)
+    c, n = [a for a, _ in pairs], [b for _, b in pairs]
+    warped, valid = warp(tgt[n], depth[c], Ks[c], Ks[n], invert_rigid(E[n]) @ E[c])
+    m = valid * static[c]
+    l1 = ((warped - tgt[c]).abs().mean(1, keepdim=True) * m).sum() / m.sum()
+    print(f"spatial warp neighbour -> camera: L1 {l1:.4f} over {float(m.mean()):.0%} of pixels")
+    assert l1 < 0.03 and m.mean() > 0.05
+
+
+def test_rig_neighbours_follow_the_yaw_order(seq):
+    E = seq["frames"][1]["cam_to_ego"]
+    names = seq["names"]
+    nb = {names[c]: sorted(names[n] for cc, n in L.rig_neighbours(E) if cc == c) for c in range(6)}
+    assert nb["CAM_FRONT"] == ["CAM_FRONT_LEFT", "CAM_FRONT_RIGHT"]
+    assert nb["CAM_BACK"] == ["CAM_BACK_LEFT", "CAM_BACK_RIGHT"]
+    assert nb["CAM_FRONT_LEFT"] == ["CAM_BACK_LEFT", "CAM_FRONT"]
+    assert L.rig_neighbours(E[:1]) == []
+    assert L.rig_neighbours(E[[0, 5]]) == [(0, 1), (1, 0)]
+
+
+def test_brightness_normalise_undoes_gain_and_offset():
+    torch.manual_seed(0)
+    tgt = torch.rand(2, 3, 8, 8)
+    valid = (torch.rand(2, 1, 8, 8) > 0.3).float()
+    out = L.brightness_normalise(0.6 * tgt + 0.2, tgt, valid)
+    assert torch.allclose(out * valid, tgt * valid, atol=1e-3)
+
+
+def test_losses_prefer_true_depth_scale_and_motion(seq):
+    fr = seq["frames"]
+    tgt, Ks, E = fr[1]["images"], fr[1]["Ks"], fr[1]["cam_to_ego"]
+    depth = fr[1]["depths"].clamp(max=200)[:, None]
+    srcs = [fr[0]["images"], fr[2]["images"]]
+    M = [torch.linalg.inv(fr[s]["ego_to_world"]) @ fr[1]["ego_to_world"] for s in (0, 2)]
+    Tc = [_true_camera_motion(fr, s).float() for s in (0, 2)]
+    spatial = {k: float(L.spatial_loss(tgt, depth * k, Ks, E)) for k in (0.5, 1.0, 2.0)}
+    st = {k: float(L.spatio_temporal_loss(tgt, srcs, depth * k, Ks, E, M)) for k in (0.5, 1.0, 2.0)}
+    tmp = float(L.temporal_loss(tgt, srcs, depth, Ks, Tc))
+    still = float(L.temporal_loss(tgt, srcs, depth, Ks, [torch.eye(4).expand(6, 4, 4)] * 2))
+    print(f"spatial loss at depth x0.5/x1/x2: {spatial}; spatio-temporal: {st}; temporal true/still {tmp:.4f}/{still:.4f}")
+    assert spatial[1.0] < min(spatial[0.5], spatial[2.0])  # the rig's baseline fixes metric scale
+    assert st[1.0] < min(st[0.5], st[2.0])
+    assert tmp < still

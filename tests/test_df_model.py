@@ -1,0 +1,113 @@
+"""DrivingForward model (model.py): gradient paths, reconstruction from any subset of cameras and
+frames, SF/MF training losses, .ply export, and errors that name the bad argument."""
+import pytest
+import torch
+
+from clsplat.models.common.data import parse_data
+from clsplat.models.common.gaussians import GaussianSet
+from clsplat.models.common.geometry import unproject
+from clsplat.models.common.presets import get_preset
+from clsplat.models.drivingforward.data import colour_jitter, gt_ego_motion, load_triplet
+from clsplat.models.drivingforward.model import DrivingForward
+
+TINY = get_preset("drivingforward", "tiny")
+HW = TINY.height * TINY.width
+
+
+@pytest.fixture(scope="module")
+def sample():
+    return load_triplet(parse_data("synthetic"), 1, TINY)
+
+
+@pytest.fixture(scope="module")
+def model():
+    torch.manual_seed(0)
+    return DrivingForward(TINY)
+
+
+def _without_grad(m, prefix=""):
+    return [n for n, q in m.named_parameters() if n.startswith(prefix) and (q.grad is None or not q.grad.abs().sum() > 0)]
+
+
+def test_gradients_reach_every_parameter_through_render_and_through_warps(model, sample):
+    net = colour_jitter(sample["images"], torch.Generator().manual_seed(0))
+    terms = model.training_losses(sample["images"], net, sample["Ks"], sample["cam_to_ego"])
+    assert set(terms) == {"loss", "reproj", "smooth", "spatial", "spatio_temporal", "render", "mse"}  # no lpips
+    assert all(torch.isfinite(v) for v in terms.values())
+    model.zero_grad()
+    terms["render"].backward(retain_graph=True)       # renderer alone: depth (means), pose (viewmats), Gaussians
+    assert _without_grad(model) == []
+    model.zero_grad()
+    terms["reproj"].backward()                        # warps alone: depth and pose; the Gaussian net takes no part
+    assert _without_grad(model, "depth_net") == [] and _without_grad(model, "pose_net") == []
+    assert len(_without_grad(model, "gaussian_net")) == len(list(model.gaussian_net.parameters()))
+    model.zero_grad()
+
+
+def test_mf_mode_renders_frame_t_from_its_neighbours(sample):
+    torch.manual_seed(0)
+    m = DrivingForward(TINY.replace(mode="MF"))
+    terms = m.training_losses(sample["images"], sample["images"], sample["Ks"], sample["cam_to_ego"])
+    terms["render"].backward()
+    assert torch.isfinite(terms["loss"]) and _without_grad(m) == []
+
+
+@pytest.mark.parametrize("cams", [[0], [2, 4], [0, 1, 2, 3, 4, 5]])
+def test_reconstruct_any_camera_subset_one_gaussian_per_pixel(model, sample, cams):
+    I, Ks, E = sample["images"][1, cams], sample["Ks"][cams], sample["cam_to_ego"][cams]
+    g = model.reconstruct(I, Ks, E)
+    assert isinstance(g, GaussianSet) and len(g) == len(cams) * HW
+    g.validate()
+    # means are the pixel centres lifted with the predicted depth, in the ego frame
+    with torch.no_grad():
+        d = model.depth_net(I, Ks, E)["depth"][:, 0]
+    assert torch.allclose(g.means, unproject(d, Ks, E).reshape(-1, 3), atol=1e-4)
+
+
+def test_reconstruct_any_frame_subset_in_the_reference_ego_frame(model, sample):
+    cams = [1, 3]
+    I, Ks, E = sample["images"][:, cams], sample["Ks"][cams], sample["cam_to_ego"][cams]
+    V = len(cams)
+    # frames t and t+1 with the given ego motion: frame t+1's Gaussians move into the ego frame at t
+    M = gt_ego_motion(sample)
+    to_ref = torch.stack([torch.eye(4), torch.linalg.inv(M[2])])
+    g2 = model.reconstruct(I[1:], Ks, E, frame_to_ref=to_ref, ref=0)
+    assert len(g2) == 2 * V * HW
+    alone = model.reconstruct(I[2], Ks, E)
+    assert torch.allclose(g2.means[V * HW:], alone.means @ to_ref[1, :3, :3].T + to_ref[1, :3, 3], atol=1e-4)
+    # frames t-1, t+1 (MF's inputs) with the pose network's motion
+    assert len(model.reconstruct(I[[0, 2]], Ks, E)) == 2 * V * HW
+
+
+def test_reconstruction_renders_and_exports(model, sample, tmp_path):
+    g = model.reconstruct(sample["images"][1], sample["Ks"], sample["cam_to_ego"])
+    viewmats = sample["viewmats"][2] @ sample["ego_to_world"][1]
+    colors, alphas = model.render(g, viewmats, sample["Ks"])
+    assert colors.shape == (6, 3, TINY.height, TINY.width) and alphas.shape == (6, 1, TINY.height, TINY.width)
+    assert torch.isfinite(colors).all() and float(alphas.mean()) > 0.5
+    back = GaussianSet.load_ply(g.save_ply(tmp_path / "scene.ply"))
+    assert len(back) == len(g) and torch.allclose(back.means, g.means)
+
+
+def test_bad_inputs_name_the_argument(model, sample):
+    I, Ks, E = sample["images"][1], sample["Ks"], sample["cam_to_ego"]
+    with pytest.raises(ValueError, match=r"images: preset 'tiny' needs 32x56"):
+        model.reconstruct(torch.rand(6, 3, 40, 56), Ks, E)
+    with pytest.raises(ValueError, match=r"Ks: expected \[6, 3, 3\]"):
+        model.reconstruct(I, Ks[:5], E)
+    with pytest.raises(ValueError, match=r"cam_to_ego: expected \[6, 4, 4\]"):
+        model.reconstruct(I, Ks, E[:4])
+    with pytest.raises(ValueError, match="images: contain NaN"):
+        model.reconstruct(torch.where(torch.rand_like(I) < 0.01, torch.nan, I), Ks, E)
+    bad = E.clone()
+    bad[2, :3, :3] *= 1.2
+    with pytest.raises(ValueError, match=r"cam_to_ego\[2\].*rigid"):
+        model.reconstruct(I, Ks, bad)
+    with pytest.raises(ValueError, match=r"frame 1: images"):
+        model.training_losses(torch.stack([I, torch.full_like(I, torch.nan), I]), sample["images"], Ks, E)
+    with pytest.raises(ValueError, match=r"frame_to_ref: expected \[1, 4, 4\]"):
+        model.reconstruct(I, Ks, E, frame_to_ref=torch.eye(4)[None].expand(2, 4, 4))
+    with pytest.raises(ValueError, match="unknown preset 'huge'"):
+        get_preset("drivingforward", "huge")
+    with pytest.raises(ValueError, match="CAM_TOP"):
+        load_triplet(parse_data("synthetic"), 0, TINY, cameras=["CAM_FRONT", "CAM_TOP"])

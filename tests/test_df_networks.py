@@ -1,0 +1,118 @@
+"""DrivingForward's three networks (pose.py, depth.py, gaussian.py): shapes, activation ranges,
+and the paper preset's parameter counts against the architecture's own arithmetic."""
+import math
+
+import pytest
+import torch
+
+from clsplat.models.common.backbones import ResidualBlock, ResidualUNetEncoder
+from clsplat.models.common.data import parse_data
+from clsplat.models.common.presets import get_preset
+from clsplat.models.drivingforward.data import load_triplet
+from clsplat.models.drivingforward.depth import DepthNetwork
+from clsplat.models.drivingforward.gaussian import GaussianNetwork
+from clsplat.models.drivingforward.pose import PoseNetwork
+
+TINY = get_preset("drivingforward", "tiny")
+
+
+@pytest.fixture(scope="module")
+def sample():
+    return load_triplet(parse_data("synthetic"), 0, TINY)
+
+
+# ----------------------------------------------------------------------------- arithmetic
+def conv(cin, cout, k, bias=True):
+    return cin * cout * k * k + (cout if bias else 0)
+
+
+def resnet18(cin):
+    def block(i, o, s=1):
+        n = conv(i, o, 3, False) + 2 * o + conv(o, o, 3, False) + 2 * o
+        return n + (conv(i, o, 1, False) + 2 * o if s != 1 or i != o else 0)
+    n = conv(cin, 64, 7, False) + 2 * 64
+    for i, o, s in ((64, 64, 1), (64, 128, 2), (128, 256, 2), (256, 512, 2)):
+        n += block(i, o, s) + block(o, o)
+    return n
+
+
+def paper_counts(p):
+    X, Y, Z = p.voxel_shape
+    reduce = conv(128 + 256 + 512, 256, 1)
+    c1 = 256 + 1
+    depth_fusion = (c1 * 64 + 64) + (2 * c1 * 64 + 64) + conv(p.depth_bins * 64, 256, 3) + conv(256, 128, 3)
+    decoder, cin = 0, 128
+    for c in (256, 128, 64, 32, 16):
+        decoder += conv(cin, c, 3) + conv(c, c, 3)
+        cin = c
+    decoder += conv(16, 1, 3)
+    depth = resnet18(3) + reduce + depth_fusion + decoder
+    pose = (resnet18(6) + reduce + conv(c1 * Z, 256, 3) + conv(256, 128, 3)
+            + conv(128, 256, 1) + 2 * conv(256, 256, 3) + conv(256, 6, 1))
+    R = ResidualBlock.num_params
+    K = (p.sh_degree + 1) ** 2
+    gauss = (ResidualUNetEncoder.num_params(1, (32, 48, 96), "group")
+             + R(128 + 96, 96) + R(96 + 64 + 48, 64) + R(64 + 64 + 32, 48) + conv(48 + 3 + 1, 32, 3)
+             + sum(conv(32, 32, 3) + conv(32, o, 1) for o in (4, 3, 1, 3 * K)))
+    return {"pose": pose, "depth": depth, "gaussian": gauss}
+
+
+def test_paper_parameter_counts():
+    p = get_preset("drivingforward", "paper")
+    assert (p.height, p.width, p.voxel_shape, p.voxel_size, p.voxel_origin, p.depth_bins) == \
+        (352, 640, (100, 100, 20), (1.0, 1.0, 1.5), (-50.0, -50.0, -15.0), 50)
+    want = paper_counts(p)
+    nets = {"pose": PoseNetwork(p), "depth": DepthNetwork(p), "gaussian": GaussianNetwork(p)}
+    for name, net in nets.items():
+        got = sum(q.numel() for q in net.parameters())
+        print(f"paper {name} network: {got:,} parameters (arithmetic: {want[name]:,})")
+        assert got == want[name], name
+
+
+# ----------------------------------------------------------------------------- shapes and ranges
+def test_pose_network_output_is_a_bounded_rigid_motion(sample):
+    torch.manual_seed(0)
+    net = PoseNetwork(TINY)
+    with torch.no_grad():
+        net.decoder.pose_2.bias.copy_(torch.tensor([0.0, 0, 0, 900.0, -900.0, 0.0]))  # +-9 m before the clamp
+        T = net(sample["images"][0], sample["images"][1], sample["Ks"], sample["cam_to_ego"])
+    assert T.shape == (4, 4)
+    R = T[:3, :3]
+    assert torch.allclose(R.T @ R, torch.eye(3), atol=1e-5) and torch.allclose(T[3], torch.tensor([0.0, 0, 0, 1]))
+    assert T[:3, 3].abs().max() <= TINY.max_translation + 1e-6
+    assert math.isclose(float(T[0, 3]), 4.0, abs_tol=1e-6) and math.isclose(float(T[1, 3]), -4.0, abs_tol=1e-6)
+
+
+def test_depth_network_shapes_and_metric_range(sample):
+    torch.manual_seed(0)
+    net = DepthNetwork(TINY)
+    H, W = TINY.height, TINY.width
+    with torch.no_grad():
+        out = net(sample["images"][1], sample["Ks"], sample["cam_to_ego"])
+    assert out["depth"].shape == (6, 1, H, W) and out["sigma"].shape == (6, 1, H, W)
+    assert out["f2"].shape == (6, 64, H // 2, W // 2) and out["f4"].shape == (6, 64, H // 4, W // 4)
+    assert out["f8"].shape == (6, TINY.proj_channels[1], H // 8, W // 8)
+    assert ((out["sigma"] > 0) & (out["sigma"] < 1)).all()
+    s = (sample["Ks"][:, 0, 0] / TINY.focal_ref).view(-1, 1, 1, 1)
+    assert (out["depth"] >= TINY.min_depth * s - 1e-4).all() and (out["depth"] <= TINY.max_depth * s + 1e-3).all()
+    # the mapping itself: sigma = 0 -> max depth, sigma = 1 -> min depth, times fx / focal_ref
+    from clsplat.models.drivingforward.depth import sigma_to_depth
+    d = sigma_to_depth(torch.tensor([0.0, 1.0]).view(2, 1, 1, 1), torch.tensor([300.0, 600.0]), 1.5, 80.0, 300.0)
+    assert torch.allclose(d.flatten(), torch.tensor([80.0, 3.0]))
+
+
+def test_gaussian_network_heads(sample):
+    torch.manual_seed(0)
+    dnet, gnet = DepthNetwork(TINY), GaussianNetwork(TINY)
+    H, W, K = TINY.height, TINY.width, (TINY.sh_degree + 1) ** 2
+    with torch.no_grad():
+        d = dnet(sample["images"][1], sample["Ks"], sample["cam_to_ego"])
+        gnet.scale_head.out.bias.fill_(5.0)       # push scales into the cap
+        out = gnet(sample["images"][1], d["depth"], d["f2"], d["f4"], d["f8"])
+    assert out["quats"].shape == (6, H, W, 4) and torch.allclose(out["quats"].norm(dim=-1), torch.ones(6, H, W), atol=1e-5)
+    assert out["scales"].shape == (6, H, W, 3) and (out["scales"] > 0).all()
+    assert out["scales"].max() == TINY.scale_cap
+    assert out["opacities"].shape == (6, H, W) and ((out["opacities"] > 0) & (out["opacities"] < 1)).all()
+    assert out["sh"].shape == (6, H, W, K, 3)
+    want = [1.0] + [0.1 * 0.25 ** l for l in range(1, TINY.sh_degree + 1) for _ in range(2 * l + 1)]
+    assert torch.allclose(gnet.sh_damp, torch.tensor(want))

@@ -1,0 +1,158 @@
+"""PSNR, SSIM (11x11 Gaussian), depth metrics and LPIPS from local weight files."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from clsplat.models.common.backbones import VGG16
+from clsplat.models.common.metrics import LPIPS, LPIPS_OFF_MESSAGE, depth_metrics, lpips_or_none, psnr, ssim
+
+
+def test_psnr_known_values_mask_and_clipping():
+    pred = torch.full((2, 3, 4, 5), 0.5)
+    target = torch.full((2, 3, 4, 5), 0.6)
+    torch.testing.assert_close(psnr(pred, target), torch.tensor([20.0, 20.0]))
+    target[1] = 0.5 + 0.01  # mse 1e-4 -> 40 dB
+    torch.testing.assert_close(psnr(pred, target), torch.tensor([20.0, 40.0]))
+    # the mask selects pixels: outside it the error is huge, inside it is 0.1
+    t2 = torch.full((1, 3, 4, 5), 0.6)
+    t2[..., 2:, :] = 0.0
+    mask = torch.zeros(1, 4, 5, dtype=torch.bool)
+    mask[:, :2] = True
+    torch.testing.assert_close(psnr(pred[:1], t2, mask), torch.tensor([20.0]))
+    # values are clipped to [0, 1] before the error
+    assert math.isinf(float(psnr(torch.full((1, 3, 4, 4), 1.7), torch.ones(1, 3, 4, 4))))
+    with pytest.raises(ValueError, match="mask"):
+        psnr(pred, target, torch.ones(2, 4, 4))
+
+
+def numpy_gaussian_ssim(a: np.ndarray, b: np.ndarray) -> float:
+    """Mean SSIM of one channel over the valid 11x11 Gaussian (sigma 1.5) windows, by loops."""
+    x = np.arange(11) - 5
+    g = np.exp(-(x**2) / (2 * 1.5**2))
+    w = np.outer(g, g) / np.outer(g, g).sum()
+    c1, c2 = 0.01**2, 0.03**2
+    vals = []
+    for i in range(a.shape[0] - 10):
+        for j in range(a.shape[1] - 10):
+            wa, wb = a[i : i + 11, j : j + 11], b[i : i + 11, j : j + 11]
+            ma, mb = (w * wa).sum(), (w * wb).sum()
+            va, vb = (w * wa**2).sum() - ma**2, (w * wb**2).sum() - mb**2
+            cov = (w * wa * wb).sum() - ma * mb
+            vals.append((2 * ma * mb + c1) * (2 * cov + c2) / ((ma**2 + mb**2 + c1) * (va + vb + c2)))
+    return float(np.mean(vals))
+
+
+def test_ssim_known_values():
+    img = torch.rand(2, 3, 16, 16, dtype=torch.float64)
+    torch.testing.assert_close(ssim(img, img), torch.ones(2, dtype=torch.float64))
+    # flat images: only the luminance term, (2ab + C1) / (a² + b² + C1)
+    a, b = 0.3, 0.7
+    want = (2 * a * b + 1e-4) / (a * a + b * b + 1e-4)
+    got = ssim(torch.full((1, 3, 12, 12), a, dtype=torch.float64), torch.full((1, 3, 12, 12), b, dtype=torch.float64))
+    torch.testing.assert_close(got, torch.tensor([want], dtype=torch.float64))
+    noisy = (img + 0.1 * torch.randn_like(img)).clamp(0, 1)
+    want = [np.mean([numpy_gaussian_ssim(img[i, c].numpy(), noisy[i, c].numpy()) for c in range(3)]) for i in range(2)]
+    torch.testing.assert_close(ssim(noisy, img), torch.tensor(want, dtype=torch.float64))
+    with pytest.raises(ValueError, match="11x11"):
+        ssim(torch.rand(1, 3, 8, 16), torch.rand(1, 3, 8, 16))
+
+
+def test_depth_metrics_hand_values_and_sky():
+    gt = torch.tensor([[10.0, 20.0, float("inf"), 40.0, 100.0]])  # inf = sky, 100 m beyond max_depth
+    pred = torch.tensor([[11.0, 20.0, 5.0, 30.0, 50.0]])
+    m = depth_metrics(pred, gt)
+    assert m["n_pixels"] == 3
+    assert m["abs_rel"] == pytest.approx((0.1 + 0 + 0.25) / 3)
+    assert m["sq_rel"] == pytest.approx((1 / 10 + 0 + 100 / 40) / 3)
+    assert m["rmse"] == pytest.approx(math.sqrt((1 + 0 + 100) / 3))
+    assert m["delta1"] == pytest.approx(2 / 3)  # 40/30 = 1.33 fails
+    assert m["scale_ratio"] == pytest.approx(20.0 / 20.0)
+    # no median scaling: a pred at half the depth is reported as such
+    half = depth_metrics(gt[:, :2] / 2, gt[:, :2])
+    assert half["abs_rel"] == pytest.approx(0.5) and half["scale_ratio"] == pytest.approx(2.0)
+    assert half["delta1"] == 0.0
+    # predictions are clamped to [min_depth, max_depth]
+    assert depth_metrics(torch.tensor([500.0]), torch.tensor([79.0]))["rmse"] == pytest.approx(1.0)
+    # mask, and the empty case
+    masked = depth_metrics(pred, gt, mask=torch.tensor([[True, False, True, False, True]]))
+    assert masked["n_pixels"] == 1 and masked["abs_rel"] == pytest.approx(0.1)
+    empty = depth_metrics(pred, torch.full_like(gt, float("inf")))
+    assert empty["n_pixels"] == 0 and all(math.isnan(empty[k]) for k in ("abs_rel", "rmse", "delta1", "scale_ratio"))
+    with pytest.raises(ValueError, match="shapes differ"):
+        depth_metrics(pred, gt[:, :3])
+    with pytest.raises(ValueError, match="pred: contains NaN"):
+        depth_metrics(torch.tensor([float("nan")]), torch.tensor([5.0]))
+
+
+CHANNELS = (64, 128, 256, 512, 512)
+
+
+def write_lin(path, keys=None, channels=CHANNELS):
+    """An lpips v0.1 vgg.pth-layout file: lin{k}.model.1.weight [1, C_k, 1, 1], random non-negative."""
+    g = torch.Generator().manual_seed(3)
+    keys = keys or [f"lin{k}.model.1.weight" for k in range(5)]
+    lin = {k: torch.rand(1, c, 1, 1, generator=g) for k, c in zip(keys, channels)}
+    torch.save(lin, path)
+    return lin
+
+
+@pytest.fixture(scope="module")
+def vgg_file(tmp_path_factory):
+    """A torchvision-layout VGG-16 file (random features, plus a classifier entry), written once."""
+    g = torch.Generator().manual_seed(5)
+    vgg = {k: torch.randn(v.shape, generator=g) * 0.05 for k, v in VGG16().state_dict().items()}
+    vgg["classifier.6.bias"] = torch.zeros(1000)
+    path = tmp_path_factory.mktemp("lpips") / "vgg16.pth"
+    torch.save(vgg, path)
+    return path
+
+
+def test_lpips_from_local_files(tmp_path, vgg_file):
+    lin = write_lin(tmp_path / "lin.pth")
+    model, msg = lpips_or_none(vgg_file, tmp_path / "lin.pth")
+    assert isinstance(model, LPIPS) and msg.startswith("LPIPS on") and str(tmp_path / "lin.pth") in msg
+    assert torch.equal(model.lin4.model[1].weight, lin["lin4.model.1.weight"])
+    g = torch.Generator().manual_seed(4)
+    a = torch.rand(2, 3, 16, 16, generator=g)  # relu5_3 at 1x1
+    b = (a + 0.2 * torch.randn(a.shape, generator=g)).clamp(0, 1)
+    assert torch.equal(model(a, a), torch.zeros(2))
+    d = model(a, b)
+    assert d.shape == (2,) and torch.all(d > 0)
+    torch.testing.assert_close(model(b, a), d)  # symmetric
+    # linear in the calibration weights
+    with torch.no_grad():
+        for k in range(5):
+            getattr(model, f"lin{k}").model[1].weight.mul_(2.0)
+    torch.testing.assert_close(model(a, b), 2 * d)
+    with pytest.raises(ValueError, match="H, W >= 16"):
+        model(a[..., :8, :], b[..., :8, :])
+    # frozen, stays in eval mode, gradients reach the inputs
+    model.train()
+    assert not model.training and not any(p.requires_grad for p in model.parameters())
+    x = b.clone().requires_grad_(True)
+    model(x, a).sum().backward()
+    assert x.grad.abs().sum() > 0
+
+
+def test_lpips_off_and_bad_files(tmp_path, vgg_file):
+    assert lpips_or_none(None, None) == (None, LPIPS_OFF_MESSAGE)
+    assert LPIPS_OFF_MESSAGE == "LPIPS off: no VGG-16 / LPIPS weights given (nothing is downloaded)"
+    write_lin(tmp_path / "lin.pth")
+    with pytest.raises(ValueError, match="lin_weights"):
+        lpips_or_none(vgg_file, None)
+    with pytest.raises(ValueError, match="does not exist"):
+        LPIPS(vgg_file, tmp_path / "missing.pth")
+    write_lin(tmp_path / "wrong.pth", keys=[f"lin{k}.weight" for k in range(5)])
+    with pytest.raises(ValueError, match=r"wrong.pth.*not lpips v0.1 vgg.pth layout.*missing"):
+        LPIPS(vgg_file, tmp_path / "wrong.pth")
+    write_lin(tmp_path / "shape.pth", channels=(3,) * 5)
+    with pytest.raises(ValueError, match=r"lin0.model.1.weight of shape \[1, 3, 1, 1\]"):
+        LPIPS(vgg_file, tmp_path / "shape.pth")
+    # a ResNet file is not a VGG-16
+    torch.save({"conv1.weight": torch.zeros(64, 3, 7, 7)}, tmp_path / "resnet.pth")
+    with pytest.raises(ValueError, match=r"VGG16 weights: .*resnet.pth.*missing keys"):
+        LPIPS(tmp_path / "resnet.pth", tmp_path / "lin.pth")

@@ -1,0 +1,197 @@
+"""models/common/train.py: bitwise resume, two-process data parallel == one process, skipped
+non-finite steps, divergence error, checkpoint checks, atomic writes, log and plot."""
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import textwrap
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+import torch
+
+from clsplat.models.common import presets
+from clsplat.models.common.train import (JsonlLog, TrainSpec, atomic_write, load_checkpoint, sample_generator,
+                                         save_checkpoint, train)
+
+# The toy family lives in a module the DDP subprocess can import too.
+TOY = textwrap.dedent('''
+    import math
+    from dataclasses import dataclass
+    import torch
+    from clsplat.models.common.presets import Preset
+    from clsplat.models.common.train import TrainSpec, sample_generator, train
+
+    @dataclass(frozen=True)
+    class ToyPreset(Preset):
+        name: str = "toy"
+        width: int = 8
+
+    class Toy(torch.nn.Module):
+        def __init__(self, width):
+            super().__init__()
+            self.net = torch.nn.Sequential(torch.nn.Linear(4, width), torch.nn.Tanh(), torch.nn.Linear(width, 1))
+            self.unused = torch.nn.Linear(2, 2)  # never gets a gradient: must stay untouched
+
+        def forward(self, x):
+            return self.net(x)
+
+    def sample_loss(model, step, index, nan_at=()):
+        g = sample_generator(7, index)
+        x = torch.randn(16, 4, generator=g, dtype=torch.float64)
+        y = x.sin().sum(-1, keepdim=True)
+        mse = ((model(x) - y) ** 2).mean()
+        if index in nan_at:
+            mse = mse * math.nan
+        # dropout-like use of the global RNG, so resume must restore it
+        noise = 1e-3 * torch.rand(()).double()
+        return {"loss": mse + noise, "mse": mse}
+
+    def run(out, steps, resume=False, batch=2, nan_at=(), every=3):
+        torch.manual_seed(0)
+        model = Toy(8).double()
+        opt = torch.optim.Adam(model.parameters(), lr=1e-2)
+        sched = torch.optim.lr_scheduler.StepLR(opt, 2, 0.5)
+        spec = TrainSpec(out_dir=out, steps=steps, batch_size=batch, checkpoint_every=every, resume=resume,
+                         progress=False)
+        res = train(model, opt, spec, ToyPreset(), "toy", lambda m, s, i: sample_loss(m, s, i, nan_at), sched)
+        return model, res
+''')
+
+
+@pytest.fixture(scope="module")
+def toy(tmp_path_factory):
+    d = tmp_path_factory.mktemp("toy")
+    (d / "toy_family.py").write_text(TOY)
+    sys.path.insert(0, str(d))
+    import toy_family
+    yield toy_family, d
+    sys.path.remove(str(d))
+
+
+def params(model):
+    return {k: v.clone() for k, v in model.state_dict().items()}
+
+
+def test_resume_is_bitwise(toy, tmp_path):
+    t, _ = toy
+    full, _ = t.run(tmp_path / "a", 7)
+    t.run(tmp_path / "b", 4, every=2)  # "interrupted" after step 4 (checkpoint at 4)
+    # the interrupted run wrote log lines past its checkpoint? simulate a torn extra line
+    with open(tmp_path / "b" / "log.jsonl", "a") as fh:
+        fh.write('{"step": 5, "loss": 1.0}\n{"st')
+    resumed, res = t.run(tmp_path / "b", 7, resume=True)
+    assert res["resumed_from"] == 4
+    for k, v in params(full).items():
+        assert torch.equal(v, resumed.state_dict()[k]), k
+    la = [json.loads(x) for x in (tmp_path / "a" / "log.jsonl").read_text().splitlines()]
+    lb = [json.loads(x) for x in (tmp_path / "b" / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in lb] == list(range(1, 8))
+    assert [r["loss"] for r in la] == [r["loss"] for r in lb]
+    assert (tmp_path / "b" / "loss.png").stat().st_size > 1000
+
+
+def test_two_process_data_parallel_equals_one_process(toy, tmp_path):
+    t, d = toy
+    one, _ = t.run(tmp_path / "one", 4, batch=4)
+    script = tmp_path / "ddp.py"
+    script.write_text(textwrap.dedent(f'''
+        import sys, torch
+        sys.path.insert(0, {str(d)!r})
+        torch.set_num_threads(1)
+        import toy_family
+        model, _ = toy_family.run({str(tmp_path / "two")!r}, 4, batch=4)
+        import torch.distributed as dist
+        if dist.get_rank() == 0:
+            torch.save(model.state_dict(), {str(tmp_path / "two.pt")!r})
+        dist.destroy_process_group()
+    '''))
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    with socket.socket() as s:  # a free port for the rendezvous
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    r = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", str(port),
+                        str(script)], capture_output=True, text=True, timeout=300, env=env)
+    assert r.returncode == 0, r.stderr[-3000:]
+    two = torch.load(tmp_path / "two.pt")
+    for k, v in one.state_dict().items():
+        assert torch.allclose(v, two[k], rtol=1e-12, atol=1e-14), k
+    assert torch.equal(one.state_dict()["unused.weight"], two["unused.weight"])
+
+
+def test_non_finite_steps_are_skipped_and_divergence_is_an_error(toy, tmp_path):
+    t, _ = toy
+    model, res = t.run(tmp_path / "nan", 3, batch=1, nan_at=(1,))
+    assert res["skipped"] == 1
+    recs = [json.loads(x) for x in (tmp_path / "nan" / "log.jsonl").read_text().splitlines()]
+    assert recs[1].get("skipped") is True and "skipped" not in recs[0]
+    assert all(torch.isfinite(v).all() for v in model.state_dict().values())
+    with pytest.raises(RuntimeError, match=r"diverged: 20 consecutive.*\['loss', 'mse'\]"):
+        t.run(tmp_path / "div", 30, batch=1, nan_at=tuple(range(30)))
+
+
+def test_checkpoint_errors_name_the_file(toy, tmp_path):
+    t, _ = toy
+    t.run(tmp_path / "c", 2)
+    ck = tmp_path / "c" / "checkpoint.pt"
+    with pytest.raises(ValueError, match="is a 'toy' checkpoint, not 'pgt'"):
+        load_checkpoint(ck, family="pgt")
+    with pytest.raises(ValueError, match="preset 'toy'.*width: 8 != 16"):
+        load_checkpoint(ck, family="toy", preset=t.ToyPreset(width=16))
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(ck.read_bytes()[:200])
+    with pytest.raises(ValueError, match="bad.pt.*corrupt, truncated"):
+        load_checkpoint(bad)
+    with pytest.raises(ValueError, match="does not exist"):
+        load_checkpoint(tmp_path / "none.pt")
+    torch.save({"weights": torch.zeros(1)}, tmp_path / "other.pt")
+    with pytest.raises(ValueError, match="not a clsplat model checkpoint"):
+        load_checkpoint(tmp_path / "other.pt")
+    with pytest.raises(ValueError, match="steps: the checkpoint is at step 2"):
+        t.run(tmp_path / "c", 1, resume=True)
+
+
+def test_atomic_write_keeps_the_old_file_when_writing_fails(tmp_path):
+    p = tmp_path / "metrics.json"
+    p.write_text("old")
+
+    def full_disk(tmp: Path):
+        tmp.write_text("partial")
+        raise OSError(28, "No space left on device")
+
+    with pytest.raises(OSError, match="metrics.json failed.*previous file is unchanged"):
+        atomic_write(p, full_disk)
+    assert p.read_text() == "old" and sorted(x.name for x in tmp_path.iterdir()) == ["metrics.json"]
+
+
+def test_presets_registry_and_description():
+    @dataclass(frozen=True)
+    class P(presets.Preset):
+        name: str
+        size: int = 3
+
+    p = P("x")
+    assert "size = 3" in p.describe() and p.to_dict() == {"name": "x", "size": 3}
+    with pytest.raises(ValueError, match="unknown fields"):
+        p.replace(colour=1)
+    with pytest.raises(ValueError, match="family: unknown model family 'toy2'"):
+        presets.get_preset("toy2", "x")
+
+
+def test_sample_generator_depends_only_on_seed_and_index():
+    a = torch.rand(3, generator=sample_generator(1, 5))
+    torch.rand(10)
+    assert torch.equal(a, torch.rand(3, generator=sample_generator(1, 5)))
+    assert not torch.equal(a, torch.rand(3, generator=sample_generator(1, 6)))
+
+
+def test_log_keeps_lines_up_to_the_resumed_step(tmp_path):
+    p = tmp_path / "log.jsonl"
+    p.write_text("".join(json.dumps({"step": s}) + "\n" for s in range(1, 6)))
+    log = JsonlLog(p, resume_step=3)
+    log.write({"step": 4, "loss": 0.5})
+    assert [json.loads(x)["step"] for x in p.read_text().splitlines()] == [1, 2, 3, 4]

@@ -1,0 +1,105 @@
+"""``clsplat train pgt`` / ``clsplat eval pgt`` (models/pgt/cli.py) end to end on the tiny preset:
+base stage, budget stage from --init, bitwise resume, the budget curve files, and clear errors."""
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from clsplat.models.pgt.cli import evaluate, parse_budgets, train
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    root = tmp_path_factory.mktemp("pgt")
+    base, budget = root / "base", root / "budget"
+    assert train(["--stage", "base", "--preset", "tiny", "--steps", "2", "--out", str(base)]) == 0
+    assert train(["--stage", "budget", "--init", str(base / "checkpoint.pt"), "--preset", "tiny",
+                  "--steps", "2", "--out", str(budget)]) == 0
+    return root
+
+
+def test_stages_write_runs_and_only_the_budget_heads_change(runs):
+    base = torch.load(runs / "base" / "checkpoint.pt", weights_only=True)
+    budget = torch.load(runs / "budget" / "checkpoint.pt", weights_only=True)
+    assert base["step"] == 2 and budget["step"] == 2 and budget["extra"]["stage"] == "budget"
+    for k, v in base["model"].items():
+        assert torch.equal(v, budget["model"][k]), k  # everything but the copies is frozen
+    copies = [k for k in budget["model"] if k.startswith("budget.")]
+    assert "budget.rate.weight" in copies and budget["model"]["budget.rate.weight"].shape[-2:] == (7, 7)
+    assert any(not torch.equal(budget["model"][k], base["model"][k.replace("budget.heads.", "heads.")])
+               for k in copies if k.startswith("budget.heads."))
+    logs = [json.loads(line) for line in (runs / "budget" / "log.jsonl").read_text().splitlines()]
+    assert len(logs) == 2 and all({"io", "kappa", "render", "loss"} <= set(r) for r in logs)
+    assert all(0.85 <= r["kappa"] <= 0.95 for r in logs)
+    assert (runs / "base" / "loss.png").is_file()
+
+
+def test_base_stage_resumes_bitwise(runs, tmp_path, monkeypatch):
+    """A run interrupted after its step-1 checkpoint and resumed ends where the uninterrupted one did."""
+    from clsplat.models.pgt import training
+    real = training.make_sample_loss
+
+    def interrupted(*args, **kwargs):
+        fn = real(*args, **kwargs)
+
+        def sample_loss(model, step, index):
+            if step == 1:
+                raise KeyboardInterrupt("simulated interruption")
+            return fn(model, step, index)
+        return sample_loss
+
+    out = tmp_path / "resumed"
+    monkeypatch.setattr(training, "make_sample_loss", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        train(["--preset", "tiny", "--steps", "2", "--checkpoint-every", "1", "--out", str(out)])
+    monkeypatch.setattr(training, "make_sample_loss", real)
+    assert torch.load(out / "checkpoint.pt", weights_only=True)["step"] == 1
+    assert train(["--preset", "tiny", "--steps", "2", "--out", str(out), "--resume"]) == 0
+    a = torch.load(out / "checkpoint.pt", weights_only=True)["model"]
+    b = torch.load(runs / "base" / "checkpoint.pt", weights_only=True)["model"]
+    assert all(torch.equal(a[k], b[k]) for k in b)
+
+
+def test_eval_writes_the_budget_curve(runs):
+    out = runs / "eval"
+    assert evaluate(["--checkpoint", str(runs / "budget" / "checkpoint.pt"), "--budgets", "1,0.2,0.05",
+                     "--num-scenes", "1", "--repeats", "1", "--out", str(out)]) == 0
+    rows = json.loads((out / "budget.json").read_text())
+    assert {(r["method"], r["budget"]) for r in rows} == {(m, k) for m in ("finetuned", "random", "opacity")
+                                                        for k in (1.0, 0.2, 0.05)}
+    P = 2 * 32 * 48
+    for r in rows:
+        assert set(r) == {"method", "budget", "n_gaussians", "psnr", "ssim", "render_ms"}
+        assert abs(r["n_gaussians"] - round(r["budget"] * P)) <= 2
+        assert r["render_ms"] > 0 and 0 < r["psnr"] < 60 and -1 <= r["ssim"] <= 1
+    full = [r for r in rows if r["budget"] == 1.0]
+    assert len({(r["psnr"], r["n_gaussians"]) for r in full}) == 1  # κ = 1 is the base model for all
+    m = json.loads((out / "metrics.json").read_text())
+    assert {"abs_rel", "delta1"} <= set(m["depth_with_residual"]) and m["seconds_per_prediction"] > 0
+    assert (out / "budget.png").stat().st_size > 1000 and (out / "contact_sheet.png").is_file()
+
+
+def test_eval_of_a_base_checkpoint_has_only_the_baselines(runs):
+    out = runs / "eval-base"
+    assert evaluate(["--checkpoint", str(runs / "base" / "checkpoint.pt"), "--budgets", "0.5",
+                     "--num-scenes", "1", "--repeats", "1", "--out", str(out)]) == 0
+    assert {r["method"] for r in json.loads((out / "budget.json").read_text())} == {"random", "opacity"}
+
+
+def test_bad_arguments_are_clear_errors(runs, tmp_path, capsys):
+    for text in ("0", "1.5", "0.5,-1", "a,b", ""):
+        with pytest.raises(ValueError, match="--budgets"):
+            parse_budgets(text)
+    assert evaluate(["--checkpoint", str(runs / "base" / "checkpoint.pt"), "--budgets", "2",
+                     "--out", str(tmp_path / "e")]) == 2
+    assert "--budgets" in capsys.readouterr().err
+    assert train(["--stage", "budget", "--preset", "tiny", "--steps", "1", "--out", str(tmp_path / "b")]) == 2
+    assert "--init" in capsys.readouterr().err
+    assert train(["--stage", "budget", "--init", str(tmp_path / "missing.pt"), "--preset", "tiny", "--steps", "1",
+                  "--out", str(tmp_path / "b")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    assert train(["--preset", "huge", "--steps", "1", "--out", str(tmp_path / "c")]) == 2
+    assert "unknown preset 'huge'" in capsys.readouterr().err
+    assert evaluate(["--checkpoint", str(tmp_path / "missing.pt"), "--out", str(tmp_path / "e")]) == 2

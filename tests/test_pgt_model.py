@@ -1,0 +1,188 @@
+"""PGT model (models/pgt/model.py, heads.py): head shapes and ranges, unprojection onto each
+pixel's own ray, κ = 1 bitwise equal to the base model, Gaussian counts per κ, gradients from the
+renderer to the encoder, and clear errors on bad input. Tiny preset."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from clsplat.models.common.geometry import invert_rigid, pixel_centres, project, quat_to_matrix
+from clsplat.models.pgt.matching import u_to_depth
+from clsplat.models.pgt.model import PGT
+from clsplat.models.pgt.presets import TINY
+
+
+def _views(V=2, H=TINY.height, W=TINY.width, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    images = torch.rand(V, 3, H, W, generator=g)
+    f = 0.8 * W
+    Ks = torch.tensor([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]]).expand(V, 3, 3).clone()
+    c2w = torch.eye(4).expand(V, 4, 4).clone()
+    c2w[:, 0, 3] = torch.arange(V) * 0.5  # sideways baseline
+    c2w[:, 2, 3] = torch.arange(V) * 0.3
+    return images, Ks, c2w
+
+
+@pytest.fixture(scope="module")
+def model():
+    torch.manual_seed(0)
+    m = PGT(TINY)
+    with torch.no_grad():  # a non-trivial residual head (it starts at zero)
+        m.depth_head.net[2].weight.normal_(0, 0.3)
+    return m
+
+
+@pytest.fixture(scope="module")
+def out(model):
+    images, Ks, c2w = _views()
+    with torch.no_grad():
+        return model(images, Ks, c2w), (images, Ks, c2w)
+
+
+def test_head_shapes_and_ranges(out):
+    o, (images, Ks, c2w) = out
+    V, _, H, W = images.shape
+    assert o.u.shape == o.u0.shape == o.depth.shape == o.depth0.shape == (V, H, W)
+    assert o.prob.shape == (V, TINY.num_depths, H // 8, W // 8)
+    torch.testing.assert_close(o.prob.sum(1), torch.ones(V, H // 8, W // 8))
+    assert o.means.shape == (V, H, W, 3) and o.quats.shape == (V, H, W, 4) and o.scales.shape == (V, H, W, 3)
+    assert o.opacities.shape == (V, H, W) and o.sh.shape == (V, H, W, 1, 3)
+    assert ((o.u >= 0) & (o.u <= 1)).all() and ((o.u0 >= 0) & (o.u0 <= 1)).all()
+    assert (o.depth >= TINY.near * (1 - 1e-5)).all() and (o.depth <= TINY.far * (1 + 1e-5)).all()
+    # the residual is 0.5·tanh(r): at most half the (normalised) depth range, and it is active
+    assert (o.u - o.u0).abs().max() <= 0.5 and (o.u - o.u0).abs().max() > 1e-3
+    torch.testing.assert_close(o.quats.norm(dim=-1), torch.ones(V, H, W))
+    assert (o.scales > 0).all() and (o.scales <= TINY.scale_cap_m).all()
+    assert ((o.opacities >= 0) & (o.opacities <= 1)).all()
+    # pixel colour: the DC term reproduces the source pixel
+    torch.testing.assert_close(o.sh[..., 0, :] * 0.28209479177387814 + 0.5, images.permute(0, 2, 3, 1))
+    g = o.gaussians()
+    assert len(g) == V * H * W
+    g.validate()
+
+
+def test_sh_colour_head_shapes():
+    p = TINY.replace(colour="sh", sh_degree=2)
+    torch.manual_seed(0)
+    images, Ks, c2w = _views()
+    with torch.no_grad():
+        o = PGT(p)(images, Ks, c2w)
+    assert o.sh.shape == (2, p.height, p.width, 9, 3) and torch.isfinite(o.sh).all()
+    assert o.gaussians().sh_degree == 2
+
+
+def test_unprojection_on_own_ray_at_predicted_depth(out):
+    o, (images, Ks, c2w) = out
+    V, _, H, W = images.shape
+    uv, z = project(o.means.reshape(V, -1, 3), Ks, invert_rigid(c2w))
+    torch.testing.assert_close(uv.reshape(V, H, W, 2), pixel_centres(H, W).expand(V, H, W, 2), atol=2e-3, rtol=0)
+    torch.testing.assert_close(z.reshape(V, H, W), o.depth, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(o.depth, u_to_depth(o.u, TINY.near, TINY.far))
+
+
+def test_prediction_moves_with_the_world_frame():
+    """A rigid change of world frame T moves means and rotations by T and leaves the rest."""
+    torch.manual_seed(1)
+    m = PGT(TINY).double()  # float64: no valid-mask flips at image borders from rounding
+    images, Ks, c2w = (t.double() for t in _views())
+    T = torch.eye(4, dtype=torch.float64)
+    T[:3, :3] = quat_to_matrix(torch.nn.functional.normalize(torch.tensor([0.9, 0.1, -0.3, 0.2]), dim=0).double())
+    T[:3, 3] = torch.tensor([3.0, -1.0, 2.0])
+    with torch.no_grad():
+        a = m(images, Ks, c2w)
+        b = m(images, Ks, T @ c2w)
+    torch.testing.assert_close(b.depth, a.depth)
+    torch.testing.assert_close(b.means, a.means @ T[:3, :3].T + T[:3, 3])
+    torch.testing.assert_close(quat_to_matrix(b.quats), T[:3, :3] @ quat_to_matrix(a.quats))
+
+
+def test_kappa_one_is_the_base_model_bitwise(model):
+    images, Ks, c2w = _views(seed=3)
+    with torch.no_grad():
+        base = model(images, Ks, c2w)
+    m = PGT(TINY)
+    m.load_state_dict(model.state_dict())
+    m.enable_budget()
+    with torch.no_grad():  # finetuned heads that differ from the base heads
+        for prm in m.budget.parameters():
+            prm.add_(torch.randn_like(prm) * 0.1)
+        one = m(images, Ks, c2w, kappa=1.0)
+        none = m(images, Ks, c2w)
+    for o in (one, none):
+        assert o.keep is None and len(o.gaussians()) == images.shape[0] * TINY.height * TINY.width
+        for f in ("means", "quats", "scales", "opacities", "sh", "depth"):
+            assert torch.equal(getattr(o, f), getattr(base, f)), f
+
+
+def test_fresh_budget_heads_copy_the_base_heads_exactly(model):
+    images, Ks, c2w = _views(seed=4)
+    m = PGT(TINY)
+    m.load_state_dict(model.state_dict())
+    m.enable_budget()
+    with torch.no_grad():
+        base = m(images, Ks, c2w)
+        half = m(images, Ks, c2w, kappa=0.5)
+    for f in ("quats", "scales", "opacities", "sh"):
+        assert torch.equal(getattr(half, f), getattr(base, f)), f
+    # the kept ones are the top-K_v by (here: the base) opacity
+    for v in range(2):
+        kept = base.opacities[v][half.keep[v]]
+        dropped = base.opacities[v][~half.keep[v]]
+        assert kept.min() >= dropped.max()
+
+
+@pytest.mark.parametrize("views", [2, 3])
+def test_gaussian_count_for_every_kappa(model, views):
+    images, Ks, c2w = _views(V=views, seed=5)
+    m = PGT(TINY)
+    m.load_state_dict(model.state_dict())
+    m.enable_budget()
+    P = TINY.height * TINY.width
+    with torch.no_grad():
+        for kappa in (1.0, 0.5, 0.1, 0.05, 1e-4):
+            o = m(images, Ks, c2w, kappa=kappa)
+            want = round(kappa * views * P)
+            assert abs(len(o.gaussians()) - want) <= views, kappa
+            assert len(o.gaussians()) == PGT.expected_count(kappa, views, TINY.height, TINY.width)
+            if kappa < 1:
+                assert o.keep.sum(dim=(1, 2)).tolist() == o.budgets.tolist()
+
+
+def test_gradients_reach_the_encoder_through_the_renderer():
+    torch.manual_seed(0)
+    m = PGT(TINY)
+    images, Ks, c2w = _views()
+    o = m(images, Ks, c2w)
+    rgb, alpha, _ = o.gaussians().render(invert_rigid(c2w[:1]), Ks[:1], TINY.width, TINY.height)
+    loss = (rgb[0] - images[0].permute(1, 2, 0)).abs().mean()  # render loss only
+    loss.backward()
+    for name in ("encoder.stem.0.weight", "encoder.stage3.1.conv2.weight", "decoder.out.0.weight",
+                 "heads.opacity.2.weight", "heads.scale.2.weight", "heads.rotation.2.weight"):
+        g = dict(m.named_parameters())[name].grad
+        assert g is not None and torch.isfinite(g).all() and g.abs().sum() > 0, name
+    # the matcher only moves the means, so its gradient says the depth reaches the renderer
+    g = m.matcher.logits.weight.grad
+    assert g is not None and g.abs().sum() > 0
+
+
+def test_bad_input_names_the_argument(model):
+    images, Ks, c2w = _views()
+    cases = [
+        ((images[:1], Ks[:1], c2w[:1]), {}, "images: PGT needs at least 2"),
+        ((images, Ks[:1], c2w), {}, "Ks: expected shape"),
+        ((images, Ks, c2w[:, :3]), {}, "cam_to_world: expected shape"),
+        ((images[:, :, :30], Ks, c2w), {}, "images: height and width must be multiples of 8"),
+        ((images[:, :2], Ks, c2w), {}, "images: expected"),
+        ((images.clone().index_fill_(2, torch.tensor([3]), math.nan), Ks, c2w), {}, "images: contains NaN"),
+        ((images, Ks.clone().fill_(math.nan), c2w), {}, "Ks: contains NaN"),
+        ((images, Ks, c2w * 2), {}, "cam_to_world[0]"),
+        ((images, Ks, c2w), {"kappa": 0.0}, "kappa"),
+        ((images, Ks, c2w), {"kappa": 1.5}, "kappa"),
+        ((images, Ks, c2w), {"kappa": math.nan}, "kappa"),
+        ((images, Ks, c2w), {"kappa": 0.5}, "kappa: 0.5 < 1 needs the budget stage"),
+    ]
+    for args, kw, msg in cases:
+        with pytest.raises(ValueError, match=msg.replace("[", r"\[").replace("]", r"\]")):
+            model(*args, **kw)
