@@ -289,10 +289,12 @@ def rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width: 
     outs = [_render_one(*(x[b] for x in args), width, height, near_plane, far_plane, radius_clip,
                         eps2d, sh_degree, tile_size, None if bgs is None else bgs[b], render_mode,
                         rasterize_mode, config, margin) for b in range(B)]
-    unflat = lambda x: x.reshape(batch + tuple(x.shape[1:]))  # noqa: E731
-    img = unflat(torch.stack([o[0] for o in outs]))
-    alphas = unflat(torch.stack([o[1] for o in outs]))
-    meta = {k: unflat(torch.stack([o[2][k] for o in outs]))
+    # Without batch dimensions, meta holds the graph's own nodes (means2d accepts retain_grad()).
+    unflat = (lambda xs: xs[0]) if not batch else (  # noqa: E731
+        lambda xs: torch.stack(xs).reshape(batch + tuple(xs[0].shape)))
+    img = unflat([o[0] for o in outs])
+    alphas = unflat([o[1] for o in outs])
+    meta = {k: unflat([o[2][k] for o in outs])
             for k in ("means2d", "conics", "depths", "radii", "opacities", "ambiguous")}
     meta.update({"width": width, "height": height, "n_cameras": viewmats.shape[-3],
                  "n_batches": B, "tile_size": tile_size})

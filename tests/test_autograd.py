@@ -118,7 +118,7 @@ def test_backward_is_bitwise_deterministic(make_scene):
 def test_means2d_retain_grad_and_absgrad(make_scene):
     scene = make_scene(seed=2, N=60, C=2, width=48, height=40)
     xs = _inputs(scene)
-    r, a, meta = _render(clsplat.rasterization, xs, scene, absgrad=True)
+    r, a, meta = _render(clsplat.rasterization, xs, scene, absgrad=True, packed=False)
     meta["means2d"].retain_grad()
     r.sum().backward()
     g = meta["means2d"].grad
