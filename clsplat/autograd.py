@@ -159,7 +159,7 @@ class RasterizeFn(torch.autograd.Function):
         ctx.s = s
         ctx.fwd = dict(a, offsets=offsets, keys=keys, out=out, T=T, last=last) if want_grad else None
         ctx.means2d = means2d  # receives .absgrad, as gsplat's densification expects
-        s.isect = (offsets.tensor, keys.tensor)
+        s.isect = (offsets.host(), keys.host())  # read back: not shared memory on GPUs
         return out_t, T_t
 
     @staticmethod
