@@ -180,7 +180,8 @@ def composite(proj: dict, feats: torch.Tensor, width: int, height: int, tile_siz
     ambiguous when one of its decisions (alpha >= alpha_min, next T <= t_min) lies within a
     relative ``margin`` of its threshold, where a float32 pass may legitimately decide
     otherwise. A sample reaches a pixel only if its tile rectangle holds the pixel's tile.
-    Gaussians are taken ``chunk`` at a time in (float32 depth, id) order; a camera whose
+    Gaussians are taken in (float32 depth, id) order, 32 at first and doubling to ``chunk``
+    at a time (early stop after few samples stays cheap); a camera whose
     pixels x visible Gaussians exceed ``dense_limit`` is done tile by tile.
     """
     C = proj["depths"].shape[0]
@@ -232,8 +233,10 @@ def _composite_pixels(proj: dict, c: int, g: torch.Tensor, feats: torch.Tensor, 
     T = feats.new_ones((P,))
     done = torch.zeros(P, dtype=torch.bool)
     amb = torch.zeros(P, dtype=torch.bool)
-    for s in range(0, len(g), chunk):
-        gi = g[s:s + chunk]
+    s, size = 0, min(32, chunk)  # most pixels of dense scenes stop within a few dozen samples
+    while s < len(g):
+        gi = g[s:s + size]
+        s, size = s + size, min(2 * size, chunk)
         r = proj["rects"][c, gi].long()
         inside = (tx >= r[None, :, 0]) & (tx < r[None, :, 2]) & (ty >= r[None, :, 1]) & (ty < r[None, :, 3])
         xy, co = proj["means2d"][c, gi], proj["conics"][c, gi]
