@@ -128,7 +128,7 @@ class _Rows(torch.autograd.Function):
         rows = ctx.holder.rows
         if rows is None:  # nothing projected (e.g. no forward finished): keep it dense
             return g, None
-        g = g.contiguous()
+        g, rows = g.contiguous(), rows.to(g.device)
         return torch.sparse_coo_tensor(rows[None], g[rows], g.shape, is_coalesced=True,
                                        check_invariants=False), None
 

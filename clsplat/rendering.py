@@ -187,19 +187,19 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
     if means.dim() < 2:
         raise ValueError(f"means: expected shape [..., N, 3], got {list(means.shape)}")
     out_device, out_dtype = means.device, means.dtype
-    t = {k: _host(k, v) for k, v in dict(means=means, quats=quats, scales=scales,
-                                         opacities=opacities, colors=colors, viewmats=viewmats,
-                                         Ks=Ks, backgrounds=backgrounds).items()}
-    batch = tuple(t["means"].shape[:-2])
-    B, N = math.prod(batch), t["means"].shape[-2]
+    batch = tuple(means.shape[:-2])
+    B, N = math.prod(batch), means.shape[-2]
+    t = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
+             viewmats=viewmats, Ks=Ks, backgrounds=backgrounds)
     _check_batch(batch, **{k: v for k, v in t.items() if k != "means"})
     if sparse_grad and not packed:
         raise ValueError("sparse_grad: needs packed=True (as in gsplat)")
     if sparse_grad and batch:
         raise ValueError(f"sparse_grad: not supported with batch dimensions {list(batch)} (as in gsplat)")
     sparse = SparseRowsGrad() if sparse_grad else None
-    if sparse is not None:  # nearest the leaves, so the leaves receive the sparse gradients
+    if sparse is not None:  # on the leaves' device, nearest them: they receive sparse gradients
         t.update({k: sparse.wrap(t[k]) for k in ("means", "quats", "scales")})
+    t = {k: _host(k, v) for k, v in t.items()}
 
     # One validated single-batch view per batch element.
     flat = {k: (None if v is None else v.reshape((B,) + tuple(v.shape[len(batch):])))
