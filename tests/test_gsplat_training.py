@@ -45,7 +45,7 @@ def test_image_fitting_with_raw_parameters():
     K = torch.tensor([[focal, 0, W / 2], [0, focal, H / 2], [0, 0, 1]])
     opt = torch.optim.Adam([rgbs, means, scales, opacities, quats], 0.01)
     losses = []
-    for _ in range(120):
+    for _ in range(300):
         img, _, _ = clsplat.rasterization(means, quats / quats.norm(dim=-1, keepdim=True), scales,
                                           torch.sigmoid(opacities), torch.sigmoid(rgbs),
                                           viewmat[None], K[None], W, H, packed=False)
@@ -110,11 +110,11 @@ def test_trainer_loop_with_default_strategy(packed):
         (k, splats[k], {"means": 1.6e-3, "scales": 5e-3, "quats": 1e-3, "opacities": 5e-2,
                         "sh0": 2.5e-3, "shN": 2.5e-3 / 20}[k]) for k in splats)}
     strategy = DefaultStrategy(refine_start_iter=40, refine_every=40, reset_every=160,
-                               refine_stop_iter=180, grow_grad2d=2e-5, absgrad=False)
+                               refine_stop_iter=240, grow_grad2d=2e-5, absgrad=False)
     strategy.check_sanity(splats, optimizers)
     state = strategy.initialize_state(scene_scale=1.0)
     n0, losses = len(splats["means"]), []
-    for step in range(200):
+    for step in range(300):
         img, alphas, info = rasterize_splats(splats, c2w, Ks, W, H, packed, sh_degree=min(1, step // 50),
                                              near_plane=0.01, far_plane=1e10, render_mode="RGB+ED")
         strategy.step_pre_backward(splats, optimizers, state, step, info)
