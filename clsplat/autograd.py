@@ -157,7 +157,11 @@ class RasterizeFn(torch.autograd.Function):
                                         s.tile_size, save_last=want_grad, events=s.events)
         out_t, T_t = out.host(), T.host()
         ctx.s = s
-        ctx.fwd = dict(a, offsets=offsets, keys=keys, out=out, T=T, last=last) if want_grad else None
+        # The outputs are saved tensors, never held in ctx.fwd: out.tensor is out_t, and
+        # output -> grad_fn -> ctx -> array -> output would be a cycle the GC cannot free.
+        ctx.fwd = dict(a, offsets=offsets, keys=keys, last=last) if want_grad else None
+        if want_grad:
+            ctx.save_for_backward(out_t, T_t)
         ctx.means2d = means2d  # receives .absgrad, as gsplat's densification expects
         s.isect = (offsets.host(), keys.host())  # read back: not shared memory on GPUs
         return out_t, T_t
@@ -173,6 +177,8 @@ class RasterizeFn(torch.autograd.Function):
         if fwd is None or not (geom or color):
             return (None,) * 8
         rt, cfg = s.rt, s.cfg
+        out_t, T_t = ctx.saved_tensors
+        fwd = dict(fwd, out=rt.array(out_t), T=rt.array(T_t))
         v_out = _grad_or_zeros(v_out, fwd["out"].tensor)
         v_T = _grad_or_zeros(v_T, fwd["T"].tensor)
         absgrad = s.absgrad and geom

@@ -175,3 +175,26 @@ def test_replay_and_divide_agree(make_scene):
     g2, _ = _grads(clsplat.rasterization, scene, bwd_divide=True)
     for name, a, b in zip(NAMES, g1, g2):
         assert torch.allclose(a, b, rtol=1e-8, atol=1e-10 * (1 + b.abs().max().item())), name
+
+
+def test_renders_free_their_buffers(make_scene):
+    """Nothing a differentiable render kept for backward outlives it (the outputs were once
+    held by their own autograd node: a cycle through C++ that the GC cannot free)."""
+    import gc
+    scene = make_scene(seed=6, N=40, C=2, width=32, height=24, dtype=torch.float32)
+
+    def live() -> int:
+        gc.collect()
+        return sum(isinstance(o, torch.Tensor) for o in gc.get_objects())
+
+    def render(backward: bool) -> None:
+        xs = _inputs(scene)
+        r, a, _ = _render(clsplat.rasterization, xs, scene, absgrad=True)
+        if backward:
+            (r.sum() + a.sum()).backward()
+
+    render(True)  # warm caches
+    before = live()
+    for i in range(10):
+        render(backward=i % 2 == 0)
+    assert live() - before <= 2
