@@ -68,3 +68,63 @@ def test_init_needs_lidar():
     seq = generate_sequence(height=16, width=32, num_frames=1, seed=0, lidar=False)
     with pytest.raises(ValueError, match="LiDAR"):
         init_background(seq, [0], seq.camera_names, PRESETS["tiny"], np.random.default_rng(0))
+
+
+def test_dataset_lidar_labels_are_used_without_image_semantics():
+    """PandaSet's path: no image semantics, one label per LiDAR point (here traced from the
+    generator); every LiDAR Gaussian takes its point's class, which matches the generator's
+    semantics at the pixel it was coloured from for at least 97% of them (label boundaries)."""
+    from clsplat.data.scene import DrivingSequence, Frame
+    from clsplat.data.synthetic import LIDAR_MOUNT
+
+    seq = generate_sequence(height=44, width=80, num_frames=2, seed=2, dt=0.2)
+    scene = seq.metadata["scene"]
+    labels = []
+    for f in seq.frames:
+        pw = f.lidar.to_world(f.ego_to_world).points.astype(np.float64)
+        origin = f.ego_to_world[:3, :3] @ LIDAR_MOUNT + f.ego_to_world[:3, 3]
+        dirs = (pw - origin)[None]
+        s, pid = scene.trace(origin, dirs, f.timestamp)
+        labels.append(scene.shade(origin, dirs, s, pid, f.timestamp)[1][0].astype(np.uint8))
+    bare = [Frame(f.timestamp, f.ego_to_world, f.images, lidar=f.lidar, boxes=f.boxes) for f in seq.frames]
+    lab_seq = DrivingSequence(seq.cameras, bare, "labelled-lidar", {"lidar_semantics": labels})
+    init, _ = init_background(lab_seq, [0, 1], seq.camera_names, PRESETS["tiny"], np.random.default_rng(0))
+    lidar = init.source[:, 0] >= 0
+    assert lidar.sum() > 300 and set(np.unique(init.labels[lidar])) >= {ROAD, OTHER}
+    agree = 0
+    for k in np.nonzero(lidar)[0]:
+        i, ci, lin = init.source[k]
+        pix = seq.frames[i].semantics[seq.cameras[ci].name].reshape(-1)[lin]
+        agree += int(_SEM_TO_BG[pix] == init.labels[k])
+    assert agree / lidar.sum() > 0.97, agree / lidar.sum()
+
+
+def test_user_mask_folder_fills_semantics_and_names_bad_masks(tmp_path):
+    """Masks written as class-index PNGs (<CAM>/<NN>.png) load back exactly; a missing, wrongly
+    sized or out-of-range mask is a ValueError naming the file."""
+    from clsplat.data.scene import SEMANTIC_CLASSES, DrivingSequence, Frame
+    from clsplat.io.images import write_image
+    from clsplat.models.autosplat.init import load_mask_folder
+
+    seq = generate_sequence(height=16, width=24, num_frames=2, seed=0, dt=0.2)
+    for k, f in enumerate(seq.frames):
+        for c, m in f.semantics.items():
+            (tmp_path / c).mkdir(exist_ok=True)
+            write_image(tmp_path / c / f"{k + 3:02d}.png", m.astype(np.float32) / 255.0)
+    bare = DrivingSequence(seq.cameras, [Frame(f.timestamp, f.ego_to_world, f.images, lidar=f.lidar)
+                                         for f in seq.frames])
+    load_mask_folder(bare, tmp_path, [3, 4])  # source frames 3 and 4 -> NN = 03, 04
+    for f, g in zip(seq.frames, bare.frames):
+        for c in seq.camera_names:
+            assert np.array_equal(f.semantics[c], g.semantics[c])
+    with pytest.raises(ValueError, match="05.png' missing"):
+        load_mask_folder(bare, tmp_path, [4, 5])
+    with pytest.raises(ValueError, match="does not exist"):
+        load_mask_folder(bare, tmp_path / "nope", [3, 4])
+    cam = seq.camera_names[0]
+    write_image(tmp_path / cam / "03.png", np.zeros((8, 8), np.float32))
+    with pytest.raises(ValueError, match="03.png' is"):
+        load_mask_folder(bare, tmp_path, [3, 4])
+    write_image(tmp_path / cam / "03.png", np.full((16, 24), len(SEMANTIC_CLASSES) / 255.0, np.float32))
+    with pytest.raises(ValueError, match="holds class"):
+        load_mask_folder(bare, tmp_path, [3, 4])

@@ -66,6 +66,8 @@ def test_cli_writes_the_run_folder(tmp_path):
         assert np.isfinite(m[k])
     assert set(m["per_camera"]) == {"CAM_FRONT", "CAM_BACK"}
     assert set(m["lateral_shift"]) == {"1m", "2m", "3m"} and m["lateral_shift"]["2m"]["psnr"] > 5
+    assert m["lateral_shift"]["2m"]["frames"] == m["test_frames"] and m["lateral_shift"]["2m"]["psnr_road"] > 5
+    assert np.isfinite(m["test_psnr_objects"]) and np.isfinite(m["train_psnr_objects"])
     assert m["gaussians"]["road"] > 0 and m["gaussians"]["sky"] > 0 and m["gaussians"]["objects"] > 0
     assert set(m["seconds_per_stage"]) >= {"load", "init", "bg_phase1", "bg_phase2", "foreground", "fusion"}
 
@@ -94,3 +96,44 @@ def test_bad_input_is_named(street, tmp_path):
         Trainer(prepare_data(bad, CAMS, 4), TINY, Switches(), tmp_path, progress=False)
     with pytest.raises(ValueError, match="--data"):
         train(["--data", "kitti:/x", "--out", str(tmp_path / "x"), "--no-progress"])
+    with pytest.raises(ValueError, match="--frames"):
+        train(["--frames", "4:2", "--out", str(tmp_path / "x"), "--no-progress"])
+    with pytest.raises(ValueError, match="--batch-size"):
+        train(["--batch-size", "2", "--out", str(tmp_path / "x"), "--no-progress"])
+    with pytest.raises(ValueError, match="--scale"):
+        train(["--scale", "0", "--out", str(tmp_path / "x"), "--no-progress"])
+
+
+@pytest.mark.filterwarnings("ignore:All-NaN slice")
+def test_unselected_camera_is_never_rendered_nor_read(street, tmp_path, monkeypatch):
+    """Train and evaluate on two of six cameras: the other cameras' images are NaN (any read would
+    poison the colours and the loss), and no render ever uses one of their poses."""
+    from clsplat.models.common.gaussians import GaussianSet
+
+    others = [c for c in street.camera_names if c not in CAMS]
+    frames = [Frame(f.timestamp, f.ego_to_world, {c: (v if c in CAMS else np.full_like(v, np.nan))
+                                                  for c, v in f.images.items()},
+                    f.depths, f.semantics, f.instances, f.lidar, f.boxes) for f in street.frames]
+    seq = DrivingSequence(street.cameras, frames, "subset", dict(street.metadata))
+    seen = []
+    render = GaussianSet.render
+
+    def spy(self, viewmats, *args, **kwargs):
+        seen.append(viewmats.detach().clone())
+        return render(self, viewmats, *args, **kwargs)
+
+    monkeypatch.setattr(GaussianSet, "render", spy)
+    data = prepare_data(seq, CAMS, 4)
+    assert data.images.shape[1] == len(CAMS) and torch.isfinite(data.images).all()
+    t = Trainer(data, TINY, Switches(), tmp_path, progress=False)
+    t.fit()
+    m = t.evaluate()
+    assert np.isfinite(m["test_psnr"]) and np.isfinite(m["train_psnr"]) and set(m["per_camera"]) == set(CAMS)
+    assert all(torch.isfinite(p).all() for p in t.model.parameters())
+    forbidden = torch.from_numpy(np.stack([seq.viewmats(i, others) for i in range(len(seq.frames))])
+                                 .reshape(-1, 4, 4).astype(np.float32))
+    assert len(seen) >= t.total
+    for vm in seen:
+        assert vm.shape[0] == len(CAMS)
+        d = (vm[:, None] - forbidden[None]).abs().flatten(2).max(-1).values
+        assert float(d.min()) > 1e-3

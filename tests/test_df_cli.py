@@ -5,6 +5,7 @@ import json
 import pytest
 import torch
 
+from clsplat.models.common.metrics import LPIPS_OFF_MESSAGE
 from clsplat.models.drivingforward.cli import evaluate, load_model, train
 
 KEYS = {"psnr", "ssim", "abs_rel", "sq_rel", "rmse", "delta1", "scale_ratio"}
@@ -49,14 +50,16 @@ def test_resume_is_bitwise(runs):
     assert [strip(r) for r in la] == [strip(r) for r in lb]
 
 
-def test_eval_subset_of_cameras_and_frames(runs, tmp_path):
+def test_eval_subset_of_cameras_and_frames(runs, tmp_path, capsys):
     ck = runs / "straight" / "checkpoint.pt"
     rc = evaluate(["--checkpoint", str(ck), "--num-scenes", "1", "--cameras", "CAM_FRONT", "CAM_BACK",
                    "--frames", "-1", "0", "--target", "1", "--no-oracle", "--out", str(tmp_path)])
     assert rc == 0
+    assert LPIPS_OFF_MESSAGE in capsys.readouterr().out    # no weights: says so, never reports LPIPS
     m = json.loads((tmp_path / "metrics.json").read_text())
     assert set(m) >= {"CAM_FRONT", "CAM_BACK", "all"} and "CAM_FRONT_LEFT" not in m
-    assert KEYS <= set(m["all"]) and m["settings"]["frames"] == [-1, 0]
+    assert KEYS <= set(m["all"]) and KEYS <= set(m["CAM_BACK"]) and m["settings"]["frames"] == [-1, 0]
+    assert "lpips" not in m["all"] and m["settings"]["lpips"].startswith("off")
     assert (tmp_path / "contact_sheet.png").is_file()
 
 
@@ -72,3 +75,67 @@ def test_errors_name_the_argument(runs, tmp_path, capsys):
     assert "unknown preset 'huge'" in capsys.readouterr().err
     assert evaluate(["--checkpoint", str(tmp_path / "none.pt"), "--out", str(tmp_path)]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_two_process_data_parallel_equals_one_process(tmp_path):
+    """``torchrun --nproc_per_node 2`` with global batch 2 makes the same update as one process
+    with batch 2 (gradients all-reduced). BatchNorm running statistics are not part of the update:
+    as with torch DDP's buffer broadcast, the checkpoint carries rank 0's."""
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    args = ["--preset", "tiny", "--steps", "1", "--batch-size", "2", "--eval-scenes", "0", "--no-progress"]
+    assert train([*args, "--out", str(tmp_path / "one")]) == 0
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    code = "import sys; from clsplat.models.drivingforward.cli import train; sys.exit(train(sys.argv[1:]))"
+    script = tmp_path / "df_train.py"
+    script.write_text(code)
+    r = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
+                        str(port), str(script), *args, "--out", str(tmp_path / "two")],
+                       capture_output=True, text=True, timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "2 process(es)" in r.stdout
+    one = torch.load(tmp_path / "one" / "checkpoint.pt", weights_only=True)
+    two = torch.load(tmp_path / "two" / "checkpoint.pt", weights_only=True)
+    assert two["step"] == one["step"] == 1
+    stats = ("running_mean", "running_var", "num_batches_tracked")
+    compared = 0
+    for k, v in one["model"].items():
+        if k.endswith(stats):
+            continue
+        assert torch.allclose(v, two["model"][k], rtol=1e-5, atol=1e-7), (k, float((v - two["model"][k]).abs().max()))
+        compared += 1
+    assert compared > 100
+    la = json.loads((tmp_path / "one" / "log.jsonl").read_text().splitlines()[0])
+    lb = json.loads((tmp_path / "two" / "log.jsonl").read_text().splitlines()[0])
+    assert la["loss"] == pytest.approx(lb["loss"], rel=1e-5) and "skipped" not in la and "skipped" not in lb
+
+
+def test_eval_on_a_pandaset_sequence_scores_depth_against_projected_lidar(runs, tmp_path):
+    """A PandaSet-format folder (clsplat's writer, from a synthetic street with simulated LiDAR) has
+    no depth maps: depth is scored against the LiDAR sweep projected into each camera, and that
+    projection agrees with the generator's depth maps."""
+    from clsplat.data import write_pandaset
+    from clsplat.models.common.data import parse_data, to_torch_frame
+    from clsplat.models.drivingforward.data import load_triplet
+
+    cams = ["CAM_FRONT", "CAM_FRONT_LEFT"]
+    seq = parse_data("synthetic").sequence(0, num_frames=15, height=32, width=56, lidar=True, dt=0.1, cameras=cams)
+    write_pandaset(seq, tmp_path / "001")
+    src = parse_data(f"pandaset:{tmp_path / '001'}")
+    s = load_triplet(src, 0, load_model(str(runs / "straight" / "checkpoint.pt"))[1], "test")
+    assert "depths" not in s and s["lidar_depth"].shape == (2, 32, 56)
+    ld, gt = s["lidar_depth"], to_torch_frame(seq, 13)["depths"]          # test window 0 = frames 12..14
+    ok = torch.isfinite(ld) & torch.isfinite(gt)
+    assert ok.float().mean() > 0.3 and float(((ld[ok] - gt[ok]).abs() / gt[ok]).median()) < 0.03
+    rc = evaluate(["--checkpoint", str(runs / "straight" / "checkpoint.pt"), "--data", f"pandaset:{tmp_path / '001'}",
+                   "--num-scenes", "1", "--out", str(tmp_path / "eval")])
+    assert rc == 0
+    m = json.loads((tmp_path / "eval" / "metrics.json").read_text())
+    assert KEYS <= set(m["all"]) and m["all"]["n_pixels"] > 0 and "oracle_psnr" not in m["all"]
+    assert m["settings"]["depth_gt"].startswith("projected LiDAR") and m["settings"]["data"].startswith("pandaset")
+    assert (tmp_path / "eval" / "depth_sheet.png").is_file()

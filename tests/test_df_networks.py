@@ -93,6 +93,10 @@ def test_depth_network_shapes_and_metric_range(sample):
     assert out["f2"].shape == (6, 64, H // 2, W // 2) and out["f4"].shape == (6, 64, H // 4, W // 4)
     assert out["f8"].shape == (6, TINY.proj_channels[1], H // 8, W // 8)
     assert ((out["sigma"] > 0) & (out["sigma"] < 1)).all()
+    # He init after the encoder: the fused feature keeps unit scale and the untrained depth already
+    # varies over the image (PyTorch's default init gave ~0.02 and a constant map, which Adam then
+    # drove into a saturated sigmoid: every pixel at the far limit)
+    assert 0.1 < float(out["f8"].std()) < 10 and float(out["sigma"].std()) > 0.01
     s = (sample["Ks"][:, 0, 0] / TINY.focal_ref).view(-1, 1, 1, 1)
     assert (out["depth"] >= TINY.min_depth * s - 1e-4).all() and (out["depth"] <= TINY.max_depth * s + 1e-3).all()
     # the mapping itself: sigma = 0 -> max depth, sigma = 1 -> min depth, times fx / focal_ref

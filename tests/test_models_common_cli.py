@@ -6,7 +6,7 @@ import argparse
 import pytest
 
 from clsplat.cli import main
-from clsplat.models.common.cli import add_common_args
+from clsplat.models.common.cli import add_common_args, add_lpips_args, lpips_from_args
 
 
 def test_unknown_family_and_help(capsys):
@@ -24,3 +24,12 @@ def test_common_arguments():
     assert (a.out, a.steps, a.data, a.resume, a.preset) == ("x", 3, "pandaset:/d", True, "small")
     with pytest.raises(SystemExit):
         p.parse_args(["--out", "x", "--steps", "0"])
+
+
+def test_lpips_arguments_are_off_by_default_and_need_both_files(capsys, tmp_path):
+    p = argparse.ArgumentParser()
+    add_lpips_args(p)
+    assert lpips_from_args(p.parse_args([])) is None
+    assert "LPIPS off" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="lin_weights: LPIPS needs both"):
+        lpips_from_args(p.parse_args(["--lpips-vgg", str(tmp_path / "vgg.pth")]))

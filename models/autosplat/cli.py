@@ -149,6 +149,9 @@ def train(argv: list[str]) -> int:
     preset = get_preset("autosplat", a.preset)
     if a.steps is not None:
         raise ValueError("--steps: AutoSplat's schedule has four stages; choose a --preset instead")
+    if a.batch_size is not None:
+        raise ValueError("--batch-size: an AutoSplat iteration renders every selected camera of one frame; "
+                         "it has no batch size")
     set_threads(a.threads, a.device)
     preset = preset.replace(seed=a.seed) if a.seed != preset.seed else preset
     if a.holdout is not None:

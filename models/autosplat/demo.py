@@ -2,7 +2,7 @@
 
 1. Generate the synthetic street (6 cameras, 16 frames at 0.2 s = 3 s of driving with a lane
    change, two moving vehicles, one with blinking hazard lights, six parked ones), at the demo
-   preset's scale (88 x 160 per camera); every 4th frame (1, 5, 9, 13) is held out.
+   preset's scale (88 x 160 per camera); every 4th frame (2, 6, 10, 14) is held out.
 2. Reconstruct it with the ``demo`` preset (:func:`.cli.reconstruct`): LiDAR-initialised
    background in two phases with flatness, one Gaussian set per track with mirror copies,
    residual SH for the moving ones, fusion with pose corrections, densification.

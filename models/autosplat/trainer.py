@@ -44,6 +44,7 @@ __all__ = ["STAGES", "RunData", "prepare_data", "Trainer", "lateral_shift_poses"
 STAGES: tuple[str, ...] = ("bg_phase1", "bg_phase2", "foreground", "fusion")
 FAMILY = "autosplat"
 LATERAL_SHIFTS_M: tuple[float, ...] = (1.0, 2.0, 3.0)
+ROAD_SEMANTIC = SEMANTIC_CLASSES.index("road")
 
 
 @dataclass
@@ -85,7 +86,7 @@ def _lidar_classes(seq: DrivingSequence, i: int, cam: str) -> np.ndarray:
     v = np.floor(uvw[:, 1] / uvw[:, 2]).astype(np.int64)
     ins = (u >= 0) & (u < c.width) & (v >= 0) & (v < c.height)
     road = np.zeros((c.height, c.width), np.float32)
-    road[v[ins], u[ins]] = (lab[ok][ins] == SEMANTIC_CLASSES.index("road"))
+    road[v[ins], u[ins]] = (lab[ok][ins] == ROAD_SEMANTIC)
     road = torch.nn.functional.max_pool2d(torch.from_numpy(road)[None, None], 3, 1, 1)[0, 0].numpy() > 0
     out[road] = ROAD
     return out
@@ -133,6 +134,19 @@ def lateral_shift_poses(seq: DrivingSequence, frame: int, cameras: list[str], sh
     S = np.eye(4)
     S[1, 3] = shift
     return np.stack([f.ego_to_world @ S @ np.linalg.inv(f.ego_to_world) @ seq.cam_to_world(frame, c) for c in cameras])
+
+
+def _squared_error(render: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """``[2]`` float64 (sum of squared errors, number of values) of ``render``/``target``
+    ``[C, 3, H, W]`` (clipped to [0, 1]) over ``mask`` ``[C, H, W]``."""
+    m = mask[:, None].to(torch.float64)
+    err = (render.clamp(0, 1) - target.clamp(0, 1)).to(torch.float64) ** 2
+    return torch.stack([(err * m).sum(), m.sum() * render.shape[1]])
+
+
+def _pooled_psnr(acc: torch.Tensor) -> float | None:
+    """PSNR of pooled ``(sum of squared errors, count)``; None when nothing was counted."""
+    return None if float(acc[1]) == 0 else float(-10 * torch.log10(acc[0] / acc[1]))
 
 
 class Trainer:
@@ -454,23 +468,25 @@ class Trainer:
         out: dict = {"cameras": d.cameras, "train_frames": d.train_frames, "test_frames": d.test_frames}
 
         def score(frames):
-            ps, ss, lp = [], [], []
+            ps, ss, lp, obj = [], [], [], torch.zeros(2, dtype=torch.float64)
             for i in frames:
                 r = self.render_frame(i).permute(0, 3, 1, 2)
                 t = d.images[i].permute(0, 3, 1, 2)
                 ps.append(psnr_metric(r, t))
                 ss.append(ssim_metric(r, t))
+                obj += _squared_error(r, t, d.foreground[i])
                 if lpips is not None:
                     lp.append(lpips(r, t))
-            return (torch.stack(ps), torch.stack(ss), torch.stack(lp) if lp else None)
+            return (torch.stack(ps), torch.stack(ss), torch.stack(lp) if lp else None, _pooled_psnr(obj))
 
         t0 = time.perf_counter()
         for split, frames in (("test", d.test_frames), ("train", d.train_frames)):
             if not frames:
                 continue
-            ps, ss, lp = score(frames)
+            ps, ss, lp, obj = score(frames)
             out[f"{split}_psnr"] = float(ps.mean())
             out[f"{split}_ssim"] = float(ss.mean())
+            out[f"{split}_psnr_objects"] = obj
             if lp is not None:
                 out[f"{split}_lpips"] = float(lp.mean())
             for j, c in enumerate(d.cameras):
@@ -493,27 +509,39 @@ class Trainer:
         out["gaussians"]["total"] = len(bg) + out["gaussians"]["objects"]
         return out
 
-    def _lateral(self, frame: int, make_sheet) -> dict:
-        """Renders of the rig shifted 1/2/3 m left; errors against the generator when it is known."""
+    def _lateral(self, show: int, make_sheet) -> dict:
+        """Renders of the rig shifted 1/2/3 m left. With the generator at hand, errors against its
+        exact renders, averaged over the held-out frames (PSNR also over object and road pixels
+        only, pooled); sheets of frame ``show``."""
         d = self.data
         scene = d.seq.metadata.get("scene")
+        frames = d.test_frames or [show]
         res = {}
         for shift in LATERAL_SHIFTS_M:
-            c2w = lateral_shift_poses(d.seq, frame, d.cameras, shift)
-            vm = torch.from_numpy(np.linalg.inv(c2w).astype(np.float32))
-            r = self.render_frame(frame, vm)
-            if scene is not None:
-                gt = np.stack([scene.render(d.seq.camera(c).K, c2w[j], d.width, d.height, d.seq.frames[frame].timestamp).rgb
-                               for j, c in enumerate(d.cameras)])
-                g = torch.from_numpy(gt).permute(0, 3, 1, 2)
-                rr = r.permute(0, 3, 1, 2)
-                res[f"{shift:g}m"] = {"psnr": float(psnr_metric(rr, g).mean()), "ssim": float(ssim_metric(rr, g).mean())}
-                title = f"rig shifted {shift:g} m left, frame {frame}: render | generator ground truth | error"
-            else:
-                gt = d.images[frame].numpy()
-                res[f"{shift:g}m"] = None
-                title = f"rig shifted {shift:g} m left, frame {frame}: render | unshifted image (no ground truth) | diff"
-            make_sheet(r.numpy(), gt, self.out / f"lateral_shift_{shift:g}m.png", names=d.cameras, title=title)
+            ps, ss = [], []
+            obj, road = torch.zeros(2, dtype=torch.float64), torch.zeros(2, dtype=torch.float64)
+            for frame in (frames if scene is not None else [show]):
+                c2w = lateral_shift_poses(d.seq, frame, d.cameras, shift)
+                r = self.render_frame(frame, torch.from_numpy(np.linalg.inv(c2w).astype(np.float32)))
+                if scene is None:
+                    gt = d.images[frame].numpy()
+                    title = f"rig shifted {shift:g} m left, frame {frame}: render | unshifted image (no ground truth) | diff"
+                else:
+                    views = [scene.render(d.seq.camera(c).K, c2w[j], d.width, d.height, d.seq.frames[frame].timestamp)
+                             for j, c in enumerate(d.cameras)]
+                    gt = np.stack([v.rgb for v in views])
+                    g, rr = torch.from_numpy(gt).permute(0, 3, 1, 2), r.permute(0, 3, 1, 2)
+                    ps.append(psnr_metric(rr, g))
+                    ss.append(ssim_metric(rr, g))
+                    obj += _squared_error(rr, g, torch.from_numpy(np.stack([v.instance > 0 for v in views])))
+                    road += _squared_error(rr, g, torch.from_numpy(np.stack([v.semantic == ROAD_SEMANTIC
+                                                                             for v in views])))
+                    title = f"rig shifted {shift:g} m left, frame {frame}: render | generator ground truth | error"
+                if frame == show:
+                    make_sheet(r.numpy(), gt, self.out / f"lateral_shift_{shift:g}m.png", names=d.cameras, title=title)
+            res[f"{shift:g}m"] = None if scene is None else {
+                "psnr": float(torch.cat(ps).mean()), "ssim": float(torch.cat(ss).mean()),
+                "psnr_objects": _pooled_psnr(obj), "psnr_road": _pooled_psnr(road), "frames": frames}
         return res
 
     def scene_gaussians(self, frame: int) -> GaussianSet:

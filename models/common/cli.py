@@ -13,7 +13,7 @@ import argparse
 import importlib
 import sys
 
-__all__ = ["dispatch", "add_common_args", "add_eval_args", "positive_int"]
+__all__ = ["dispatch", "add_common_args", "add_eval_args", "add_lpips_args", "lpips_from_args", "positive_int"]
 
 
 def positive_int(text: str) -> int:
@@ -53,6 +53,23 @@ def add_eval_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threads", type=positive_int, default=None, help="torch threads")
     p.add_argument("--seed", type=int, default=0, help="seed of the held-out scenes")
     p.add_argument("--num-scenes", type=positive_int, default=4, help="held-out scenes to evaluate")
+
+
+def add_lpips_args(p: argparse.ArgumentParser) -> None:
+    """--lpips-vgg, --lpips-lin: LPIPS runs only when both local files are given."""
+    p.add_argument("--lpips-vgg", default=None,
+                   help="local torchvision VGG-16 state dict for LPIPS (without it LPIPS is off)")
+    p.add_argument("--lpips-lin", default=None, help="local lpips v0.1 linear layers (lpips/weights/v0.1/vgg.pth)")
+
+
+def lpips_from_args(args: argparse.Namespace):
+    """The :class:`~.metrics.LPIPS` module named by ``--lpips-vgg/--lpips-lin``, or None; prints
+    which, so that a run says whether LPIPS is on."""
+    from .metrics import lpips_or_none
+
+    module, message = lpips_or_none(args.lpips_vgg, args.lpips_lin)
+    print(message, flush=True)
+    return module
 
 
 def dispatch(command: str, argv: list[str]) -> int:

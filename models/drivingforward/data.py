@@ -5,6 +5,10 @@
 the paper's jitter (brightness, contrast, saturation 0.2, hue 0.05) with factors drawn from a
 given generator, the same factors for every image of the sample (as monodepth2 does), so that a
 sample's randomness derives from its index alone.
+
+Real data has no depth maps: when the data carries LiDAR, :func:`lidar_depth` projects the sweep
+of frame t into every camera (nearest return per pixel, NaN where none), which is what depth is
+evaluated against there.
 """
 from __future__ import annotations
 
@@ -16,7 +20,7 @@ from torch import Tensor
 
 from ..common.data import DataSource, to_torch_frame
 
-__all__ = ["load_triplet", "colour_jitter", "gt_ego_motion"]
+__all__ = ["load_triplet", "colour_jitter", "gt_ego_motion", "lidar_depth"]
 
 
 def load_triplet(source: DataSource, index: int, preset, split: str = "train",
@@ -29,7 +33,8 @@ def load_triplet(source: DataSource, index: int, preset, split: str = "train",
         split: "train" or "test"; cameras: camera names (default: all, rig order).
     Returns:
         ``images [3, V, 3, H, W]``, ``Ks [V, 3, 3]``, ``cam_to_ego [V, 4, 4]``, ``depths [3, V, H, W]``
-        (when the data has depth; inf = sky), ``viewmats [3, V, 4, 4]`` world-to-camera,
+        (when the data has depth maps; inf = sky), else ``lidar_depth [V, H, W]`` at t when it has
+        LiDAR (NaN: no return), ``viewmats [3, V, 4, 4]`` world-to-camera,
         ``ego_to_world [3, 4, 4]``, ``names`` (list of camera names).
     """
     kw = {"dt": preset.scenes_dt} if source.kind == "synthetic" else {}
@@ -41,7 +46,40 @@ def load_triplet(source: DataSource, index: int, preset, split: str = "train",
            "ego_to_world": torch.stack([f["ego_to_world"] for f in frames]), "names": list(seq.camera_names)}
     if all("depths" in f for f in frames):
         out["depths"] = torch.stack([f["depths"] for f in frames])
+    elif seq.frames[1].lidar is not None:
+        lid = seq.frames[1].lidar
+        pts = torch.tensor(lid.points, dtype=torch.float64)
+        if lid.frame == "world":
+            w2e = torch.linalg.inv(out["ego_to_world"][1].double())
+            pts = pts @ w2e[:3, :3].T + w2e[:3, 3]
+        out["lidar_depth"] = lidar_depth(pts, out["Ks"], out["cam_to_ego"], preset.height, preset.width)
     return out
+
+
+def lidar_depth(points_ego: Tensor, Ks: Tensor, cam_to_ego: Tensor, height: int, width: int) -> Tensor:
+    """Sparse depth maps from LiDAR points: the nearest return per pixel.
+
+    Args:
+        points_ego: ``[M, 3]`` points in the ego frame; Ks ``[V, 3, 3]``; cam_to_ego ``[V, 4, 4]``.
+    Returns:
+        ``[V, H, W]`` camera z-depth in metres, NaN at pixels without a return.
+    """
+    if not isinstance(points_ego, Tensor) or points_ego.ndim != 2 or points_ego.shape[1] != 3:
+        raise ValueError(f"points_ego: expected [M, 3], got {list(getattr(points_ego, 'shape', []))}")
+    V = Ks.shape[0]
+    out = torch.full((V, height * width), float("inf"), dtype=torch.float64)
+    e2c = torch.linalg.inv(cam_to_ego.double())
+    for c in range(V):
+        pc = points_ego.double() @ e2c[c, :3, :3].T + e2c[c, :3, 3]
+        z = pc[:, 2]
+        front = z > 1e-3
+        uv = (pc[front] / z[front, None]) @ Ks[c].double().T
+        u, v = uv[:, 0].floor().long(), uv[:, 1].floor().long()    # pixel (u, v) covers [u, u+1)
+        inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
+        idx = v[inside] * width + u[inside]
+        out[c].scatter_reduce_(0, idx, z[front][inside], reduce="amin")
+    out[~torch.isfinite(out)] = float("nan")
+    return out.reshape(V, height, width).to(Ks.dtype)
 
 
 def gt_ego_motion(sample: dict[str, Tensor], ref: int = 1) -> list[Tensor]:

@@ -7,6 +7,14 @@ levels 2-4 (128 + 256 + 512 channels) are resized to 1/8 and reduced to 256 by a
 The decoder (16, 32, 64, 128, 256 channels, ELU, no skips) upsamples it to full resolution and
 ends in one sigmoid ``sigma``; depth = 1 / (1/max + (1/min - 1/max) sigma) * fx / focal_ref.
 Input images are normalised as (x - 0.45) / 0.225.
+
+Initialisation: the layers after the encoder (reduction, fusion, decoder) have no normalisation,
+and with PyTorch's default init (variance 1/(3 fan_in)) the signal shrinks by about sqrt(3) per
+layer: from a randomly initialised encoder the fused feature is ~0.02 and the decoder's output
+is constant over the image. Adam then grows the weights until the sigmoid saturates (sigma ~ 0,
+every pixel at the far limit, no gradient left), which is what a first small-preset run did
+within 30 steps. :func:`he_init` gives those layers He initialisation (bias 0), which keeps unit
+activations through the stack; the paper starts from ImageNet weights and does not say.
 """
 from __future__ import annotations
 
@@ -17,12 +25,24 @@ import torch.nn.functional as F
 from ..common.backbones import ResNet18
 from .fusion import VolumetricFusion, scale_intrinsics
 
-__all__ = ["MultiLevelReduce", "DepthDecoder", "DepthNetwork", "sigma_to_depth", "normalise_image"]
+__all__ = ["MultiLevelReduce", "DepthDecoder", "DepthNetwork", "sigma_to_depth", "normalise_image", "he_init"]
 
 
 def normalise_image(x: Tensor) -> Tensor:
     """(x - 0.45) / 0.225, the input normalisation of both ResNet encoders."""
     return (x - 0.45) / 0.225
+
+
+def he_init(*modules: nn.Module, skip: tuple[nn.Module, ...] = ()) -> None:
+    """He (fan-in, LeakyReLU 0.1) initialisation of every Conv2d / Linear in ``modules``, biases 0;
+    modules in ``skip`` keep their initialisation (e.g. an output layer before a sigmoid)."""
+    skipped = {id(m) for m in skip}
+    for root in modules:
+        for m in root.modules():
+            if isinstance(m, (nn.Conv2d, nn.Linear)) and id(m) not in skipped:
+                nn.init.kaiming_normal_(m.weight, a=0.1, mode="fan_in", nonlinearity="leaky_relu")
+                if m.bias is not None:
+                    nn.init.zeros_(m.bias)
 
 
 class MultiLevelReduce(nn.Module):
@@ -103,6 +123,7 @@ class DepthNetwork(nn.Module):
                                        preset.voxel_shape, preset.voxel_channels, preset.proj_channels,
                                        preset.depth_bins, preset.bin_near, preset.bin_far)
         self.decoder = DepthDecoder(preset.proj_channels[1], preset.depth_decoder_channels)
+        he_init(self.reduce, self.fusion, self.decoder, skip=(self.decoder.dispconv,))
 
     def forward(self, images: Tensor, Ks: Tensor, cam_to_ego: Tensor) -> dict[str, Tensor]:
         """Depth of every camera of one instant.

@@ -4,7 +4,8 @@ For each held-out window (frames t-1, t, t+1), the model reconstructs Gaussians 
 frames (default: SF t, MF t-1 and t+1) with the *true* ego motion (the pose network is a training
 device), renders the target frame (SF t+1, MF t) with the true camera poses, and compares with
 the real images: PSNR, SSIM (and LPIPS with user weights). Depth at t is compared with the data's
-depth (synthetic ground truth, or projected LiDAR on real data) in metric units without median
+depth (synthetic ground truth, or the LiDAR sweep at t projected into each camera on real data,
+:func:`~.data.lidar_depth`) in metric units without median
 scaling: AbsRel, SqRel, RMSE, delta<1.25, and the median scale ratio. Pixels are pooled per camera
 over all windows and over everything for ``all``.
 
@@ -128,13 +129,14 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
             r = model.render(g, viewmats, Ks)[0]
         renders.append(r.clamp(0, 1))
         gts.append(s["images"][ti])
-        if "depths" in s:
+        gt_depth = s["depths"][1] if "depths" in s else s.get("lidar_depth")
+        if gt_depth is not None:
             preds.append(model.depth_net(s["images"][1], Ks, E)["depth"][:, 0])
-            gdepths.append(s["depths"][1])
-            if oracle:
-                oracles.append(_oracle_render(s, fi, ti, model.render_device).clamp(0, 1))
+            gdepths.append(gt_depth)
+        if "depths" in s and oracle:
+            oracles.append(_oracle_render(s, fi, ti, model.render_device).clamp(0, 1))
         if first is None:
-            first = (r, s, preds[-1] if preds else None)
+            first = (r, s, (preds[-1], gdepths[-1]) if preds else None)
     R, G = torch.stack(renders), torch.stack(gts)              # [S, V, 3, H, W]
     out: dict = {}
 
@@ -162,6 +164,8 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
     out["settings"] = {"preset": p.name, "mode": p.mode, "frames": list(frames), "target": target,
                        "num_scenes": num_scenes, "cameras": names, "data": source.name,
                        "lpips": "on" if lpips is not None else "off (no weights given)",
+                       "depth_gt": "none" if not preds else ("depth maps of the data" if "depths" in s
+                                                             else "projected LiDAR at t (nearest return per pixel)"),
                        "psnr": "over all pixels pooled; psnr_mean: mean of per-image PSNR"}
     if out_dir is not None:
         od = Path(out_dir)
@@ -173,6 +177,6 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
                            names=names, title=f"DrivingForward {p.name} ({p.mode}): frames {list(frames)} -> {target:+d}, "
                                              f"PSNR {out['psnr']:.2f} dB")
         if d is not None:
-            make_contact_sheet(_depth_colour(d), _depth_colour(s["depths"][1]), od / "depth_sheet.png", names=names,
+            make_contact_sheet(_depth_colour(d[0]), _depth_colour(d[1]), od / "depth_sheet.png", names=names,
                                title=f"depth at t: prediction | ground truth (inverse depth); AbsRel {out['abs_rel']:.3f}")
     return out

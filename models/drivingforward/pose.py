@@ -18,7 +18,7 @@ from torch import Tensor, nn
 
 from ..common.backbones import ResNet18
 from ..common.geometry import se3_exp
-from .depth import MultiLevelReduce, normalise_image
+from .depth import MultiLevelReduce, he_init, normalise_image
 from .fusion import VolumetricFusion, scale_intrinsics
 
 __all__ = ["PoseDecoder", "PoseNetwork", "carry_pose", "ego_motion"]
@@ -77,6 +77,7 @@ class PoseNetwork(nn.Module):
         self.fusion = VolumetricFusion(preset.fusion_channels, "pose", preset.voxel_origin, preset.voxel_size,
                                        preset.voxel_shape, out_channels=preset.pose_bev_channels)
         self.decoder = PoseDecoder(preset.pose_bev_channels[1], preset.pose_decoder_channels)
+        he_init(self.reduce, self.fusion, self.decoder, skip=(self.decoder.pose_2,))   # see depth.he_init
 
     def forward(self, earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_ego: Tensor) -> Tensor:
         """Motion of camera 0 between two instants.

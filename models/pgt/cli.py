@@ -18,7 +18,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from clsplat.models.common.cli import add_common_args, add_eval_args
+from clsplat.models.common.cli import add_common_args, add_eval_args, add_lpips_args, lpips_from_args
 from clsplat.models.common.data import parse_data
 from clsplat.models.common.presets import check_preset_matches, get_preset
 from clsplat.models.common.train import TrainSpec, load_checkpoint, seed_everything, set_threads
@@ -48,13 +48,6 @@ def parse_budgets(text: str) -> list[float]:
     return values
 
 
-def _lpips(args):
-    from clsplat.models.common.metrics import lpips_or_none
-    lp, msg = lpips_or_none(args.lpips_vgg, args.lpips_lin)
-    print(msg, flush=True)
-    return lp
-
-
 def train(argv: list[str]) -> int:
     """``clsplat train pgt ...``; returns the exit status."""
     p = argparse.ArgumentParser(prog="clsplat train pgt", description="Train PGT (base) or EcoSplat's budget stage.")
@@ -62,8 +55,7 @@ def train(argv: list[str]) -> int:
     p.add_argument("--stage", choices=("base", "budget"), default="base",
                    help="base: the pixel-aligned predictor; budget: EcoSplat stage 2 from --init")
     p.add_argument("--init", default=None, help="base checkpoint to start the budget stage from")
-    p.add_argument("--lpips-vgg", default=None, help="local VGG-16 weights (torchvision layout) for LPIPS")
-    p.add_argument("--lpips-lin", default=None, help="local LPIPS v0.1 linear-layer weights (vgg.pth)")
+    add_lpips_args(p)
     args = p.parse_args(argv)
     try:
         preset = get_preset(FAMILY, args.preset)
@@ -85,7 +77,7 @@ def train(argv: list[str]) -> int:
         spec = TrainSpec(out_dir=args.out, steps=steps, batch_size=args.batch_size or preset.batch_size,
                          checkpoint_every=args.checkpoint_every, seed=args.seed, grad_clip=preset.grad_clip,
                          resume=args.resume)
-        lpips = _lpips(args) if preset.w_lpips else None
+        lpips = lpips_from_args(args) if preset.w_lpips else None
         run_train(model, opt, spec, preset, FAMILY, make_sample_loss(source, preset, args.stage, args.seed, lpips),
                   scheduler=sched, extra_state={"stage": args.stage})
     except ValueError as e:
