@@ -6,7 +6,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.clsplat-installed
 OUT    ?= out
 
-.PHONY: demo test bench info
+.PHONY: demo test bench info wheel-smoke
 
 $(STAMP): setup.cfg pyproject.toml constraints.txt
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -24,3 +24,7 @@ bench: $(STAMP)
 
 info: $(STAMP)
 	$(VENV)/bin/clsplat info
+
+# the built wheel in a fresh venv over an older numpy/pandas: clsplat info and a tiny render
+wheel-smoke: $(STAMP)
+	PYTHON=$(PY) .ci/wheel_smoke $(or $(SMOKE_DIR),$(shell mktemp -d))

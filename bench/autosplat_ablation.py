@@ -65,7 +65,7 @@ def main() -> None:
     ap.add_argument("--out", default="bench/out/autosplat")
     ap.add_argument("--preset", default="demo")
     ap.add_argument("--rows", default=None, help="comma-separated row indices (default: all)")
-    ap.add_argument("--figures", default="bench/figures", help="where the full model's sheets are copied")
+    ap.add_argument("--figures", default=None, help="copy the full model's sheets and loss curve into this folder")
     ap.add_argument("--steps-scale", type=float, default=1.0, help="multiply every stage's iterations by this")
     ap.add_argument("--seed", type=int, default=None, help="optimisation seed (default: the preset's)")
     ap.add_argument("--in-process", action="store_true",
@@ -76,8 +76,9 @@ def main() -> None:
     if not a.in_process:
         import subprocess
         import sys
-        args = [sys.executable, __file__, "--in-process", "--out", a.out, "--preset", a.preset, "--figures", a.figures,
-                "--steps-scale", str(a.steps_scale)] + ([] if a.seed is None else ["--seed", str(a.seed)])
+        args = ([sys.executable, __file__, "--in-process", "--out", a.out, "--preset", a.preset,
+                 "--steps-scale", str(a.steps_scale)] + ([] if a.seed is None else ["--seed", str(a.seed)])
+                + ([] if a.figures is None else ["--figures", a.figures]))
         for r in rows:
             subprocess.run(args + ["--rows", str(r)], check=True)
         write_table(json.loads((Path(a.out) / "ablation.json").read_text()), Path(a.out) / "ablation.md")
@@ -138,7 +139,7 @@ def main() -> None:
               + f" | {res['seconds_per_iteration_median']:.2f} s/it, renderer {100 * res['renderer_wall_share']:.0f}% wall"
               f" ({100 * res['renderer_device_share']:.0f}% device) | N {m['gaussians']['total']} | {res['wall_s']:.0f} s",
               flush=True)
-        if r == 5 and a.figures and a.steps_scale == 1 and a.seed is None:
+        if r == 5 and a.figures:
             fig = Path(a.figures)
             fig.mkdir(parents=True, exist_ok=True)
             for src, dst in (("contact_sheet.png", "autosplat_ablation_full_contact_sheet.png"),

@@ -136,7 +136,7 @@ def count_evaluations(st, scene: dict) -> dict:
     W, H, ts = st.width, st.height, st.tile_size
     C = int(scene["viewmats"].shape[0])
     tx, ty = -(-W // ts), -(-H // ts)
-    pix, _ = engine.composite_layout(rt, cfg, ts, st.render.shape[-1])
+    pix = engine.composite_layout(rt, cfg, ts, st.render.shape[-1])[0]
     ids = meta["flatten_ids"].to(torch.int64)
     off = np.concatenate([meta["isect_offsets"].reshape(-1).numpy().astype(np.int64), [ids.numel()]])
     xy = meta["means2d"].detach().reshape(-1, 2).float()

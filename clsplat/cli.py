@@ -43,8 +43,23 @@ def _demo(a: argparse.Namespace) -> int:
     return 0
 
 
+#: optional packages and the setup.cfg extra that installs each
+_EXTRAS = {"OpenImageIO": "io", "matplotlib": "io", "pandas": "data", "kornia": "models", "tqdm": "models"}
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    try:
+        return _main(argv)
+    except ModuleNotFoundError as e:
+        top = (e.name or "").split(".")[0]
+        if top not in _EXTRAS:
+            raise
+        raise SystemExit(f"clsplat {' '.join(argv[:1])}: needs the optional package {top!r}, "
+                         f"installed by: pip install 'clsplat[{_EXTRAS[top]}]'") from None
+
+
+def _main(argv: list[str]) -> int:
     if argv[:1] == ["bench"]:
         from .bench_cli import main as bench
         return bench(argv[1:])

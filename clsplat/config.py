@@ -44,6 +44,16 @@ class RenderConfig:
     sort_layout: str | None = None
 
     def __post_init__(self) -> None:
+        for name in ("pix", "sort_local"):
+            v = getattr(self, name)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, int)):
+                raise ValueError(f"{name}: expected an int or None, got {v!r} ({type(v).__name__})")
+        for name in ("alpha_min", "t_min"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise ValueError(f"{name}: expected a number, got {v!r} ({type(v).__name__})")
+        if not isinstance(self.fast_math, bool):
+            raise ValueError(f"fast_math: expected True or False, got {self.fast_math!r}")
         if self.precision not in (None, "float32", "float64"):
             raise ValueError(f"precision: expected 'float32' or 'float64', got {self.precision!r}")
         if not 0.0 < self.alpha_max < 1.0:

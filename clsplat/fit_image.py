@@ -26,6 +26,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .constants import MAX_IMAGE_SIDE
+from .memory import check_host_memory
+
 __all__ = ["fit_image", "main", "procedural_target"]
 
 _DEPTH = 1.0  # distance of the Gaussian plane from the camera
@@ -142,16 +145,25 @@ def _fit(target: torch.Tensor, n_gaussians: int, iterations: int, lr: float, see
     losses: list[float] = []
     step_times: list[float] = []
     bar = tqdm(range(iterations), disable=not progress, desc="fit_image", leave=False)
-    for _ in bar:
+    for it in bar:
         t0 = time.perf_counter()
         opt.zero_grad(set_to_none=True)
-        loss = torch.nn.functional.mse_loss(render(), target)
+        try:
+            img = render()
+        except ValueError as e:
+            if it == 0:
+                raise
+            # the parameters left the range the renderer accepts: the step size is to blame
+            raise ValueError(f"lr: the fit diverged at iteration {it} with lr={lr:g} ({e}); "
+                             "use a smaller lr") from None
+        loss = torch.nn.functional.mse_loss(img, target)
         loss.backward()
         opt.step()
         step_times.append(time.perf_counter() - t0)
         value = float(loss.detach())
-        if not math.isfinite(value):
-            raise FloatingPointError(f"loss became {value} at iteration {len(losses)}")
+        if not (math.isfinite(value) and all(bool(torch.isfinite(p).all()) for p in params)):
+            raise ValueError(f"lr: the fit diverged at iteration {it} with lr={lr:g} (loss {value}, "
+                             "parameters no longer finite); use a smaller lr")
         losses.append(value)
         bar.set_postfix(loss=f"{value:.5f}")
     bar.close()
@@ -170,6 +182,9 @@ def procedural_target(height: int = 96, width: int = 128) -> torch.Tensor:
     patch and three coloured discs."""
     height = _check_int("height", height, 1)
     width = _check_int("width", width, 1)
+    if max(height, width) > MAX_IMAGE_SIDE:
+        raise ValueError(f"height, width: at most {MAX_IMAGE_SIDE} pixels a side, got {height}x{width}")
+    check_host_memory(10 * 3 * 4 * height * width, f"height, width: a {height}x{width} target")
     y, x = torch.meshgrid((torch.arange(height, dtype=torch.float32) + 0.5) / height,
                           (torch.arange(width, dtype=torch.float32) + 0.5) / width, indexing="ij")
     img = torch.stack([0.2 + 0.6 * x, 0.3 + 0.4 * y, 0.8 - 0.5 * x * y], dim=-1)
@@ -198,7 +213,7 @@ def _save_loss_curve(path: Path, losses: list[float]) -> None:
     ax.set_title("clsplat fit_image")
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
-    fig.savefig(str(path))
+    fig.savefig(str(path), format="png")
 
 
 def main(out_dir, target_path: str | None = None, n_gaussians: int = 2000, iterations: int = 300,
@@ -216,9 +231,12 @@ def main(out_dir, target_path: str | None = None, n_gaussians: int = 2000, itera
         metrics: ``initial_loss``, ``final_loss``, ``losses``, ``psnr``, ``seconds_per_step``,
         ``n_gaussians``, ``iterations``, ``height``, ``width`` and the written ``paths``.
     """
+    from .io.atomic import write_atomically
     from .io.images import read_image, write_image
 
     out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"out_dir: {str(out)!r} exists and is not a folder")
     out.mkdir(parents=True, exist_ok=True)
     if target_path is None:
         if not (isinstance(size, (tuple, list)) and len(size) == 2):
@@ -230,9 +248,10 @@ def main(out_dir, target_path: str | None = None, n_gaussians: int = 2000, itera
                        device=device, progress=progress, torch_threads=torch_threads)
     paths = {"target": out / "target.png", "fit": out / "fit.png",
              "loss_curve": out / "loss_curve.png"}
-    write_image(paths["target"], target.numpy())
-    write_image(paths["fit"], result["render"].numpy())
-    _save_loss_curve(paths["loss_curve"], result["losses"])
+    # all three or none: a failed write (full disk) leaves the previous run's files whole
+    write_atomically([(paths["target"], lambda p: write_image(p, target.numpy())),
+                      (paths["fit"], lambda p: write_image(p, result["render"].numpy())),
+                      (paths["loss_curve"], lambda p: _save_loss_curve(p, result["losses"]))])
     return {"initial_loss": result["losses"][0], "final_loss": result["losses"][-1],
             "losses": result["losses"], "psnr": result["psnr"],
             "seconds_per_step": result["seconds_per_step"], "n_gaussians": n_gaussians,

@@ -120,6 +120,7 @@ def main(out_dir: str | Path, height: int = 176, width: int = 320, seed: int = 0
 
     import clsplat
     from .io.contact_sheet import make_contact_sheet
+    from .io.atomic import write_text_atomic
     from .io.images import write_image
 
     out = Path(out_dir)
@@ -188,5 +189,5 @@ def main(out_dir: str | Path, height: int = 176, width: int = 320, seed: int = 0
         "seed": seed,
         "out_dir": str(out),
     })
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    write_text_atomic(out / "metrics.json", json.dumps(metrics, indent=2))
     return metrics

@@ -20,7 +20,7 @@ from .autograd import ProjectFn, RasterizeFn, Settings, ShFn
 from .config import RenderConfig
 from .packed import AbsgradSink, SparseRowsGrad, intersection_meta, pack_pairs
 from .runtime import Runtime, get_runtime
-from .validate import check_rasterization_inputs
+from .validate import check_options, check_rasterization_inputs, check_screen_extent, rescale_large_quats
 
 __all__ = ["rasterization", "RollingShutterType", "DEFAULT_TILE_SIZE"]
 
@@ -174,6 +174,7 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
                            viewmats_rs)
     if rasterize_mode not in ("classic", "antialiased"):
         raise ValueError(f"rasterize_mode: expected 'classic' or 'antialiased', got {rasterize_mode!r}")
+    check_options(config, events)
     if isinstance(channel_chunk, bool) or not isinstance(channel_chunk, int) or channel_chunk < 1:
         raise ValueError(f"channel_chunk: expected a positive int, got {channel_chunk!r}")
     for name, v in (("packed", packed), ("sparse_grad", sparse_grad), ("absgrad", absgrad),
@@ -220,6 +221,10 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
     rt = get_runtime(device)
     if cfg.precision == "float64" and not rt.has_fp64:
         raise ValueError(f"precision: float64 needs cl_khr_fp64, which {rt.name} lacks")
+    flat["quats"] = rescale_large_quats(flat["quats"])
+    for b in range(B):
+        check_screen_extent(flat["means"][b], flat["scales"][b], flat["viewmats"][b], flat["Ks"][b],
+                            float(near_plane), float(far_plane), cfg.precision)
     n_col, depth_col = _channels(render_mode, D)
     CH = n_col + (depth_col >= 0)
     nbytes = C * height * width * CH * (8 if cfg.precision == "float64" else 4)

@@ -9,7 +9,15 @@ queue per device) and, inside each runtime, the program and kernel caches.
 * Programs are ``kernels/common.h`` + one stage file, specialised with ``-D`` options and
   cached by (source hash, options, device). Kernel objects are created once per program.
 * :class:`DeviceArray` pairs a torch CPU tensor with an OpenCL buffer. On devices that share
-  host memory (PoCL's CPU device) the two are the same memory, so nothing is copied.
+  host memory (``CL_DEVICE_HOST_UNIFIED_MEMORY``, e.g. PoCL's CPU device) the buffer is
+  created over the tensor's memory (``USE_HOST_PTR``) and read back by mapping it, which
+  copies nothing there; elsewhere data are written at creation and read back with
+  ``enqueue_copy``. The host never touches a buffer's memory outside map/unmap or
+  read/write commands, as the OpenCL spec requires. ``CLSPLAT_HOST_MEMORY=copy`` forces the
+  copy path (what discrete GPUs take) on any device, ``=share`` forces zero-copy.
+* Device limits: launches respect the kernel's own ``CL_KERNEL_WORK_GROUP_SIZE`` and every
+  kernel is sized for :data:`LOCAL_MEM_BUDGET` (48 KiB, what GPUs offer) of local memory,
+  not for a CPU runtime's larger figure.
 """
 from __future__ import annotations
 
@@ -23,13 +31,18 @@ import numpy as np
 import pyopencl as cl
 import torch
 
+from .memory import available_host_memory
+
 __all__ = [
     "BuildError", "DeviceError", "Runtime", "DeviceArray", "get_runtime", "list_devices",
-    "describe_devices",
+    "describe_devices", "LOCAL_MEM_BUDGET", "INT32_MAX", "available_host_memory",
 ]
 
 _BASE_OPTIONS = ("-cl-std=CL1.2", "-cl-denorms-are-zero")
 _DEVICE_ENV = "CLSPLAT_DEVICE"
+_HOST_MEMORY_ENV = "CLSPLAT_HOST_MEMORY"
+LOCAL_MEM_BUDGET = 48 * 1024  # bytes of local memory a kernel may use: a GPU's, not PoCL's
+INT32_MAX = 2**31 - 1
 
 
 class DeviceError(ValueError):
@@ -103,6 +116,7 @@ class Runtime:
     _programs: dict = field(default_factory=dict, init=False, repr=False)
     _kernels: dict = field(default_factory=dict, init=False, repr=False)
     _scans: dict = field(default_factory=dict, init=False, repr=False)
+    _group_limits: dict = field(default_factory=dict, init=False, repr=False)
     # Buffers that queued commands may still touch. A released pyopencl Buffer drops its host
     # memory at once, even while a kernel is queued on it, so every buffer a command uses is
     # held here from its enqueue until the next finish().
@@ -124,8 +138,17 @@ class Runtime:
 
     @property
     def shares_host_memory(self) -> bool:
-        """True where a USE_HOST_PTR buffer is the tensor's own memory (CPU devices)."""
-        return bool(self.device.type & cl.device_type.CPU)
+        """True where buffers are created over the tensors' own memory (zero-copy): devices
+        with unified host memory, unless ``CLSPLAT_HOST_MEMORY`` says ``copy`` (or ``share``)."""
+        mode = os.environ.get(_HOST_MEMORY_ENV, "auto").lower()
+        if mode not in ("auto", "copy", "share"):
+            raise DeviceError(f"{_HOST_MEMORY_ENV}: expected 'auto', 'copy' or 'share', got {mode!r}")
+        if mode != "auto":
+            return mode == "share"
+        try:
+            return bool(self.device.host_unified_memory)
+        except cl.Error:  # the query is deprecated in OpenCL 2.0: fall back to the type
+            return bool(self.device.type & cl.device_type.CPU)
 
     @property
     def is_cpu(self) -> bool:
@@ -137,7 +160,24 @@ class Runtime:
 
     @property
     def local_mem(self) -> int:
-        return int(self.device.local_mem_size)
+        """Local memory a kernel may use: the device's, capped at :data:`LOCAL_MEM_BUDGET`."""
+        return min(int(self.device.local_mem_size), LOCAL_MEM_BUDGET)
+
+    def kernel_group_limit(self, kernel: cl.Kernel) -> int:
+        """``CL_KERNEL_WORK_GROUP_SIZE``: the largest group this kernel runs with here."""
+        return int(kernel.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE, self.device))
+
+    def check_group(self, kernel: cl.Kernel, stage: str, group: int, hint: str = "") -> None:
+        """Refuse a launch whose work-group exceeds the kernel's own limit or whose static
+        local memory exceeds the device's, before enqueueing it."""
+        limit = self.kernel_group_limit(kernel)
+        if group > limit:
+            raise ValueError(f"{stage}: work-groups of {group} items exceed this kernel's "
+                             f"CL_KERNEL_WORK_GROUP_SIZE of {limit} on {self.name}{hint}")
+        lmem = int(kernel.get_work_group_info(cl.kernel_work_group_info.LOCAL_MEM_SIZE, self.device))
+        if lmem > int(self.device.local_mem_size):
+            raise ValueError(f"{stage}: the kernel needs {lmem} bytes of local memory, the device "
+                             f"has {self.device.local_mem_size}{hint}")
 
     # -- programs -----------------------------------------------------------------------
     def program(self, stage: str, defines: Mapping[str, object], fast_math: bool = False) -> cl.Program:
@@ -189,7 +229,15 @@ class Runtime:
         return kernel(self.queue, (global_size,), (local_size,), *args)
 
     def launch(self, kernel: cl.Kernel, n_items: int, local: int, *args) -> cl.Event:
-        """Enqueue over ``n_items`` work-items padded up to a multiple of ``local``."""
+        """Enqueue over ``n_items`` work-items padded up to a multiple of ``local``, which is
+        first lowered to a power of two the kernel allows (``CL_KERNEL_WORK_GROUP_SIZE``)."""
+        if n_items > INT32_MAX:
+            raise ValueError(f"{kernel.function_name}: {n_items} work-items exceed the int32 index range")
+        limit = self._group_limits.get(kernel.int_ptr)
+        if limit is None:
+            limit = self._group_limits[kernel.int_ptr] = self.kernel_group_limit(kernel)
+        while local > limit and local > 1:
+            local //= 2
         return self.enqueue(kernel, max(local, -(-n_items // local) * local), local, *args)
 
     def hold(self, *args) -> None:
@@ -201,10 +249,27 @@ class Runtime:
         self.queue.finish()
         self._in_flight.clear()
 
+    def check_memory(self, nbytes: int, what: str) -> None:
+        """Refuse an allocation of ``nbytes`` for ``what`` (a message naming the argument to
+        blame) that exceeds the device's allocation limit, its global memory or the host
+        memory available now."""
+        host = available_host_memory()
+        limit = min(int(self.device.max_mem_alloc_size), int(self.device.global_mem_size), host)
+        if nbytes > limit:
+            raise ValueError(f"{what} needs {nbytes >> 20} MiB, over the {limit >> 20} MiB that can "
+                             f"be allocated (device allocation limit "
+                             f"{self.device.max_mem_alloc_size >> 20} MiB, host memory available "
+                             f"{host >> 20} MiB)")
+
     def array(self, tensor: torch.Tensor) -> "DeviceArray":
         return DeviceArray(self, tensor)
 
     def empty(self, shape, dtype: torch.dtype, zero: bool = True) -> "DeviceArray":
+        n = 1
+        for d in shape:
+            n *= int(d)
+        self.check_memory(n * torch.empty((), dtype=dtype).element_size(),
+                          f"an intermediate array {list(shape)} {dtype}")
         t = torch.zeros(shape, dtype=dtype) if zero else torch.empty(shape, dtype=dtype)
         return DeviceArray(self, t)
 
@@ -220,8 +285,11 @@ def _define(v: object) -> str:
 class DeviceArray:
     """A contiguous torch CPU tensor and the OpenCL buffer that holds its data on the device.
 
-    Shares the tensor's memory where the device allows it; elsewhere the data are copied in
-    at creation and back by :meth:`host`.
+    Zero-copy where the device shares host memory: the buffer is created over the tensor
+    (``USE_HOST_PTR``, whose contents the spec defines at creation) and :meth:`host` maps it
+    for reading, which brings the tensor up to date and on such devices copies nothing.
+    Elsewhere the data are copied in at creation (``COPY_HOST_PTR``) and back by :meth:`host`.
+    The tensor must not be read for device results other than through :meth:`host`.
     """
 
     def __init__(self, rt: Runtime, tensor: torch.Tensor) -> None:
@@ -231,21 +299,46 @@ class DeviceArray:
         self.tensor = tensor.contiguous()
         self.zero_copy = rt.shares_host_memory and self.tensor.numel() > 0
         mf = cl.mem_flags
+        nbytes = self.tensor.numel() * self.tensor.element_size()
+        if nbytes > rt.device.max_mem_alloc_size:
+            raise ValueError(f"DeviceArray: {list(self.tensor.shape)} {self.tensor.dtype} needs "
+                             f"{nbytes >> 20} MiB, over the device's "
+                             f"{rt.device.max_mem_alloc_size >> 20} MiB allocation limit")
         if self.tensor.numel() == 0:  # OpenCL has no empty buffers; kernels never read it
             self.buffer = cl.Buffer(rt.context, mf.READ_WRITE, 16)
         elif self.zero_copy:
-            self.buffer = cl.Buffer(rt.context, mf.READ_WRITE | mf.USE_HOST_PTR,
-                                    hostbuf=self.tensor.numpy())
+            host = self.tensor.numpy()
+            self.buffer = cl.Buffer(rt.context, mf.READ_WRITE | mf.USE_HOST_PTR, hostbuf=host)
+            # Hand the tensor's contents to the device through a map for writing and its
+            # unmap: free where the memory is shared, and correct where the runtime keeps a
+            # copy of its own (or, like Oclgrind's checker, tracks what the host wrote).
+            # Non-blocking: the queue is in order, and no queued command can use this buffer.
+            mapped, ev = cl.enqueue_map_buffer(rt.queue, self.buffer, cl.map_flags.WRITE, 0,
+                                               host.shape, host.dtype, is_blocking=False)
+            if mapped.ctypes.data != host.ctypes.data:
+                ev.wait()
+                np.copyto(mapped, host)
+            mapped.base.release(rt.queue)
         else:
             self.buffer = cl.Buffer(rt.context, mf.READ_WRITE | mf.COPY_HOST_PTR,
                                     hostbuf=self.tensor.numpy())
 
     def host(self) -> torch.Tensor:
-        """The tensor, with every queued command finished and device data copied back."""
+        """The tensor, with every queued command finished and the device's data read back
+        (a map and unmap on the zero-copy path, a copy otherwise)."""
         if self.tensor.numel() == 0:
             return self.tensor
-        if not self.zero_copy:
-            cl.enqueue_copy(self.rt.queue, self.tensor.numpy(), self.buffer)
+        dst = self.tensor.numpy()
+        if self.zero_copy:
+            mapped, _ = cl.enqueue_map_buffer(self.rt.queue, self.buffer, cl.map_flags.READ, 0,
+                                              dst.shape, dst.dtype, is_blocking=True)
+            try:
+                if mapped.ctypes.data != dst.ctypes.data:  # the runtime kept its own copy
+                    np.copyto(dst, mapped)
+            finally:
+                mapped.base.release(self.rt.queue)
+        else:
+            cl.enqueue_copy(self.rt.queue, dst, self.buffer)
         self.rt.finish()
         return self.tensor
 

@@ -7,6 +7,7 @@ Nothing here validates user input: :mod:`clsplat.validate` has done that.
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -97,7 +98,15 @@ def sh_colors(rt: Runtime, cfg: RenderConfig, means: DeviceArray, viewmats: Devi
 
 
 def _scan_exclusive(rt: Runtime, src: DeviceArray, dst: DeviceArray, events) -> None:
+    """dst = exclusive prefix sum of src (int32), by pyopencl's scan on the device, or on the
+    host where ``CLSPLAT_HOST_SCAN=1`` (for tools that cannot run pyopencl's scan, such as
+    Oclgrind's uninitialised-memory checker)."""
     n = src.tensor.numel()
+    if os.environ.get("CLSPLAT_HOST_SCAN", "0") == "1":
+        c = src.host().to(torch.int64)
+        ex = (torch.cumsum(c, 0) - c).to(torch.int32).contiguous()
+        cl.enqueue_copy(rt.queue, dst.buffer, ex.numpy(), is_blocking=True)
+        return
     a = cl_array.Array(rt.queue, (n,), np.int32, data=src.buffer)
     b = cl_array.Array(rt.queue, (n,), np.int32, data=dst.buffer)
     rt.hold(src.buffer, dst.buffer)
@@ -125,14 +134,17 @@ def bin_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Device
     # scan would wrap silently, and counting ~1e9 intersections only to refuse them is slow.
     r = rects.host().reshape(-1, 4).to(torch.int64)
     total = int(((r[:, 2] - r[:, 0]) * (r[:, 3] - r[:, 1])).sum())
-    if total >= 2**31 - 1 or total * 8 > rt.device.max_mem_alloc_size:
+    if total >= 2**31 - 1:
         raise ValueError(f"means, scales: {total} (camera, Gaussian, tile) intersections exceed the "
-                         f"int32 index range or the device's {rt.device.max_mem_alloc_size >> 20} MiB "
-                         "allocation limit; render fewer cameras, fewer or smaller Gaussians per call")
+                         "int32 index range; render fewer cameras, fewer or smaller Gaussians per call")
+    # Keys and the sort's scratch: 16 bytes per intersection.
+    rt.check_memory(total * 16, f"means, scales: {total} (camera, Gaussian, tile) intersections "
+                    "(render fewer cameras, fewer or smaller Gaussians per call)")
     common = (np.int32(C * N), np.int32(tiles_x), np.int32(tpc), np.int32(N), rects.buffer)
     _record(events, "bin_count", rt.launch(rt.kernel("bin", "count_tiles", defines), C * N, LOCAL_1D,
                                            *common, counts.buffer))
     _scan_exclusive(rt, counts, offsets, events)
+    check_tile_offsets(offsets.host(), total)
     keys = rt.empty((total,), torch.int64, zero=False)
     cursor = rt.empty((C * tpc,), torch.int32)
     if total:
@@ -140,6 +152,19 @@ def bin_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Device
             rt.kernel("bin", "scatter_keys", defines), C * N, LOCAL_1D, *common,
             depths.buffer, offsets.buffer, cursor.buffer, keys.buffer))
     return offsets, keys
+
+
+def check_tile_offsets(off: torch.Tensor, total: int) -> None:
+    """Refuse tile offsets [C*T+1] that are not a non-decreasing run from 0 to ``total``:
+    every later kernel indexes the intersection list with them, so a faulty scan (a driver
+    bug, a miscompiled kernel) would make them read and write out of bounds."""
+    o = off.to(torch.int64)
+    if o.numel() == 0 or int(o[0]) != 0 or int(o[-1]) != total or bool((o[1:] < o[:-1]).any()):
+        raise RuntimeError(
+            f"bin: the device's prefix scan returned inconsistent tile offsets (first "
+            f"{int(o[0]) if o.numel() else None}, last {int(o[-1]) if o.numel() else None}, "
+            f"expected 0 .. {total}, non-decreasing); the OpenCL implementation miscomputed "
+            "pyopencl's scan, refusing to index with them")
 
 
 def _sort_local_size(rt: Runtime, cfg: RenderConfig) -> tuple[int, int]:
@@ -221,12 +246,18 @@ def tile_ranges(offsets: DeviceArray, n_cameras: int, tiles_y: int, tiles_x: int
     return torch.stack([off[:-1], off[1:]], -1).reshape(n_cameras, tiles_y, tiles_x, 2)
 
 
-def composite_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: int,
-                     grads: int = 0) -> tuple[int, int]:
-    """(pixels per work-item, batch size) for compositing on this device.
+CHANNEL_CHUNK = 32  # channels per compositing launch at most (gsplat's channel_chunk default)
 
-    ``grads`` is the number of gradient values per intersection (backward only): their
-    per-item partials are staged in local memory too.
+
+def composite_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: int,
+                     geom_grads: int = 0, color_grad: bool = False,
+                     backward: bool = False) -> tuple[int, int, int, int]:
+    """(pixels per work-item, batch size, channels per launch, waves) for compositing here.
+
+    Sized for :attr:`Runtime.local_mem` (at most 48 KiB, what GPUs offer). ``geom_grads``
+    geometry gradient values (backward only) and, with ``color_grad``, one colour gradient
+    per channel of a chunk are staged per item and sample in local memory too, in ``waves``
+    waves of items (see kernels/composite_bwd.cl).
     """
     # 8 floats or 4 doubles fill one 256-bit AVX register; PoCL rejects wider double vectors
     # on CPUs without AVX-512 (no kernel is produced).
@@ -240,9 +271,40 @@ def composite_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: i
     if group > rt.max_group:
         raise ValueError(f"tile_size: {tile_size}x{tile_size} tiles need work-groups of {group} "
                          f"items with {pix} pixel(s) per item; the device allows {rt.max_group}")
-    per = (6 + channels + group * grads) * real + 4
-    batch = max(1, min(32 if grads else group, (rt.local_mem * 3 // 4) // per))
-    return pix, batch
+
+    def per_sample(chunk: int, waves: int) -> int:  # local bytes per staged sample (kernels)
+        if not backward:
+            return (8 + chunk) * real
+        pg = geom_grads + chunk * color_grad
+        staged_f = chunk if channels <= chunk else 1  # features for f . v_out (not WIDE)
+        return (8 + staged_f + group // waves * pg + (pg if waves > 1 else 0)) * real + 8
+
+    budget = rt.local_mem - 64  # the kernels' scalars
+    chunk, waves = min(channels, CHANNEL_CHUNK), 1
+    # Fewer channels per launch first (down to 8), then partials handed over in waves.
+    while per_sample(chunk, waves) > budget:
+        if chunk > 8:
+            chunk = -(-chunk // 2)
+        elif waves < group:
+            waves *= 2
+        elif chunk > 1:
+            chunk = -(-chunk // 2)
+        else:
+            raise ValueError(f"tile_size: {tile_size}x{tile_size} tiles with {pix} pixel(s) per "
+                             f"item need {per_sample(chunk, waves)} bytes of local memory per "
+                             f"sample, over the {rt.local_mem} available; use a smaller tile_size")
+    cap = (32 if waves == 1 else 4) if backward else group  # waves keep partials in registers
+    batch = max(1, min(cap, budget // per_sample(chunk, waves)))
+    return pix, batch, chunk, waves
+
+
+def _composite_kernel(rt: Runtime, cfg: RenderConfig, stage: str, defines: dict, group: int,
+                      tile_size: int) -> cl.Kernel:
+    k = rt.kernel(stage, stage if stage == "composite_bwd" else "composite_fwd", defines,
+                  cfg.fast_math)
+    rt.check_group(k, stage, group, f" (tile_size {tile_size}, {defines['PIX']} pixel(s) per "
+                   "item; use a smaller tile_size or a larger RenderConfig.pix)")
+    return k
 
 
 def composite(rt: Runtime, cfg: RenderConfig, means2d: DeviceArray, conics: DeviceArray,
@@ -250,7 +312,7 @@ def composite(rt: Runtime, cfg: RenderConfig, means2d: DeviceArray, conics: Devi
               offsets: DeviceArray, keys: DeviceArray,
               width: int, height: int, tile_size: int, save_last: bool,
               events: list | None = None) -> tuple[DeviceArray, DeviceArray, DeviceArray | None]:
-    """Front-to-back compositing of every tile.
+    """Front-to-back compositing of every tile, one launch per chunk of channels.
 
     means2d [C,N,2], conics [C,N,3], opacities [C,N], extents [C,N,2], feats [C,N,CH] ->
     (out_feats [C,H,W,CH], out_T [C,H,W], last [C,H,W] int32 or None).
@@ -258,20 +320,21 @@ def composite(rt: Runtime, cfg: RenderConfig, means2d: DeviceArray, conics: Devi
     C = means2d.tensor.shape[0]
     CH = feats.tensor.shape[-1]
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
-    pix, batch = composite_layout(rt, cfg, tile_size, CH)
+    pix, batch, chunk, _ = composite_layout(rt, cfg, tile_size, CH)
     out = rt.empty((C, height, width, CH), cfg.dtype)
     T = rt.empty((C, height, width), cfg.dtype)
     last = rt.empty((C, height, width), torch.int32) if save_last else None
     defines = cfg.defines(tile_size) | {"PIX": pix, "BATCH": batch, "CHANNELS": CH,
-                                         "SAVE_LAST": save_last}
-    k = rt.kernel("composite", "composite_fwd", defines, cfg.fast_math)
+                                         "CCHUNK": chunk, "SAVE_LAST": save_last}
     group = tile_size * tile_size // pix
-    args = [np.int32(width), np.int32(height), np.int32(tiles_x), np.int32(tiles_x * tiles_y),
-            offsets.buffer, keys.buffer, means2d.buffer, conics.buffer, opacities.buffer,
-            extents.buffer, feats.buffer, out.buffer, T.buffer]
-    if save_last:
-        args.append(last.buffer)
-    _record(events, "composite", rt.enqueue(k, C * tiles_x * tiles_y * group, group, *args))
+    k = _composite_kernel(rt, cfg, "composite", defines, group, tile_size)
+    for ch0 in range(0, CH, chunk):
+        args = [np.int32(width), np.int32(height), np.int32(tiles_x), np.int32(tiles_x * tiles_y),
+                np.int32(ch0), offsets.buffer, keys.buffer, means2d.buffer, conics.buffer,
+                opacities.buffer, extents.buffer, feats.buffer, out.buffer, T.buffer]
+        if save_last:
+            args.append(last.buffer)
+        _record(events, "composite", rt.enqueue(k, C * tiles_x * tiles_y * group, group, *args))
     return out, T, last
 
 
@@ -304,26 +367,30 @@ def composite_bwd(rt: Runtime, cfg: RenderConfig, fwd: dict, v_out: DeviceArray,
     G = slot_width(CH, geom, color, absgrad)
     M = fwd["keys"].tensor.numel()
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
-    pix, batch = composite_layout(rt, cfg, tile_size, CH, grads=G)
-    nbytes = M * G * (8 if cfg.precision == "float64" else 4)
-    if nbytes > rt.device.max_mem_alloc_size:
-        raise ValueError(f"means, scales: the backward needs {nbytes >> 20} MiB of gradient slots "
-                         f"({M} intersections x {G} values), over the device's "
-                         f"{rt.device.max_mem_alloc_size >> 20} MiB allocation limit")
+    geom_cols = (8 if absgrad else 6) * geom
+    pix, batch, chunk, waves = composite_layout(rt, cfg, tile_size, CH, geom_grads=geom_cols,
+                                         color_grad=color, backward=True)
+    rt.check_memory(M * G * (8 if cfg.precision == "float64" else 4),
+                    f"means, scales: the backward's gradient slots ({M} intersections x {G} values)")
     offs = isect_offsets(rt, fwd["rects"])
     slots = rt.empty((M, G), cfg.dtype)
-    defines = cfg.defines(tile_size) | {"PIX": pix, "BATCH": batch, "CHANNELS": CH,
-                                         "GEOM_GRAD": geom, "COLOR_GRAD": color,
-                                         "ABSGRAD": absgrad, "BWD_DIVIDE": divide}
-    k = rt.kernel("composite_bwd", "composite_bwd", defines, cfg.fast_math)
     group = tile_size * tile_size // pix
     f = fwd
-    _record(events, "composite_bwd", rt.enqueue(
-        k, C * tiles_x * tiles_y * group, group, np.int32(width), np.int32(height),
-        np.int32(tiles_x), np.int32(tiles_x * tiles_y), np.int32(N), f["offsets"].buffer,
-        f["keys"].buffer, f["rects"].buffer, offs.buffer, f["means2d"].buffer, f["conics"].buffer,
-        f["opacities"].buffer, f["extents"].buffer, f["feats"].buffer, f["out"].buffer, f["T"].buffer, f["last"].buffer,
-        v_out.buffer, v_T.buffer, slots.buffer))
+    # The first launch computes the geometry gradients (and colour chunk 0); each further
+    # launch only the colour gradients of its chunk of channels.
+    for ch0 in range(0, CH if color else 1, chunk):
+        defines = cfg.defines(tile_size) | {
+            "PIX": pix, "BATCH": batch, "CHANNELS": CH, "CCHUNK": chunk,
+            "GEOM_GRAD": geom and ch0 == 0, "COLOR_GRAD": color, "ABSGRAD": absgrad,
+            "BWD_DIVIDE": divide, "SLOT_G": G, "SLOT_COLOR0": geom_cols, "WAVES": waves}
+        k = _composite_kernel(rt, cfg, "composite_bwd", defines, group, tile_size)
+        _record(events, "composite_bwd", rt.enqueue(
+            k, C * tiles_x * tiles_y * group, group, np.int32(width), np.int32(height),
+            np.int32(tiles_x), np.int32(tiles_x * tiles_y), np.int32(N), np.int32(ch0),
+            f["offsets"].buffer, f["keys"].buffer, f["rects"].buffer, offs.buffer,
+            f["means2d"].buffer, f["conics"].buffer, f["opacities"].buffer, f["extents"].buffer,
+            f["feats"].buffer, f["out"].buffer, f["T"].buffer, f["last"].buffer, v_out.buffer,
+            v_T.buffer, slots.buffer))
     return slots, offs
 
 

@@ -9,7 +9,10 @@ import torch
 
 from . import constants as K
 
-__all__ = ["check_tensor", "check_finite", "check_int", "check_rasterization_inputs"]
+__all__ = ["check_tensor", "check_finite", "check_int", "check_index_range",
+           "check_rasterization_inputs", "check_options", "rescale_large_quats", "check_screen_extent"]
+
+INT32_MAX = 2**31 - 1
 
 _FLOATS = (torch.float32, torch.float64)
 
@@ -21,6 +24,9 @@ def check_tensor(name: str, x: object, shape: tuple, dtypes=_FLOATS) -> torch.Te
     """
     if not isinstance(x, torch.Tensor):
         raise ValueError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
+    if x.layout != torch.strided:
+        raise ValueError(f"{name}: expected a dense (strided) tensor, got layout {x.layout}; "
+                         "call .to_dense() first")
     if x.device.type != "cpu":
         raise ValueError(f"{name}: expected a CPU tensor, got device {x.device}; clsplat moves "
                          "data to the OpenCL device itself")
@@ -55,6 +61,19 @@ def _check_float(name: str, v: object) -> float:
     return v
 
 
+def check_index_range(C: int, N: int, D: int, width: int, height: int) -> None:
+    """The kernels index (camera, Gaussian) pairs and pixels with int32 arithmetic, up to
+    3 values per pair (conics) and 4 per pixel row block; refuse sizes past that before any
+    allocation."""
+    if C * N * 4 > INT32_MAX:
+        raise ValueError(f"means, viewmats: {C} cameras x {N} Gaussians = {C * N} pairs exceed "
+                         f"the int32 index range of the kernels (at most {INT32_MAX // 4}); "
+                         "render fewer cameras or Gaussians per call")
+    if C * height * width > INT32_MAX or N * max(D, 3) > INT32_MAX:
+        raise ValueError(f"width, height, colors: {C}x{height}x{width} pixels or {N}x{D} "
+                         f"features exceed the int32 index range ({INT32_MAX})")
+
+
 def check_rasterization_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width,
                                height, near_plane, far_plane, radius_clip, eps2d, sh_degree,
                                tile_size, backgrounds, render_mode) -> dict:
@@ -84,8 +103,9 @@ def check_rasterization_inputs(means, quats, scales, opacities, colors, viewmats
         raise ValueError(f"near_plane: must be > 0, got {near_plane}")
     if not far_plane > near_plane:
         raise ValueError(f"far_plane: must exceed near_plane ({near_plane}), got {far_plane}")
-    if _check_float("eps2d", eps2d) < 0:
-        raise ValueError(f"eps2d: must be >= 0, got {eps2d}")
+    eps2d_f = _check_float("eps2d", eps2d)
+    if not 0 <= eps2d_f < float("inf"):
+        raise ValueError(f"eps2d: must be finite and >= 0, got {eps2d}")
     if _check_float("radius_clip", radius_clip) < 0:
         raise ValueError(f"radius_clip: must be >= 0, got {radius_clip}")
 
@@ -122,6 +142,66 @@ def check_rasterization_inputs(means, quats, scales, opacities, colors, viewmats
     fx, fy = Ks[:, 0, 0], Ks[:, 1, 1]
     if bool(((fx <= 0) | (fy <= 0)).any()):
         raise ValueError("Ks: focal lengths Ks[:, 0, 0] and Ks[:, 1, 1] must be > 0")
+    check_index_range(C, N, D, width, height)
     # As in gsplat, only the top three rows of a view matrix are read (the last row gets a
     # zero gradient), so a perturbed last row is not an error.
     return {"C": C, "N": N, "D": D, "sh": sh_degree is not None}
+
+
+def check_options(config: object, events: object) -> None:
+    """``config`` must be None or a :class:`RenderConfig`; ``events`` None or a list."""
+    from .config import RenderConfig
+    if config is not None and not isinstance(config, RenderConfig):
+        raise ValueError(f"config: expected a clsplat.RenderConfig or None, got {type(config).__name__}")
+    if events is not None and not isinstance(events, list):
+        raise ValueError(f"events: expected a list (filled with the launches' events) or None, "
+                         f"got {type(events).__name__}")
+
+
+#: quaternions whose largest component exceeds this are divided by it before the kernels
+#: normalise them: their squared norm would overflow float32 (about 1.8e19 squared).
+QUAT_RESCALE_ABOVE = 1e15
+
+
+def rescale_large_quats(quats: torch.Tensor) -> torch.Tensor:
+    """``[N, 4]`` -> ``[N, 4]``: rows whose largest |component| exceeds :data:`QUAT_RESCALE_ABOVE`
+    divided by it (the rotation is unchanged; the divisor is detached, which gives exact gradients
+    because the rotation does not depend on the quaternion's norm). Other rows are untouched,
+    bitwise."""
+    m = quats.detach().abs().amax(dim=-1, keepdim=True)
+    big = m > QUAT_RESCALE_ABOVE
+    if not bool(big.any()):
+        return quats
+    return quats / torch.where(big, m, torch.ones_like(m))
+
+
+#: the largest screen-space standard deviation (pixels) the kernels handle per precision: the 2D
+#: covariance's determinant is a product of two variances, so sigma**4 must fit the float type.
+MAX_SCREEN_SIGMA = {"float32": 1e9, "float64": 1e70}
+
+
+def check_screen_extent(means: torch.Tensor, scales: torch.Tensor, viewmats: torch.Tensor,
+                        Ks: torch.Tensor, near_plane: float, far_plane: float, precision: str) -> None:
+    """Refuse Gaussians whose projected size overflows ``precision`` (they would render as nothing).
+
+    means [N, 3], scales [N, 3], viewmats [C, 4, 4], Ks [C, 3, 3]. The bound is
+    max|scale| * max(fx, fy) / depth for every visible (camera, Gaussian) pair, checked
+    cheaply first with depth = near_plane.
+    """
+    if scales.shape[0] == 0:
+        return
+    limit = MAX_SCREEN_SIGMA[precision]
+    f = Ks.detach().double()[:, :2, :2].abs().amax(dim=(1, 2))  # [C]
+    s = scales.detach().double().abs().amax(dim=-1)  # [N]
+    if float(s.max()) * float(f.max()) / near_plane <= limit:
+        return
+    vm = viewmats.detach().double()
+    z = means.detach().double() @ vm[:, 2, :3].T + vm[:, 2, 3]  # [N, C]
+    vis = (z >= near_plane) & (z <= far_plane)
+    sigma = s[:, None] * f[None, :] / z.clamp_min(near_plane)
+    bad = vis & (sigma > limit)
+    if bool(bad.any()):
+        n = int(bad.any(dim=1).sum())
+        raise ValueError(f"scales: {n} Gaussian(s) project to a screen-space size over {limit:g} px "
+                         f"(largest scale {float(s.max()):.3g}), which overflows {precision} in the "
+                         f"2D covariance; use smaller scales" + (" or precision='float64'" if precision == "float32" else ""))

@@ -135,13 +135,15 @@ inline int outside_extent(REAL x, REAL y, REAL ext_x, REAL ext_y, REAL px_first,
     return ext_y < 0 || dy > ext_y * (1 + m) + m || dx > ext_x * (1 + m) + m;
 }
 
-#ifdef CHANNELS
+#ifdef CCHUNK
 /* Copy sample cg's compositing parameters to position i of a batch in local memory (the
- * forward and backward compositing kernels stage batches identically). */
+ * forward and backward compositing kernels stage batches identically), with nf <= CCHUNK
+ * of its CHANNELS features from channel ch0 on (zeros past the last channel). */
 inline void stage_sample(int i, uint cg, __global const REAL *means2d, __global const REAL *conics,
                          __global const REAL *opac_cg, __global const REAL *extents,
                          __global const REAL *feats, __local REAL *l_xy, __local REAL *l_conic,
-                         __local REAL *l_op, __local REAL *l_ext, __local REAL *l_f) {
+                         __local REAL *l_op, __local REAL *l_ext, __local REAL *l_f,
+                         const int ch0, const int nf) {
     l_xy[2 * i] = means2d[2 * cg];
     l_xy[2 * i + 1] = means2d[2 * cg + 1];
     l_conic[3 * i] = conics[3 * cg];
@@ -150,7 +152,8 @@ inline void stage_sample(int i, uint cg, __global const REAL *means2d, __global 
     l_op[i] = opac_cg[cg];
     l_ext[2 * i] = extents[2 * cg];
     l_ext[2 * i + 1] = extents[2 * cg + 1];
-    for (int ch = 0; ch < CHANNELS; ++ch) l_f[CHANNELS * i + ch] = feats[(size_t)cg * CHANNELS + ch];
+    for (int ch = 0; ch < nf; ++ch)
+        l_f[CCHUNK * i + ch] = ch0 + ch < CHANNELS ? feats[(size_t)cg * CHANNELS + ch0 + ch] : (REAL)0;
 }
 #endif
 

@@ -9,8 +9,12 @@
  * added by the host), and with SAVE_LAST the 1-based segment position of the last sample
  * composited, which bounds the backward pass.
  *
- * Build parameters: REAL_DOUBLE, TILE, PIX, BATCH, CHANNELS, SAVE_LAST, ALPHA_MIN, ALPHA_MAX,
- * T_MIN.
+ * Channels are composited CCHUNK at a time (gsplat's channel_chunk): one launch per chunk,
+ * from channel ch0 on, so private and local memory stay bounded for any number of channels.
+ * Every launch makes the same decisions; the first (ch0 = 0) writes T and the last index.
+ *
+ * Build parameters: REAL_DOUBLE, TILE, PIX, BATCH, CHANNELS (features per Gaussian and
+ * pixel), CCHUNK (channels per launch), SAVE_LAST, ALPHA_MIN, ALPHA_MAX, T_MIN.
  */
 
 #define GROUP (TILE * TILE / PIX)
@@ -18,6 +22,7 @@
 
 __kernel __attribute__((reqd_work_group_size(GROUP, 1, 1)))
 void composite_fwd(const int width, const int height, const int tiles_x, const int tiles_per_cam,
+                   const int ch0,                    /* first channel of this launch */
                    __global const int *tile_offsets, /* [C * tiles_per_cam + 1] */
                    __global const ulong *keys,       /* [M] sorted per segment */
                    __global const REAL *means2d,     /* [C, N, 2] */
@@ -32,7 +37,7 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
 #endif
 ) {
     __local REAL l_xy[2 * BATCH], l_conic[3 * BATCH], l_op[BATCH], l_ext[2 * BATCH];
-    __local REAL l_f[CHANNELS * BATCH];
+    __local REAL l_f[CCHUNK * BATCH];
     __local int n_done;
 
     const int tile = get_group_id(0), lid = get_local_id(0);
@@ -47,8 +52,8 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
     VMASK done = !inside;
 
     VREAL T = (VREAL)1;
-    VREAL acc[CHANNELS];
-    for (int ch = 0; ch < CHANNELS; ++ch) acc[ch] = (VREAL)0;
+    VREAL acc[CCHUNK];
+    for (int ch = 0; ch < CCHUNK; ++ch) acc[ch] = (VREAL)0;
     VMASK last = (VMASK)0;
 
     const int start = tile_offsets[tile], end = tile_offsets[tile + 1];
@@ -64,7 +69,8 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
         const int nb = min(BATCH, end - b0);
         for (int i = lid; i < nb; i += GROUP) {
             const uint cg = key_id(keys[b0 + i]);
-            stage_sample(i, cg, means2d, conics, opac_cg, extents, feats, l_xy, l_conic, l_op, l_ext, l_f);
+            stage_sample(i, cg, means2d, conics, opac_cg, extents, feats, l_xy, l_conic, l_op, l_ext, l_f,
+                         ch0, CCHUNK);
         }
         barrier(CLK_LOCAL_MEM_FENCE);
 
@@ -87,15 +93,15 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
             done = done || stop;
             valid = valid && !stop;
             const VREAL w = valid ? alpha * T : (VREAL)0;
-            for (int ch = 0; ch < CHANNELS; ++ch) acc[ch] += l_f[CHANNELS * k + ch] * w;
+            for (int ch = 0; ch < CCHUNK; ++ch) acc[ch] += l_f[CCHUNK * k + ch] * w;
             T = valid ? next_T : T;
             last = valid ? (VMASK)(b0 - start + k + 1) : last;
         }
     }
 
-    REAL T_l[PIX], acc_l[PIX * CHANNELS];
+    REAL T_l[PIX], acc_l[PIX * CCHUNK];
     VSTORE(T, T_l);
-    for (int ch = 0; ch < CHANNELS; ++ch) VSTORE(acc[ch], acc_l + PIX * ch);
+    for (int ch = 0; ch < CCHUNK; ++ch) VSTORE(acc[ch], acc_l + PIX * ch);
 #if SAVE_LAST
     MASK_SCALAR last_l[PIX];
     VSTORE(last, last_l);
@@ -104,10 +110,13 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
         const int px = px0 + q;
         if (px >= width || py >= height) continue;
         const size_t pix = ((size_t)c * height + py) * width + px;
-        out_T[pix] = T_l[q];
-        for (int ch = 0; ch < CHANNELS; ++ch) out_feats[pix * CHANNELS + ch] = acc_l[PIX * ch + q];
+        for (int ch = 0; ch < CCHUNK && ch0 + ch < CHANNELS; ++ch)
+            out_feats[pix * CHANNELS + ch0 + ch] = acc_l[PIX * ch + q];
+        if (ch0 == 0) {
+            out_T[pix] = T_l[q];
 #if SAVE_LAST
-        out_last[pix] = (int)last_l[q];
+            out_last[pix] = (int)last_l[q];
 #endif
+        }
     }
 }

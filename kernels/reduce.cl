@@ -27,23 +27,17 @@ __kernel void reduce_slots(const int CN,
     const int4 r = vload4(cg, rects);
     const int n = (r.z - r.x) * (r.w - r.y);
     __global const REAL *s = slots + (size_t)isect_offsets[cg] * G;
-    REAL acc[G];
-    for (int j = 0; j < G; ++j) acc[j] = 0;
-    for (int i = 0; i < n; ++i)
-        for (int j = 0; j < G; ++j) acc[j] += s[(size_t)i * G + j];
+    /* One column at a time, summed in tile order: no private array, so any G fits. */
+    for (int j = 0; j < G; ++j) {
+        REAL acc = 0;
+        for (int i = 0; i < n; ++i) acc += s[(size_t)i * G + j];
 #if GEOM_GRAD
-    v_means2d[2 * cg] = acc[0];
-    v_means2d[2 * cg + 1] = acc[1];
-    v_conics[3 * cg] = acc[2];
-    v_conics[3 * cg + 1] = acc[3];
-    v_conics[3 * cg + 2] = acc[4];
-    v_opac[cg] = acc[5];
-#if ABSGRAD
-    absgrad[2 * cg] = acc[6];
-    absgrad[2 * cg + 1] = acc[7];
+        if (j < 2) v_means2d[2 * cg + j] = acc;
+        else if (j < 5) v_conics[3 * cg + j - 2] = acc;
+        else if (j == 5) v_opac[cg] = acc;
+        else if (j < G_GEOM) absgrad[2 * cg + j - 6] = acc;
+        else
 #endif
-#endif
-#if COLOR_GRAD
-    for (int ch = 0; ch < CHANNELS; ++ch) v_feats[(size_t)cg * CHANNELS + ch] = acc[G_GEOM + ch];
-#endif
+            v_feats[(size_t)cg * CHANNELS + j - G_GEOM] = acc;
+    }
 }

@@ -33,6 +33,7 @@ scene, sample, sample_data, sample_annotation, map) from a :class:`DrivingSequen
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 from pathlib import Path
@@ -40,6 +41,7 @@ from typing import Sequence
 
 import numpy as np
 
+from .files import path_inside, read_json
 from .scene import (
     CAMERA_NAMES,
     Box3D,
@@ -98,6 +100,8 @@ def load_tables(dataroot: str | Path, version: str = "v1.0-mini", use_devkit: bo
     without ``token``; ImportError (naming ``nuscenes-devkit``) if ``use_devkit`` and the devkit
     is not installed.
     """
+    if not isinstance(dataroot, (str, Path)) or not isinstance(version, str) or not version:
+        raise ValueError(f"dataroot, version: expected a folder path and a version name, got {dataroot!r}, {version!r}")
     root = Path(dataroot)
     if not root.is_dir():
         raise FileNotFoundError(f"nuScenes dataroot not found: {str(root)!r}")
@@ -113,11 +117,9 @@ def load_tables(dataroot: str | Path, version: str = "v1.0-mini", use_devkit: bo
         p = troot / f"{name}.json"
         if not p.is_file():
             raise FileNotFoundError(f"nuScenes table missing: {str(p)!r}")
-        try:
-            recs = json.loads(p.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise ValueError(f"nuScenes table {str(p)!r} is not valid JSON: {exc}") from None
-        if not isinstance(recs, list) or not all(isinstance(r, dict) and "token" in r for r in recs):
+        recs = read_json(p, "nuScenes table")
+        if not isinstance(recs, list) or not all(isinstance(r, dict) and isinstance(r.get("token"), str)
+                                                 for r in recs):
             raise ValueError(f"nuScenes table {str(p)!r} must be a JSON list of records with a 'token'")
         tables[name] = recs
     return _Tables(tables, root)
@@ -125,9 +127,13 @@ def load_tables(dataroot: str | Path, version: str = "v1.0-mini", use_devkit: bo
 
 def _pose(rec: dict, where: str) -> np.ndarray:
     try:
-        return make_transform(quat=rec["rotation"], t=rec["translation"])
-    except (KeyError, ValueError) as exc:
-        raise ValueError(f"{where}: needs 'rotation' (wxyz) and 'translation' [3]: {exc}") from None
+        q = np.asarray(rec["rotation"], dtype=np.float64)
+        t = np.asarray(rec["translation"], dtype=np.float64)
+        if q.shape != (4,) or t.shape != (3,) or not (np.isfinite(q).all() and np.isfinite(t).all()):
+            raise ValueError(f"got rotation {rec['rotation']!r}, translation {rec['translation']!r}")
+        return make_transform(quat=q, t=t)
+    except (KeyError, ValueError, TypeError) as exc:
+        raise ValueError(f"{where}: needs finite 'rotation' (wxyz) [4] and 'translation' [3]: {exc}") from None
 
 
 class _Reader:
@@ -155,18 +161,25 @@ class _Reader:
 
     def camera(self, sd: dict, img: np.ndarray) -> Camera:
         cs = self.t.get("calibrated_sensor", sd["calibrated_sensor_token"])
-        K = np.asarray(cs.get("camera_intrinsic") or [], dtype=np.float64)
-        if K.shape != (3, 3):
-            raise ValueError(f"calibrated_sensor {cs['token']} of {self.channel(sd)} has no 3x3 camera_intrinsic")
+        try:
+            K = np.asarray(cs.get("camera_intrinsic") or [], dtype=np.float64)
+        except (ValueError, TypeError):
+            K = np.zeros(0)
+        if K.shape != (3, 3) or not np.isfinite(K).all():
+            raise ValueError(f"calibrated_sensor {cs['token']} of {self.channel(sd)} has no finite 3x3 camera_intrinsic")
         return Camera(self.channel(sd), K, _pose(cs, "calibrated_sensor"), img.shape[1], img.shape[0])
 
     def image(self, sd: dict) -> np.ndarray:
         from ..io.images import read_image
 
-        return np.clip(read_image(self.t.root / sd["filename"], channels=3), 0.0, 1.0)
+        return np.clip(read_image(self.file(sd), channels=3), 0.0, 1.0)
+
+    def file(self, sd: dict) -> Path:
+        """The data file of a ``sample_data`` record; its ``filename`` must stay inside the root."""
+        return path_inside(self.t.root, sd.get("filename"), f"sample_data {sd.get('token')} filename")
 
     def lidar(self, sd: dict) -> LidarPoints:
-        p = self.t.root / sd["filename"]
+        p = self.file(sd)
         if not p.is_file():
             raise FileNotFoundError(f"nuScenes LiDAR file not found: {str(p)!r}")
         raw = np.fromfile(p, dtype=np.float32)
@@ -208,6 +221,20 @@ def _check_cams(cameras: Sequence[str]) -> list[str]:
     return cams
 
 
+def _malformed_as_value_error(fn):
+    """Turn the KeyError/TypeError/... of a record lacking a field, or holding the wrong type,
+    into a ValueError that names the table folder."""
+    @functools.wraps(fn)
+    def wrapper(dataroot, version="v1.0-mini", *args, **kwargs):
+        try:
+            return fn(dataroot, version, *args, **kwargs)
+        except (KeyError, TypeError, AttributeError, IndexError) as exc:
+            raise ValueError(f"nuScenes tables in {str(Path(dataroot) / str(version))!r}: a record is malformed "
+                             f"({type(exc).__name__}: {exc})") from None
+    return wrapper
+
+
+@_malformed_as_value_error
 def load_nuscenes_scene(dataroot: str | Path, version: str = "v1.0-mini", scene: int | str = 0,
                         cameras: Sequence[str] = CAMERA_NAMES, load_lidar: bool = True, load_boxes: bool = True,
                         short_labels: bool = True, use_devkit: bool = False) -> DrivingSequence:
@@ -237,7 +264,12 @@ def load_nuscenes_scene(dataroot: str | Path, version: str = "v1.0-mini", scene:
         srec = match[0]
     frames, camera_objs = [], None
     tok = srec["first_sample_token"]
+    seen: set[str] = set()
     while tok:
+        if tok in seen:
+            raise ValueError(f"nuScenes table 'sample': the 'next' links of scene {srec['token']} form a loop "
+                             f"back to sample {tok}")
+        seen.add(tok)
         smp = t.get("sample", tok)
         data = r.key_data.get(tok, {})
         missing = [c for c in cams if c not in data]
@@ -254,6 +286,7 @@ def load_nuscenes_scene(dataroot: str | Path, version: str = "v1.0-mini", scene:
                            metadata={"source": "nuscenes", "scene_token": srec["token"]})
 
 
+@_malformed_as_value_error
 def load_nuscenes_sample(dataroot: str | Path, version: str, sample_token: str, cameras: Sequence[str] = CAMERA_NAMES,
                          neighbors: int = 1, load_lidar: bool = True, load_boxes: bool = True,
                          short_labels: bool = True, use_devkit: bool = False) -> DrivingSequence:
@@ -324,6 +357,7 @@ def write_nuscenes(seq: DrivingSequence, dataroot: str | Path, version: str = "v
     Boxes become ``sample_annotation`` records (key frames only) grouped by ``track_id``.
     Returns the ``<dataroot>/<version>`` folder.
     """
+    from ..io.atomic import write_text_atomic
     from ..io.images import write_image
 
     if not isinstance(seq, DrivingSequence):
@@ -446,5 +480,5 @@ def write_nuscenes(seq: DrivingSequence, dataroot: str | Path, version: str = "v
                                "nbr_annotations": len(recs), "first_annotation_token": recs[0]["token"],
                                "last_annotation_token": recs[-1]["token"]})
     for n, recs in tb.items():
-        (troot / f"{n}.json").write_text(json.dumps(recs, indent=0))
+        write_text_atomic(troot / f"{n}.json", json.dumps(recs, indent=0))
     return troot

@@ -40,7 +40,10 @@ Mapping to :class:`~clsplat.data.scene.DrivingSequence`:
   without labels).  The writer writes them back (road -> Road, sidewalk -> Sidewalk, building
   -> Building, vehicle -> Car, other -> Other Static Object).
 
-Pickled DataFrames execute code on load: only read sequences from sources you trust.
+Pickled DataFrames execute code on load: read sequences from sources you trust, or pass
+``safe_pickle=True`` (or set ``CLSPLAT_SAFE_PICKLE=1``), which unpickles with an allow-list of the
+numpy/pandas constructors a DataFrame needs and refuses any file that names anything else
+(:func:`clsplat.data.files.read_pickled_dataframe`).
 """
 from __future__ import annotations
 
@@ -51,6 +54,7 @@ from typing import Sequence
 
 import numpy as np
 
+from .files import read_json, read_pickled_dataframe
 from .scene import (
     SEMANTIC_CLASSES,
     Box3D,
@@ -117,12 +121,7 @@ def _pd():
 
 
 def _read_json(path: Path):
-    if not path.is_file():
-        raise FileNotFoundError(f"PandaSet file not found: {str(path)!r}")
-    try:
-        return json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ValueError(f"{str(path)!r} is not valid JSON: {exc}") from None
+    return read_json(path, "PandaSet file")
 
 
 def _pose_from_json(entry, where: str) -> np.ndarray:
@@ -144,13 +143,8 @@ def _pose_to_json(T: np.ndarray) -> dict:
             "heading": {"w": float(q[0]), "x": float(q[1]), "y": float(q[2]), "z": float(q[3])}}
 
 
-def _read_pickle(path: Path):
-    if not path.is_file():
-        raise FileNotFoundError(f"PandaSet file not found: {str(path)!r}")
-    try:
-        return _pd().read_pickle(path, compression="gzip")
-    except Exception as exc:  # corrupt gzip / pickle
-        raise ValueError(f"cannot read pickled DataFrame {str(path)!r}: {type(exc).__name__}: {exc}") from None
+def _read_pickle(path: Path, safe: bool | None):
+    return read_pickled_dataframe(path, safe)
 
 
 def _list_len(obj, where: str, n: int | None) -> list:
@@ -169,6 +163,7 @@ def load_pandaset(
     load_cuboids: bool = True,
     lidar_device: int = 0,
     load_semseg: bool = True,
+    safe_pickle: bool | None = None,
 ) -> DrivingSequence:
     """Load one PandaSet sequence folder.
 
@@ -182,11 +177,16 @@ def load_pandaset(
         load_semseg: read ``annotations/semseg/NN.pkl.gz`` (with ``classes.json``) into
             ``metadata["lidar_semantics"]`` when present (needs ``load_lidar``).
         lidar_device: keep LiDAR points with this ``d`` value.
+        safe_pickle: unpickle the ``.pkl.gz`` files with an allow-list of the numpy/pandas
+            constructors a DataFrame needs, refusing any other (a pickle can run arbitrary code
+            when loaded). Default: on when ``CLSPLAT_SAFE_PICKLE=1``, else off (trusted data).
     Returns:
         a :class:`DrivingSequence`.
     """
     from ..io.images import read_image
 
+    if not isinstance(seq_dir, (str, Path)) or not str(seq_dir):
+        raise ValueError(f"seq_dir: expected a sequence folder path, got {seq_dir!r}")
     root = Path(seq_dir)
     if not root.is_dir():
         raise FileNotFoundError(f"PandaSet sequence folder not found: {str(root)!r}")
@@ -210,6 +210,8 @@ def load_pandaset(
     ego_poses = [_pose_from_json(e, f"{lid_root / 'poses.json'}[{i}]")
                  for i, e in enumerate(_list_len(_read_json(lid_root / "poses.json"), str(lid_root / "poses.json"), 1))]
     ego_ts = _list_len(_read_json(lid_root / "timestamps.json"), str(lid_root / "timestamps.json"), len(ego_poses))
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in ego_ts):
+        raise ValueError(f"{str(lid_root / 'timestamps.json')!r} must hold finite numbers (seconds)")
     n_avail = len(ego_poses)
     cam_data = {}
     for d in ordered:
@@ -219,6 +221,9 @@ def load_pandaset(
             fx, fy, cx, cy = (float(intr[k]) for k in ("fx", "fy", "cx", "cy"))
         except (KeyError, TypeError, ValueError):
             raise ValueError(f"{str(cdir / 'intrinsics.json')!r} must hold numbers fx, fy, cx, cy") from None
+        if not (all(math.isfinite(v) for v in (fx, fy, cx, cy)) and fx > 0 and fy > 0):
+            raise ValueError(f"{str(cdir / 'intrinsics.json')!r}: fx, fy must be finite and > 0, cx, cy finite; "
+                             f"got {fx}, {fy}, {cx}, {cy}")
         poses_json = _list_len(_read_json(cdir / "poses.json"), str(cdir / "poses.json"), 1)
         poses = [_pose_from_json(e, f"{cdir / 'poses.json'}[{i}]") for i, e in enumerate(poses_json)]
         _list_len(_read_json(cdir / "timestamps.json"), str(cdir / "timestamps.json"), len(poses))
@@ -229,6 +234,8 @@ def load_pandaset(
             raise FileNotFoundError(f"no images 00.jpg, 01.jpg, ... in {str(cdir)!r}")
         n_avail = min(n_avail, len(poses), n_img)
         cam_data[d] = (np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]), poses)
+    if frames is not None and not all(isinstance(i, (int, np.integer)) and not isinstance(i, bool) for i in frames):
+        raise ValueError(f"frames: expected a list of ints, got {frames!r}")
     idx = list(range(n_avail)) if frames is None else [int(i) for i in frames]
     for i in idx:
         if not 0 <= i < n_avail:
@@ -245,6 +252,9 @@ def load_pandaset(
             ids = {int(k): str(v) for k, v in classes.items()}
         except ValueError:
             raise ValueError(f"{str(sem_root / 'classes.json')!r}: class ids must be integers") from None
+        if not ids or max(ids) > 65535:
+            raise ValueError(f"{str(sem_root / 'classes.json')!r}: needs class ids in 0..65535, got "
+                             f"{'none' if not ids else max(ids)}")
         sem_lut = np.full(max(ids) + 1, SEMANTIC_CLASSES.index("other"), np.uint8)
         for k, v in ids.items():
             if k < 0:
@@ -266,14 +276,14 @@ def load_pandaset(
                 cams.append(Camera(name, cam_data[d][0], invert_transform(E) @ cposes[name], img.shape[1], img.shape[0]))
         lidar = None
         if load_lidar:
-            df = _read_pickle(lid_root / f"{i:02d}.pkl.gz")
+            df = _read_pickle(lid_root / f"{i:02d}.pkl.gz", safe_pickle)
             miss = [c for c in ("x", "y", "z", "i") if c not in df.columns]
             if miss:
                 raise ValueError(f"{str(lid_root / f'{i:02d}.pkl.gz')!r} lacks columns {miss}")
             keep = (df["d"] == lidar_device).to_numpy() if "d" in df.columns else np.ones(len(df), bool)
             sem_file = sem_root / f"{i:02d}.pkl.gz"
             if sem_lut is not None and sem_file.is_file():
-                sdf = _read_pickle(sem_file)
+                sdf = _read_pickle(sem_file, safe_pickle)
                 if "class" not in sdf.columns or len(sdf) != len(df):
                     raise ValueError(f"{str(sem_file)!r} must hold a 'class' column with one row per LiDAR point "
                                      f"({len(df)} in {str(lid_root / f'{i:02d}.pkl.gz')!r}), got {len(sdf)} rows")
@@ -284,25 +294,40 @@ def load_pandaset(
             else:
                 lidar_semantics.append(None)
             df = df[keep]
-            pts = df[["x", "y", "z"]].to_numpy(np.float32)
-            lidar = LidarPoints(pts, np.clip(df["i"].to_numpy(np.float32) / 255.0, 0, 1), "world")
+            lf = lid_root / f"{i:02d}.pkl.gz"
+            try:
+                pts = df[["x", "y", "z"]].to_numpy(np.float32)
+                inten = df["i"].to_numpy(np.float32)
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"{str(lf)!r}: columns x, y, z, i must be numbers ({exc})") from None
+            if not (np.isfinite(pts).all() and np.isfinite(inten).all()):
+                raise ValueError(f"{str(lf)!r}: columns x, y, z, i hold NaN or Inf")
+            lidar = LidarPoints(pts, np.clip(inten / 255.0, 0, 1), "world")
         boxes = []
         cub = root / "annotations" / "cuboids" / f"{i:02d}.pkl.gz"
         if load_cuboids and cub.is_file():
-            df = _read_pickle(cub)
+            df = _read_pickle(cub, safe_pickle)
             need = ["uuid", "label", "yaw", "position.x", "position.y", "position.z",
                     "dimensions.x", "dimensions.y", "dimensions.z"]
             miss = [c for c in need if c not in df.columns]
             if miss:
                 raise ValueError(f"{str(cub)!r} lacks columns {miss}")
-            for row in df.itertuples(index=False):
+            for j, row in enumerate(df.itertuples(index=False)):
                 r = dict(zip(df.columns, row))
                 u = str(r["uuid"])
+                try:
+                    yaw = float(r["yaw"])
+                    size = [float(r[f"dimensions.{a}"]) for a in "xyz"]
+                    pos = [float(r[f"position.{a}"]) for a in "xyz"]
+                except (TypeError, ValueError) as exc:
+                    raise ValueError(f"{str(cub)!r} row {j}: yaw, position.* and dimensions.* must be numbers "
+                                     f"({exc})") from None
+                if not all(math.isfinite(v) for v in [yaw, *size, *pos]) or min(size) < 0:
+                    raise ValueError(f"{str(cub)!r} row {j}: yaw, position.* and dimensions.* must be finite, "
+                                     "dimensions >= 0")
                 tid = uuids.setdefault(u, len(uuids) + 1)
-                yaw = float(r["yaw"])
                 q = [math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)]
-                boxes.append(Box3D(tid, str(r["label"]), [r["dimensions.x"], r["dimensions.y"], r["dimensions.z"]],
-                                   [r["position.x"], r["position.y"], r["position.z"]], q, uuid=u))
+                boxes.append(Box3D(tid, str(r["label"]), size, pos, q, uuid=u))
         out_frames.append(Frame(float(ego_ts[i]), E, imgs, lidar=lidar, boxes=boxes, camera_poses=cposes))
     meta = {"source": "pandaset", "path": str(root)}
     if any(x is not None for x in lidar_semantics):
@@ -317,6 +342,7 @@ def write_pandaset(seq: DrivingSequence, out_dir: str | Path, jpeg_quality: int 
     ``<lowercase name>_camera``.  LiDAR is written in world frame with ``i = 255 * intensity``,
     ``t = frame timestamp``, ``d = 0``.  Boxes must be yaw-only rotations (about z).
     """
+    from ..io.atomic import write_text_atomic
     from ..io.images import write_image
 
     pd = _pd()
@@ -334,20 +360,20 @@ def write_pandaset(seq: DrivingSequence, out_dir: str | Path, jpeg_quality: int 
         cdir = root / "camera" / d
         cdir.mkdir(parents=True, exist_ok=True)
         K = cam.K
-        (cdir / "intrinsics.json").write_text(json.dumps(
+        write_text_atomic(cdir / "intrinsics.json", json.dumps(
             {"fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2])}))
-        (cdir / "poses.json").write_text(json.dumps([_pose_to_json(seq.cam_to_world(i, cam.name))
-                                                      for i in range(len(seq.frames))]))
-        (cdir / "timestamps.json").write_text(json.dumps([f.timestamp for f in seq.frames]))
+        write_text_atomic(cdir / "poses.json", json.dumps([_pose_to_json(seq.cam_to_world(i, cam.name))
+                                                           for i in range(len(seq.frames))]))
+        write_text_atomic(cdir / "timestamps.json", json.dumps([f.timestamp for f in seq.frames]))
         for i, f in enumerate(seq.frames):
             write_image(cdir / f"{i:02d}.jpg", f.images[cam.name], quality=jpeg_quality)
-    (root / "lidar" / "poses.json").write_text(json.dumps([_pose_to_json(f.ego_to_world) for f in seq.frames]))
-    (root / "lidar" / "timestamps.json").write_text(json.dumps([f.timestamp for f in seq.frames]))
+    write_text_atomic(root / "lidar" / "poses.json", json.dumps([_pose_to_json(f.ego_to_world) for f in seq.frames]))
+    write_text_atomic(root / "lidar" / "timestamps.json", json.dumps([f.timestamp for f in seq.frames]))
     sem = seq.metadata.get("lidar_semantics")
     if sem is not None:
         (root / "annotations" / "semseg").mkdir(parents=True, exist_ok=True)
-        (root / "annotations" / "semseg" / "classes.json").write_text(
-            json.dumps({str(k): v for k, v in PANDASET_CLASSES.items()}))
+        write_text_atomic(root / "annotations" / "semseg" / "classes.json",
+                          json.dumps({str(k): v for k, v in PANDASET_CLASSES.items()}))
     for i, f in enumerate(seq.frames):
         if f.lidar is not None and sem is not None and sem[i] is not None:
             lab = np.asarray(sem[i])

@@ -13,6 +13,8 @@ from typing import Sequence
 
 import numpy as np
 
+from .atomic import atomic_write
+
 __all__ = ["make_contact_sheet", "psnr"]
 
 
@@ -101,5 +103,4 @@ def make_contact_sheet(
                  weight="bold")
     if title:
         fig.text(3 / sheet_w, 1 - (strip - 4) / sheet_h, title, fontsize=8, color="black", weight="bold")
-    fig.savefig(str(p), dpi=dpi)
-    return p
+    return atomic_write(p, lambda tmp: fig.savefig(str(tmp), dpi=dpi, format="png"))

@@ -10,10 +10,15 @@ argument, unsupported extension, corrupt or truncated file), naming the path.
 """
 from __future__ import annotations
 
+import errno
+import shutil
 from pathlib import Path
 
 import numpy as np
 import OpenImageIO as oiio
+
+from ..memory import check_host_memory
+from .atomic import atomic_write
 
 __all__ = ["read_image", "write_image", "read_depth", "write_depth", "SUPPORTED_EXTENSIONS"]
 
@@ -27,6 +32,12 @@ def _ext(path: Path, arg: str = "path") -> str:
     return ext
 
 
+def _path(path: object, arg: str = "path") -> Path:
+    if not isinstance(path, (str, Path)) or not str(path):
+        raise ValueError(f"{arg}: expected a file path, got {path!r}")
+    return Path(path)
+
+
 def _read(path: str | Path) -> np.ndarray:
     p = Path(path)
     if not p.is_file():
@@ -36,8 +47,12 @@ def _read(path: str | Path) -> np.ndarray:
         raise ValueError(f"cannot read image {str(p)!r}: {oiio.geterror() or 'unknown format or corrupt file'}")
     try:
         spec = inp.spec()
+        # decoded as float32, then up to two more copies (channel selection, clipping)
+        check_host_memory(3 * 4 * spec.width * spec.height * spec.nchannels,
+                          f"image {str(p)!r} ({spec.width}x{spec.height}x{spec.nchannels})")
         px = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
-        if px is None:
+        # A truncated JPEG decodes (padded with grey) and only sets the error flag.
+        if px is None or inp.has_error:
             raise ValueError(f"cannot read image {str(p)!r} (corrupt or truncated): {inp.geterror().strip()}")
     finally:
         inp.close()
@@ -58,7 +73,7 @@ def read_image(path: str | Path, channels: int | None = 3) -> np.ndarray:
     """
     if channels is not None and channels not in (1, 3, 4):
         raise ValueError(f"channels must be 1, 3, 4 or None, got {channels!r}")
-    p = Path(path)
+    p = _path(path)
     _ext(p)
     px = _read(p)
     if channels is None or px.shape[2] == channels:
@@ -82,7 +97,7 @@ def write_image(path: str | Path, image, quality: int = 95, bits: int = 8) -> Pa
     Returns:
         the path written.
     """
-    p = Path(path)
+    p = _path(path)
     ext = _ext(p)
     if not p.parent.is_dir():
         raise FileNotFoundError(f"output folder does not exist: {str(p.parent)!r}")
@@ -113,6 +128,25 @@ def write_image(path: str | Path, image, quality: int = 95, bits: int = 8) -> Pa
         if ext in (".jpg", ".jpeg"):
             spec.attribute("Compression", f"jpeg:{quality}")
             spec.attribute("jpeg:subsampling", "4:4:4")  # no chroma subsampling
+    _check_free_space(p, data.nbytes)
+    return atomic_write(p, lambda tmp: _write_oiio(tmp, spec, data))
+
+
+def _check_free_space(p: Path, raw_bytes: int) -> None:
+    """OSError(ENOSPC) naming ``p`` unless its file system has room for the uncompressed pixels
+    (an upper bound on the encoded file, plus a margin). libjpeg, as OpenImageIO builds it, ends
+    the whole process on a failed write instead of reporting it, so a full disk is found first."""
+    need = raw_bytes + raw_bytes // 10 + (64 << 10)
+    try:
+        free = shutil.disk_usage(p.parent).free
+    except OSError:
+        return
+    if free < need:
+        raise OSError(errno.ENOSPC, f"not enough disk space to write {str(p)!r}: needs up to {need >> 10} KiB, "
+                                    f"{free >> 10} KiB free; the previous {p.name} is unchanged")
+
+
+def _write_oiio(p: Path, spec, data: np.ndarray) -> None:
     out = oiio.ImageOutput.create(str(p))
     if out is None:
         raise ValueError(f"cannot create writer for {str(p)!r}: {oiio.geterror()}")
@@ -120,26 +154,40 @@ def write_image(path: str | Path, image, quality: int = 95, bits: int = 8) -> Pa
         if not out.open(str(p), spec):
             raise ValueError(f"cannot open {str(p)!r} for writing: {out.geterror()}")
         if not out.write_image(data):
-            raise ValueError(f"cannot write {str(p)!r}: {out.geterror()}")
+            raise OSError(errno.EIO, f"cannot write {str(p)!r}: {out.geterror()}")
     finally:
-        out.close()
-    return p
+        if not out.close():
+            raise OSError(errno.EIO, f"cannot finish {str(p)!r}: {out.geterror()}")
+    # OpenImageIO's PNG and JPEG writers do not report a failed fwrite (a full disk, a file
+    # size limit): read the file back, so that a truncated file is never renamed into place.
+    try:
+        back = _read(p)
+    except ValueError as e:
+        raise OSError(errno.EIO, f"the written file is incomplete (disk full?): {e}") from None
+    if back.shape != (spec.height, spec.width, spec.nchannels):
+        raise OSError(errno.EIO, f"the written file reads back as {list(back.shape)}, not "
+                                 f"{[spec.height, spec.width, spec.nchannels]} (disk full?)")
 
 
 def read_depth(path: str | Path) -> np.ndarray:
     """Read a float32 ``[H, W]`` depth map from a single-channel EXR written by :func:`write_depth`."""
-    p = Path(path)
+    p = _path(path)
     if p.suffix.lower() != ".exr":
         raise ValueError(f"depth path {str(p)!r} must end in .exr")
     px = _read(p)
     if px.shape[2] != 1:
         raise ValueError(f"depth file {str(p)!r} must have 1 channel, has {px.shape[2]}")
-    return px[..., 0]
+    d = px[..., 0]
+    bad = np.isnan(d) | (d < 0)
+    if bad.any():
+        raise ValueError(f"depth file {str(p)!r}: {int(bad.sum())} NaN or negative depth(s); depth must be >= 0 "
+                         "or inf")
+    return d
 
 
 def write_depth(path: str | Path, depth) -> Path:
     """Write a float32 ``[H, W]`` z-depth map (metres; ``inf`` allowed, NaN and negatives are not) as EXR."""
-    p = Path(path)
+    p = _path(path)
     if p.suffix.lower() != ".exr":
         raise ValueError(f"depth path {str(p)!r} must end in .exr (float depth needs EXR)")
     d = np.asarray(depth, dtype=np.float32)

@@ -25,6 +25,9 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from ..memory import check_host_memory
+from .atomic import atomic_write
+
 __all__ = ["write_ply", "read_ply", "GaussianPly", "SH_C0", "rgb_to_sh", "sh_to_rgb"]
 
 #: zeroth-order real spherical-harmonic constant: colour = 0.5 + SH_C0 * f_dc.
@@ -117,15 +120,50 @@ def write_ply(path: str | Path, means, quats, scales, opacities, sh) -> Path:
     header = ["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
     header += [f"property float {nm}" for nm in names]
     header += ["end_header"]
-    with open(p, "wb") as fh:
-        fh.write(("\n".join(header) + "\n").encode("ascii"))
-        fh.write(np.ascontiguousarray(data).tobytes())
-    return p
+
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as fh:
+            fh.write(("\n".join(header) + "\n").encode("ascii"))
+            fh.write(np.ascontiguousarray(data).tobytes())
+
+    return atomic_write(p, write)
 
 
 _FLOAT_TYPES = {"float", "float32"}
 _TYPE_SIZES = {"char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 2, "ushort": 2, "uint16": 2,
                "int": 4, "int32": 4, "uint": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+
+
+#: the header may be at most this long (real headers are a few hundred bytes)
+_MAX_HEADER_BYTES = 1 << 20
+#: exp(88.7) is float32's largest finite value
+_MAX_LOG_SCALE = 88.0
+
+
+def _read_header(p: Path) -> tuple[list[str], int]:
+    """The header lines after ``ply`` up to (without) the ``end_header`` line, and the header's
+    size in bytes. ``end_header`` counts only as a line of its own, not inside a comment."""
+    lines: list[str] = []
+    size = 0
+    with open(p, "rb") as fh:
+        first = fh.readline(64)
+        size += len(first)
+        if first.rstrip(b"\r\n") != b"ply":
+            raise ValueError(f"{str(p)!r} is not a PLY file (missing 'ply' magic)")
+        while True:
+            ln = fh.readline(_MAX_HEADER_BYTES)
+            size += len(ln)
+            if not ln.endswith(b"\n"):
+                raise ValueError(f"{str(p)!r}: PLY header has no 'end_header' line (truncated or corrupt)")
+            if size > _MAX_HEADER_BYTES:
+                raise ValueError(f"{str(p)!r}: PLY header longer than {_MAX_HEADER_BYTES} bytes")
+            try:
+                text = ln.decode("ascii").rstrip("\r\n")
+            except UnicodeDecodeError:
+                raise ValueError(f"{str(p)!r}: PLY header is not ASCII") from None
+            if text.strip() == "end_header":
+                return lines, size
+            lines.append(text)
 
 
 def read_ply(path: str | Path) -> GaussianPly:
@@ -136,32 +174,22 @@ def read_ply(path: str | Path) -> GaussianPly:
         ValueError: not a PLY, ASCII format, missing/non-float properties, f_rest count not
             ``3 * (K - 1)`` with K a perfect square, or truncated data.
     """
+    if not isinstance(path, (str, Path)):
+        raise ValueError(f"path: expected a file path, got {type(path).__name__}")
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"ply file not found: {str(p)!r}")
-    raw = p.read_bytes()
-    if not raw.startswith(b"ply"):
-        raise ValueError(f"{str(p)!r} is not a PLY file (missing 'ply' magic)")
-    end = raw.find(b"end_header")
-    if end < 0:
-        raise ValueError(f"{str(p)!r}: PLY header has no 'end_header' (truncated or corrupt)")
-    nl = raw.find(b"\n", end)
-    if nl < 0:
-        raise ValueError(f"{str(p)!r}: PLY header is truncated after 'end_header'")
-    try:
-        lines = raw[:end].decode("ascii").replace("\r", "").split("\n")
-    except UnicodeDecodeError:
-        raise ValueError(f"{str(p)!r}: PLY header is not ASCII") from None
+    lines, header_bytes = _read_header(p)
     fmt = None
     elements: list[list] = []  # [name, count, [(type, name)]]
-    for ln in lines[1:]:
+    for ln in lines:
         tok = ln.split()
         if not tok or tok[0] in ("comment", "obj_info"):
             continue
         if tok[0] == "format":
             fmt = tok[1] if len(tok) > 1 else None
         elif tok[0] == "element":
-            if len(tok) != 3 or not tok[2].isdigit():
+            if len(tok) != 3 or not tok[2].isdigit() or len(tok[2]) > 15:
                 raise ValueError(f"{str(p)!r}: bad PLY element line {ln!r}")
             elements.append([tok[1], int(tok[2]), []])
         elif tok[0] == "property":
@@ -199,12 +227,19 @@ def read_ply(path: str | Path) -> GaussianPly:
         raise ValueError(f"{str(p)!r}: missing vertex properties {missing}")
     stride = 4 * len(names)
     need = n * stride
-    body = raw[nl + 1:]
-    if len(body) < need:
-        raise ValueError(f"{str(p)!r}: truncated PLY, header declares {n} vertices ({need} bytes), file has {len(body)} bytes")
+    body = p.stat().st_size - header_bytes
+    if body < need:
+        raise ValueError(f"{str(p)!r}: truncated PLY, header declares {n} vertices ({need} bytes), file has {body} bytes")
+    check_host_memory(3 * need, f"{str(p)!r}: {n} vertices of {len(names)} properties")
     dt = np.dtype("<f4" if fmt == "binary_little_endian" else ">f4")
-    arr = np.frombuffer(body[:need], dtype=dt).reshape(n, len(names)).astype(np.float32)
+    arr = np.fromfile(p, dtype=dt, count=n * len(names), offset=header_bytes).reshape(n, len(names)).astype(np.float32)
     col = {nm: i for i, nm in enumerate(names)}
+    used = [col[nm] for nm in required + rest]  # other properties (normals, extras) are ignored
+    finite = np.isfinite(arr[:, used])
+    if not finite.all():
+        rows, cols = np.nonzero(~finite)
+        raise ValueError(f"{str(p)!r}: {rows.size} NaN or Inf value(s), first in vertex {rows[0]} "
+                         f"property {names[used[cols[0]]]!r}")
 
     def get(*nms: str) -> np.ndarray:
         return arr[:, [col[x] for x in nms]]
@@ -217,7 +252,11 @@ def read_ply(path: str | Path) -> GaussianPly:
         sh[:, 1:, :] = get(*rest).reshape(n, 3, k - 1).transpose(0, 2, 1)
     logit = get("opacity")[:, 0].astype(np.float64)
     opac = (1.0 / (1.0 + np.exp(-logit))).astype(np.float32)
-    scales = np.exp(get("scale_0", "scale_1", "scale_2").astype(np.float64)).astype(np.float32)
+    log_s = get("scale_0", "scale_1", "scale_2")
+    if log_s.size and float(log_s.max()) > _MAX_LOG_SCALE:
+        raise ValueError(f"{str(p)!r}: scale_* (natural log) up to {float(log_s.max()):g}, whose exp overflows "
+                         f"float32 (limit {_MAX_LOG_SCALE})")
+    scales = np.exp(log_s.astype(np.float64)).astype(np.float32)
     quats = get("rot_0", "rot_1", "rot_2", "rot_3")
     t = torch.from_numpy
     return GaussianPly(t(np.ascontiguousarray(means)), t(np.ascontiguousarray(quats)), t(scales), t(opac),

@@ -1,0 +1,67 @@
+"""Writing output files so that a failed write never leaves a corrupt or half-replaced file.
+
+Every writer in :mod:`clsplat.io` (images, depth maps, ``.ply``, contact sheets) and the
+``clsplat fit`` outputs go through :func:`write_atomically`: each file is written to a
+temporary name in its own folder (same extension, so format detection still works), and only
+when every file of the group is complete are they renamed into place (``os.replace``, atomic
+on POSIX within one file system). If a write fails -- a full disk, a file-size limit, an
+interrupt -- the temporary files are removed, the earlier files keep their content, and an
+``OSError`` names the file that failed.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Callable, Iterable
+
+__all__ = ["write_atomically", "atomic_write", "write_text_atomic", "temp_path"]
+
+
+def temp_path(path: Path) -> Path:
+    """The temporary name ``path`` is written to first: hidden, same folder, same extension."""
+    return path.with_name(f".{path.stem}.tmp{os.getpid()}{path.suffix}")
+
+
+def write_atomically(items: Iterable[tuple[str | Path, Callable[[Path], object]]]) -> list[Path]:
+    """Call each ``write_fn(tmp)`` on a temporary path, then rename all of them into place.
+
+    Args:
+        items: ``(path, write_fn)`` pairs; ``write_fn`` writes the whole file to the path it gets.
+    Returns:
+        the final paths. On failure nothing is renamed, and the error names the failing file.
+    """
+    pairs = [(Path(p), fn) for p, fn in items]
+    for p, _ in pairs:
+        if not p.parent.is_dir():
+            raise FileNotFoundError(f"output folder does not exist: {str(p.parent)!r}")
+    done: list[tuple[Path, Path]] = []
+    try:
+        for p, fn in pairs:
+            tmp = temp_path(p)
+            done.append((tmp, p))
+            try:
+                fn(tmp)
+            except (OSError, ValueError) as e:  # ValueError: a library's "cannot write" report
+                kept = " and the group's other files are" if len(pairs) > 1 else " is"
+                msg = (f"writing {str(p)!r} failed ({getattr(e, 'strerror', None) or e}); "
+                       f"the previous {p.name}{kept} unchanged")
+                raise (OSError(e.errno, msg) if isinstance(e, OSError) else ValueError(msg)) from e
+            if not tmp.is_file():
+                raise OSError(f"writing {str(p)!r} failed: the writer produced no file")
+        for tmp, p in done:
+            os.replace(tmp, p)
+    except BaseException:
+        for tmp, _ in done:
+            tmp.unlink(missing_ok=True)
+        raise
+    return [p for p, _ in pairs]
+
+
+def atomic_write(path: str | Path, write_fn: Callable[[Path], object]) -> Path:
+    """:func:`write_atomically` for one file."""
+    return write_atomically([(path, write_fn)])[0]
+
+
+def write_text_atomic(path: str | Path, text: str) -> Path:
+    """``Path.write_text`` through :func:`atomic_write` (JSON tables, metrics)."""
+    return atomic_write(path, lambda tmp: tmp.write_text(text))

@@ -1,0 +1,153 @@
+"""Device limits respected, not assumed: local memory, kernel work-group sizes, wide features,
+int32 index ranges, and faulty scan results (DESIGN.md section 4).
+
+Wide features are composited in chunks of channels (gsplat's channel_chunk), so D = 4096
+renders and differentiates like D = 3; every compositing kernel fits 48 KiB of local memory.
+"""
+from __future__ import annotations
+
+import pyopencl as cl
+import pytest
+import torch
+
+import clsplat
+from clsplat import reference as ref
+from clsplat import stages
+from clsplat.config import RenderConfig
+from clsplat.runtime import LOCAL_MEM_BUDGET, Runtime
+
+F64 = torch.float64
+
+
+def _scene(D: int, dtype=F64, N: int = 6, W: int = 20, H: int = 16, seed: int = 0) -> dict:
+    g = torch.Generator().manual_seed(seed)
+    means = torch.cat([(torch.rand(N, 2, generator=g, dtype=F64) - 0.5), 2 + torch.rand(N, 1, generator=g, dtype=F64)], 1)
+    return dict(means=means.to(dtype), quats=(torch.randn(N, 4, generator=g, dtype=F64) + 0.1).to(dtype),
+                scales=(0.1 + 0.2 * torch.rand(N, 3, generator=g, dtype=F64)).to(dtype),
+                opacities=(0.3 + 0.6 * torch.rand(N, generator=g, dtype=F64)).to(dtype),
+                colors=torch.rand(N, D, generator=g, dtype=F64).to(dtype),
+                viewmats=torch.eye(4, dtype=dtype)[None],
+                Ks=torch.tensor([[[20.0, 0, W / 2], [0, 20, H / 2], [0, 0, 1]]], dtype=dtype),
+                width=W, height=H)
+
+
+def _grads(fn, scene: dict, **kw):
+    xs = {k: scene[k].clone().requires_grad_() for k in ("means", "quats", "scales", "opacities", "colors")}
+    img, alpha, _ = fn(**{**scene, **xs}, **kw)
+    C, H, W, D = img.shape  # channel c gets the same weights whatever D is
+    ramp = torch.linspace(-1, 1, C * H * W, dtype=img.dtype).reshape(C, H, W, 1)
+    w = ramp * (1 + 0.1 * torch.arange(D, dtype=img.dtype))
+    ((img * w).sum() + alpha.sum()).backward()
+    return img.detach(), {k: x.grad for k, x in xs.items()}
+
+
+@pytest.mark.parametrize("D,dtype,absgrad", [(4096, F64, False), (40, torch.float32, True),
+                                             (17, F64, True)])
+def test_wide_features_match_reference(D, dtype, absgrad):
+    """Past the old local-memory overflow (float64 from ~17 channels with absgrad, float32
+    from ~40) and up to D = 4096, which segfaulted: images and gradients match the float64
+    reference."""
+    scene = _scene(D, dtype)
+    img, g = _grads(clsplat.rasterization, scene, absgrad=absgrad)
+    want_img, want_g = _grads(ref.rasterization, _scene(D))
+    tol = 1e-9 if dtype == F64 else 2e-4
+    assert float((img.double() - want_img).abs().max()) <= tol
+    for k in g:
+        scale = float(want_g[k].abs().max()) or 1.0
+        assert float((g[k].double() - want_g[k]).abs().max()) <= tol * max(scale, 1.0), k
+
+
+def test_channel_chunks_are_bitwise_independent_of_width():
+    """The first channels of a 70-channel render are bitwise those of a 3-channel render:
+    chunks make the same decisions as one launch."""
+    wide = _scene(70)
+    narrow = dict(wide, colors=wide["colors"][:, :3].contiguous())
+    a, ga = _grads(clsplat.rasterization, wide)
+    b, gb = _grads(clsplat.rasterization, narrow)
+    assert torch.equal(a[..., :3], b)
+    assert torch.equal(ga["colors"][:, :3], gb["colors"])
+
+
+@pytest.mark.parametrize("precision", ["float32", "float64"])
+@pytest.mark.parametrize("CH", [3, 40, 4096])
+def test_compositing_kernels_fit_48k_local_memory(rt, precision, CH):
+    cfg = RenderConfig(precision=precision)
+    for tile in (8, 16, 32):
+        pix, batch, chunk, _ = stages.composite_layout(rt, cfg, tile, CH)
+        k = rt.kernel("composite", "composite_fwd", cfg.defines(tile) | {
+            "PIX": pix, "BATCH": batch, "CHANNELS": CH, "CCHUNK": chunk, "SAVE_LAST": True})
+        local = k.get_work_group_info(cl.kernel_work_group_info.LOCAL_MEM_SIZE, rt.device)
+        assert local <= LOCAL_MEM_BUDGET, (tile, local)
+        for absgrad in (False, True):
+            geom = 8 if absgrad else 6
+            pix, batch, chunk, waves = stages.composite_layout(
+                rt, cfg, tile, CH, geom_grads=geom, color_grad=True, backward=True)
+            k = rt.kernel("composite_bwd", "composite_bwd", cfg.defines(tile) | {
+                "PIX": pix, "BATCH": batch, "CHANNELS": CH, "CCHUNK": chunk, "GEOM_GRAD": True,
+                "COLOR_GRAD": True, "ABSGRAD": absgrad, "BWD_DIVIDE": False,
+                "SLOT_G": geom + CH, "SLOT_COLOR0": geom, "WAVES": waves})
+            local = k.get_work_group_info(cl.kernel_work_group_info.LOCAL_MEM_SIZE, rt.device)
+            assert local <= LOCAL_MEM_BUDGET, (tile, absgrad, local)
+
+
+def test_gpu_sized_groups_fit_by_waves():
+    """A 32x32 tile at one pixel per item (1024 items, a GPU's maximum) does not fit its
+    backward partials in 48 KiB; the layout hands them over in waves instead of overflowing."""
+    class FakeGPU:
+        is_cpu, max_group, local_mem = False, 1024, LOCAL_MEM_BUDGET
+    pix, batch, chunk, waves = stages.composite_layout(FakeGPU(), RenderConfig(precision="float64"),
+                                                       32, 3, geom_grads=8, color_grad=True,
+                                                       backward=True)
+    assert pix == 1 and waves > 1 and batch >= 1
+
+
+def test_kernel_work_group_limit_is_respected(monkeypatch, rt):
+    """A kernel may allow less than the device maximum (CL_KERNEL_WORK_GROUP_SIZE):
+    1D launches shrink to it; compositing, whose group is fixed by the tile, says so."""
+    scene = _scene(3, torch.float32)
+    base = clsplat.rasterization(**scene)[0]
+    monkeypatch.setattr(Runtime, "kernel_group_limit", lambda self, k: 32)
+    monkeypatch.setattr(rt, "_group_limits", {})
+    with pytest.raises(ValueError, match="tile_size") as e:
+        clsplat.rasterization(**scene, tile_size=32)
+    assert "CL_KERNEL_WORK_GROUP_SIZE" in str(e.value)
+    # tile 16 with 8 pixels per item: 32 items, within the limit; 1D stages run with 32
+    assert torch.equal(clsplat.rasterization(**scene)[0], base)
+
+
+def test_int32_pair_range_refused_before_allocation():
+    C, N = 2**14, 2**15 + 1  # C*N*4 > 2^31 - 1 with ~2 MB of input
+    vm = torch.eye(4).expand(C, 4, 4).contiguous()
+    K = torch.tensor([[20.0, 0, 8], [0, 20, 8], [0, 0, 1]]).expand(C, 3, 3).contiguous()
+    with pytest.raises(ValueError, match=r"^means, viewmats: .*int32"):
+        clsplat.rasterization(torch.zeros(N, 3), torch.tensor([[1.0, 0, 0, 0]]).expand(N, 4),
+                              torch.full((N, 3), 0.1), torch.full((N,), 0.5), torch.zeros(N, 3),
+                              vm, K, 16, 16)
+
+
+def test_too_many_intersections_refused(monkeypatch, rt):
+    """30,000 huge Gaussians over 2000x2000 (4.7e8 intersections, 7.5 GB of keys): refused
+    from the tile rectangles before the keys are allocated, when memory does not hold them."""
+    monkeypatch.setattr("clsplat.runtime.available_host_memory", lambda: 2 << 30)
+    N = 30000
+    scene = dict(means=torch.zeros(N, 3) + torch.tensor([0, 0, 5.0]), quats=torch.tensor([[1.0, 0, 0, 0]]).expand(N, 4),
+                 scales=torch.full((N, 3), 50.0), opacities=torch.full((N,), 0.5),
+                 colors=torch.rand(N, 3), viewmats=torch.eye(4)[None],
+                 Ks=torch.tensor([[[1000.0, 0, 1000], [0, 1000, 1000], [0, 0, 1]]]),
+                 width=2000, height=2000)
+    with pytest.raises(ValueError, match=r"^means, scales: 468750000 \(camera, Gaussian, tile\) "
+                       r"intersections .* needs 7152 MiB, over the 2048 MiB"):
+        clsplat.rasterization(**scene)
+
+
+def test_garbage_scan_offsets_raise_instead_of_crashing(monkeypatch, rt):
+    """A faulty scan (an implementation that miscompiles pyopencl's scan, as Oclgrind's
+    uninitialised checker makes it) must not send out-of-range offsets into the kernels."""
+    def bad_scan(self):
+        def scan(a, b, queue=None):
+            garbage = torch.randint(-2**30, 2**30, (b.shape[0],), dtype=torch.int32).numpy()
+            return cl.enqueue_copy(queue, b.data, garbage)
+        return scan
+    monkeypatch.setattr(Runtime, "exclusive_scan_int32", bad_scan)
+    with pytest.raises(RuntimeError, match="^bin: the device's prefix scan returned inconsistent"):
+        clsplat.rasterization(**_scene(3, torch.float32))
