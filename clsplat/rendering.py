@@ -86,10 +86,13 @@ def _check_batch(batch: tuple, **tensors) -> None:
     """Each tensor's leading dimensions must be the batch dimensions of ``means``."""
     nb = len(batch)
     for name, x in tensors.items():
-        if x is None:
+        if x is None and name == "backgrounds":
             continue
         if not isinstance(x, torch.Tensor):
             raise ValueError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
+        if x.layout != torch.strided:
+            raise ValueError(f"{name}: expected a dense (strided) tensor, got layout {x.layout}; "
+                             "call .to_dense() first")
         if tuple(x.shape[:nb]) != batch or x.dim() <= nb:
             raise ValueError(f"{name}: expected the batch dimensions {list(batch)} of means "
                              f"[..., N, 3] in front, got shape {list(x.shape)}")
@@ -192,7 +195,7 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
     B, N = math.prod(batch), means.shape[-2]
     t = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
              viewmats=viewmats, Ks=Ks, backgrounds=backgrounds)
-    _check_batch(batch, **{k: v for k, v in t.items() if k != "means"})
+    _check_batch(batch, **t)
     if sparse_grad and not packed:
         raise ValueError("sparse_grad: needs packed=True (as in gsplat)")
     if sparse_grad and batch:
