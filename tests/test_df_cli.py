@@ -1,5 +1,7 @@
 """``clsplat train|eval drivingforward`` (models/drivingforward/cli.py): run files, bitwise resume,
-evaluation metrics and contact sheets, and refusing a checkpoint of another preset."""
+two-process data parallel == one process, evaluation metrics and contact sheets (synthetic, and a
+PandaSet-format folder scored against projected LiDAR), LPIPS off without weights, and refusing a
+checkpoint of another preset."""
 import json
 
 import pytest
@@ -121,13 +123,14 @@ def test_eval_on_a_pandaset_sequence_scores_depth_against_projected_lidar(runs, 
     projection agrees with the generator's depth maps."""
     from clsplat.data import write_pandaset
     from clsplat.models.common.data import parse_data, to_torch_frame
+    from clsplat.models.common.presets import get_preset
     from clsplat.models.drivingforward.data import load_triplet
 
     cams = ["CAM_FRONT", "CAM_FRONT_LEFT"]
     seq = parse_data("synthetic").sequence(0, num_frames=15, height=32, width=56, lidar=True, dt=0.1, cameras=cams)
     write_pandaset(seq, tmp_path / "001")
     src = parse_data(f"pandaset:{tmp_path / '001'}")
-    s = load_triplet(src, 0, load_model(str(runs / "straight" / "checkpoint.pt"))[1], "test")
+    s = load_triplet(src, 0, get_preset("drivingforward", "tiny"), "test")
     assert "depths" not in s and s["lidar_depth"].shape == (2, 32, 56)
     ld, gt = s["lidar_depth"], to_torch_frame(seq, 13)["depths"]          # test window 0 = frames 12..14
     ok = torch.isfinite(ld) & torch.isfinite(gt)

@@ -7,8 +7,9 @@
 
 ``--no-decompose`` is plain 3DGS from LiDAR (one static set, no objects, no phase 1).
 
-Writes ``DIR/metrics.json`` (test/train PSNR and SSIM per camera and overall, LPIPS when weights
-are given, lateral-shift errors, Gaussian counts per class, seconds per stage), ``DIR/scene.ply``,
+Writes ``DIR/metrics.json`` (test/train PSNR and SSIM per camera and overall, PSNR over object
+pixels, LPIPS when weights are given, lateral-shift errors over the held-out frames, Gaussian
+counts per class, seconds per stage), ``DIR/scene.ply``,
 ``DIR/checkpoint.pt``, ``DIR/log.jsonl``, ``DIR/loss.png``, ``DIR/contact_sheet.png`` and
 ``DIR/lateral_shift_{1,2,3}m.png``.
 """

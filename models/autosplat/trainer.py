@@ -461,7 +461,8 @@ class Trainer:
 
     @torch.no_grad()
     def evaluate(self, lpips=None) -> dict:
-        """Held-out and training PSNR / SSIM per camera and overall, lateral-shift renders and sheets."""
+        """Held-out and training PSNR / SSIM per camera and overall, PSNR over the tracked objects'
+        pixels (``*_psnr_objects``), lateral-shift errors and sheets, Gaussian counts per class."""
         from clsplat.io.contact_sheet import make_contact_sheet
 
         d = self.data
