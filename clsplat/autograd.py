@@ -44,6 +44,7 @@ class Settings:
     bwd_divide: bool = False
     events: list | None = None
     isect: tuple | None = None  # (tile offsets, sorted keys) of the forward, for ``meta``
+    absgrad_sink: object = None  # callable(absgrad [C,N,2]); default: set means2d.absgrad
 
 
 def _finite_grad(name: str, g: torch.Tensor | None) -> None:
@@ -97,10 +98,20 @@ class ProjectFn(torch.autograd.Function):
         return (*res, None, None)
 
 
+def _centre_viewmats(viewmats: torch.Tensor) -> torch.Tensor:
+    """[C,4,4] -> [C,4,4] translations whose centre -R^T t (what the SH kernels read) is
+    gsplat's camera centre torch.inverse(viewmats)[:, :3, 3]."""
+    vm = torch.eye(4, dtype=viewmats.dtype).repeat(viewmats.shape[0], 1, 1)
+    vm[:, :3, 3] = -torch.inverse(viewmats)[:, :3, 3]
+    return vm.contiguous()
+
+
 class ShFn(torch.autograd.Function):
     @staticmethod
     def forward(ctx, coeffs, means, viewmats, radii, s: Settings):
         rt, arr = s.rt, s.rt.array
+        ctx.orig_viewmats = viewmats.detach()
+        viewmats = _centre_viewmats(ctx.orig_viewmats)
         colors = stages.sh_colors(rt, s.cfg, arr(means), arr(viewmats), arr(coeffs), arr(radii),
                                   s.sh_degree, events=s.events).host()
         ctx.save_for_backward(coeffs, means, viewmats, radii)
@@ -120,10 +131,11 @@ class ShFn(torch.autograd.Function):
             arr(radii), arr(v_colors.contiguous()), s.sh_degree, need_means, need_view,
             events=s.events)
         v_view = None
-        if need_view:  # direction = mean - centre, centre = -R^T t: a [C]-sized torch backward
+        if need_view:  # direction = mean - centre, centre = inverse(viewmats)[:3, 3] as in
+            # gsplat (so every entry of the matrix gets its gradient): a [C]-sized torch backward
             with torch.enable_grad():
-                vm = viewmats.detach().requires_grad_()
-                centre = -(vm[:, :3, :3].transpose(-1, -2) @ vm[:, :3, 3:])[..., 0]
+                vm = ctx.orig_viewmats.clone().requires_grad_()
+                centre = torch.inverse(vm)[:, :3, 3]
                 v_view, = torch.autograd.grad(centre, vm, -v_dirs.host().sum(1))
         return (v_coeffs.host() if need_coeffs else None,
                 v_means.host() if need_means else None, v_view, None, None)
@@ -145,13 +157,13 @@ class RasterizeFn(torch.autograd.Function):
                                         s.tile_size, save_last=want_grad, events=s.events)
         out_t, T_t = out.host(), T.host()
         ctx.s = s
-        ctx.fwd = dict(a, offsets=offsets, keys=keys, out=out, T=T, last=last) if want_grad else None
+        # The outputs are saved tensors, never held in ctx.fwd: out.tensor is out_t, and
+        # output -> grad_fn -> ctx -> array -> output would be a cycle the GC cannot free.
+        ctx.fwd = dict(a, offsets=offsets, keys=keys, last=last) if want_grad else None
+        if want_grad:
+            ctx.save_for_backward(out_t, T_t)
         ctx.means2d = means2d  # receives .absgrad, as gsplat's densification expects
-        s.isect = (offsets.host(), keys.host())  # read back: meta returns them
-        if want_grad:  # ctx.fwd holds out_t and T_t; returned as they are, they would hold this
-            # node (grad_fn -> ctx -> tensor -> grad_fn), a cycle through C++ that Python's
-            # garbage collector cannot see, and every render's buffers would leak.
-            return out_t.clone(), T_t.clone()
+        s.isect = (offsets.host(), keys.host())  # read back: not shared memory on GPUs
         return out_t, T_t
 
     @staticmethod
@@ -165,6 +177,8 @@ class RasterizeFn(torch.autograd.Function):
         if fwd is None or not (geom or color):
             return (None,) * 8
         rt, cfg = s.rt, s.cfg
+        out_t, T_t = ctx.saved_tensors
+        fwd = dict(fwd, out=rt.array(out_t), T=rt.array(T_t))
         v_out = _grad_or_zeros(v_out, fwd["out"].tensor)
         v_T = _grad_or_zeros(v_T, fwd["T"].tensor)
         absgrad = s.absgrad and geom
@@ -177,7 +191,10 @@ class RasterizeFn(torch.autograd.Function):
                                 absgrad=absgrad, events=s.events)
         g = {k: v.host() for k, v in r.items()}
         if absgrad:
-            ctx.means2d.absgrad = g["absgrad"]
+            if s.absgrad_sink is not None:
+                s.absgrad_sink(g["absgrad"])
+            else:
+                ctx.means2d.absgrad = g["absgrad"]
         return (g["v_means2d"] if need[0] else None, g["v_conics"] if need[1] else None,
                 g["v_opacities"] if need[2] else None, g["v_feats"] if color else None,
                 None, None, None, None)

@@ -20,9 +20,11 @@ class RenderConfig:
 
     precision:    "float32", "float64" (needs cl_khr_fp64), or None: the dtype of the means.
     alpha_min:    samples with alpha below it are skipped.
+    alpha_max:    alpha is clamped to it, with no gradient through the clamp: 0.999 as in
+                  gsplat; 0.99 is the original 3DGS value.
     t_min:        a pixel stops before the sample that would take its transmittance to <= t_min.
-    radius_rule:  "3.33sigma" (default), "opacity" (sigma extent where alpha reaches
-                  alpha_min) or "4sigma".
+    radius_rule:  "opacity" (gsplat's default: per axis min(3.33, sqrt(2 ln(o / alpha_min)))
+                  sigmas, culling o < alpha_min), "3.33sigma" (fixed) or "4sigma".
     fast_math:    build with -cl-fast-relaxed-math.
     pix:          pixels per work-item in compositing (None: one 256-bit vector on CPUs,
                   i.e. 8 floats or 4 doubles; 1 on GPUs).
@@ -33,8 +35,9 @@ class RenderConfig:
 
     precision: str | None = None
     alpha_min: float = K.ALPHA_MIN
+    alpha_max: float = K.ALPHA_MAX
     t_min: float = K.T_MIN
-    radius_rule: str = "3.33sigma"
+    radius_rule: str = "opacity"
     fast_math: bool = False
     pix: int | None = None
     sort_local: int | None = None
@@ -53,8 +56,10 @@ class RenderConfig:
             raise ValueError(f"fast_math: expected True or False, got {self.fast_math!r}")
         if self.precision not in (None, "float32", "float64"):
             raise ValueError(f"precision: expected 'float32' or 'float64', got {self.precision!r}")
-        if not 0.0 <= self.alpha_min < K.ALPHA_MAX:
-            raise ValueError(f"alpha_min: must lie in [0, {K.ALPHA_MAX}), got {self.alpha_min}")
+        if not 0.0 < self.alpha_max < 1.0:
+            raise ValueError(f"alpha_max: must lie in (0, 1), got {self.alpha_max}")
+        if not 0.0 <= self.alpha_min < self.alpha_max:
+            raise ValueError(f"alpha_min: must lie in [0, alpha_max={self.alpha_max}), got {self.alpha_min}")
         if not 0.0 <= self.t_min < 1.0:
             raise ValueError(f"t_min: must lie in [0, 1), got {self.t_min}")
         if self.radius_rule not in K.RADIUS_RULES:
@@ -79,6 +84,7 @@ class RenderConfig:
             "REAL_DOUBLE": self.precision == "float64",
             "TILE": tile_size,
             "ALPHA_MIN": float(self.alpha_min),
+            "ALPHA_MAX": float(self.alpha_max),
             "T_MIN": float(self.t_min),
             "RADIUS_SIGMA": 4.0 if self.radius_rule == "4sigma" else K.RADIUS_SIGMA,
             "OPACITY_AWARE_RADIUS": self.radius_rule == "opacity",

@@ -1,9 +1,15 @@
-"""Dense float64 PyTorch reference of the engine's semantics: the accuracy baseline.
+"""Float64 PyTorch reference of gsplat's semantics: the accuracy baseline.
 
-Every stage is written vectorised over all (camera, Gaussian, pixel) triples, with no tiling
-shortcuts beyond the tile-membership rule the engine itself applies. It is differentiable
-with torch.autograd, so its gradients are the baseline for the backward kernels too.
-Memory grows as C * H * W * N: use it on small scenes only.
+It follows gsplat (not clsplat's kernels) wherever the two could differ: covariance from
+s^2 (scales of either sign), alpha clamped at ``cfg.alpha_max`` (0.999), the opacity-aware
+radius min(3.33, sqrt(2 ln(o / alpha_min))) sigma, the antialiasing compensation with
+gsplat's backward floor, the camera centre taken from ``torch.inverse(viewmats)``, SH up to
+degree 4, batch dimensions and per-view colours or SH.
+
+Every stage is vectorised over (camera, Gaussian) pairs; compositing takes the Gaussians in
+depth-ordered chunks that stop once every pixel is done, and goes tile by tile on large
+images, so memory stays bounded. It is differentiable with torch.autograd, so its
+gradients are the baseline for the backward kernels too.
 """
 from __future__ import annotations
 
@@ -16,7 +22,7 @@ from . import constants as K
 from .config import RenderConfig
 from .validate import check_rasterization_inputs
 
-__all__ = ["project", "sh_colors", "composite", "rasterization", "SH_C"]
+__all__ = ["project", "sh_colors", "composite", "rasterization", "_rasterization", "SH_C"]
 
 F64 = torch.float64
 
@@ -28,6 +34,29 @@ def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
         1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
         2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
         2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1).reshape(*q.shape[:-1], 3, 3)
+
+
+class _Compensation(torch.autograd.Function):
+    """sqrt(max(0, det(S) / det(S + eps2d I))) of a 2D covariance S = [[a, b], [b, d]], with
+    gsplat's backward: d comp = d(comp^2) * 0.5 / (comp + 1e-6)."""
+
+    @staticmethod
+    def forward(ctx, a, b, d, eps2d):
+        det = (a + eps2d) * (d + eps2d) - b * b
+        det_safe = torch.where(det > 0, det, torch.ones_like(det))
+        comp = ((a * d - b * b) / det_safe).clamp_min(0).sqrt()
+        ctx.save_for_backward(a, b, d, det_safe, comp)
+        ctx.eps2d = eps2d
+        return comp
+
+    @staticmethod
+    def backward(ctx, g):
+        a, b, d, det, comp = ctx.saved_tensors
+        eps = ctx.eps2d
+        v = g * 0.5 / (comp + 1e-6)
+        one_m = 1 - comp * comp
+        return (v * (one_m * (d + eps) / det - eps / det), v * 2 * one_m * (-b / det),
+                v * (one_m * (a + eps) / det - eps / det), None)
 
 
 def project(means, quats, scales, opacities, viewmats, Ks, width: int, height: int,
@@ -57,16 +86,15 @@ def project(means, quats, scales, opacities, viewmats, Ks, width: int, height: i
     T = J @ V
     cov = T @ T.transpose(-1, -2)
     a, b, d = cov[..., 0, 0], cov[..., 0, 1], cov[..., 1, 1]
-    det_orig = a * d - b * b
     a, d = a + eps2d, d + eps2d
     det = a * d - b * b
     det_safe = torch.where(det > 0, det, torch.ones_like(det))
     conics = torch.stack([d / det_safe, -b / det_safe, a / det_safe], -1)
     op = opacities[None].expand_as(z)
     if antialiased:
-        op = op * (det_orig / det_safe).clamp_min(0).sqrt()
+        op = op * _Compensation.apply(cov[..., 0, 0], b, cov[..., 1, 1], eps2d)
     if cfg.radius_rule == "opacity":
-        extent = torch.sqrt(2 * torch.log((op / cfg.alpha_min).clamp_min(1.0)))
+        extent = torch.sqrt(2 * torch.log((op / cfg.alpha_min).clamp_min(1.0))).clamp_max(K.RADIUS_SIGMA)
         ok_op = op >= cfg.alpha_min
     else:
         extent = torch.full_like(op, 4.0 if cfg.radius_rule == "4sigma" else K.RADIUS_SIGMA)
@@ -98,6 +126,9 @@ def project(means, quats, scales, opacities, viewmats, Ks, width: int, height: i
 SH_C = (0.2820947917738781, 0.48860251190292, 1.092548430592079, 0.3153915652525201,
         0.5462742152960395, 2.285228997322329, 0.4570457994644658, 1.445305721320277,
         1.865881662950577, 1.119528997770346, 0.5900435899266435, 0.9461746957575601)
+# degree 4: the constants of gsplat's basis, in the order they appear below
+SH_C4 = (0.6258357354491763, 1.770130769779931, 3.31161143515146, 0.47308734787878,
+         4.683325804901025, 2.007139630671868, 1.984313483298443, 1.006230589874905)
 
 
 def sh_basis(d: torch.Tensor, degree: int) -> torch.Tensor:
@@ -114,80 +145,177 @@ def sh_basis(d: torch.Tensor, degree: int) -> torch.Tensor:
         t1 = SH_C[7] * z
         c2, s2 = x * c1 - y * s1, x * s1 + y * c1
         b += [-SH_C[10] * s2, t1 * s1, t0 * y, z * (SH_C[8] * z2 - SH_C[9]), t0 * x, t1 * c1, -SH_C[10] * c2]
+    if degree >= 4:
+        k = SH_C4
+        c3, s3 = x * c2 - y * s2, x * s2 + y * c2
+        t = z * (-k[4] * z2 + k[5])
+        u = k[2] * z2 - k[3]
+        w = -k[1] * z
+        b += [k[0] * s3, w * s2, u * s1, t * y, k[6] * z * b[12] - k[7] * b[6], t * x, u * c1,
+              w * c2, k[0] * c3]
     return torch.stack(b, -1)
 
 
+def camera_centres(viewmats: torch.Tensor) -> torch.Tensor:
+    """[..., 4, 4] world-to-camera -> [..., 3] centres, through torch.inverse as gsplat does."""
+    return torch.inverse(viewmats)[..., :3, 3]
+
+
 def sh_colors(coeffs: torch.Tensor, means: torch.Tensor, viewmats: torch.Tensor, degree: int) -> torch.Tensor:
-    """coeffs [N,K,3], means [N,3], viewmats [C,4,4] -> colours [C,N,3] = max(SH + 0.5, 0)."""
-    R, t = viewmats[:, :3, :3], viewmats[:, :3, 3]
-    campos = -(R.transpose(-1, -2) @ t[..., None])[..., 0]              # [C,3]
-    d = means[None] - campos[:, None]
+    """coeffs [N,K,3] or per view [C,N,K,3], means [N,3], viewmats [C,4,4] -> colours [C,N,3]
+    = max(SH(normalise(mean - centre)) + 0.5, 0)."""
+    d = means[None] - camera_centres(viewmats)[:, None]
     d = d / d.norm(dim=-1, keepdim=True)
     basis = sh_basis(d, degree)                                          # [C,N,B]
-    return ((basis[..., None] * coeffs[None, :, : basis.shape[-1]]).sum(-2) + 0.5).clamp_min(0)
+    k = coeffs if coeffs.dim() == 4 else coeffs[None]
+    return ((basis[..., None] * k[..., : basis.shape[-1], :]).sum(-2) + 0.5).clamp_min(0)
 
 
 def composite(proj: dict, feats: torch.Tensor, width: int, height: int, tile_size: int = 16,
-              cfg: RenderConfig = RenderConfig(), margin: float = 0.0):
-    """Dense front-to-back compositing with the engine's rules.
+              cfg: RenderConfig = RenderConfig(), margin: float = 0.0, chunk: int = 256,
+              dense_limit: int = 1 << 22):
+    """Front-to-back compositing with gsplat's rules.
 
     feats [C,N,CH] -> (out [C,H,W,CH], T [C,H,W], ambiguous [C,H,W] bool). A pixel is
     ambiguous when one of its decisions (alpha >= alpha_min, next T <= t_min) lies within a
     relative ``margin`` of its threshold, where a float32 pass may legitimately decide
-    otherwise.
+    otherwise. A sample reaches a pixel only if its tile rectangle holds the pixel's tile.
+    Gaussians are taken in (float32 depth, id) order, 32 at first and doubling to ``chunk``
+    at a time (early stop after few samples stays cheap); a camera whose
+    pixels x visible Gaussians exceed ``dense_limit`` is done tile by tile.
     """
-    C, N = proj["depths"].shape
-    ys, xs = torch.meshgrid(torch.arange(height, dtype=F64), torch.arange(width, dtype=F64), indexing="ij")
-    px, py = (xs + K.PIXEL_CENTRE).reshape(-1), (ys + K.PIXEL_CENTRE).reshape(-1)
-    tx, ty = (xs.reshape(-1) // tile_size).long(), (ys.reshape(-1) // tile_size).long()
+    C = proj["depths"].shape[0]
+    ys, xs = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
     outs, Ts, ambs = [], [], []
     for c in range(C):
         vis = proj["visible"][c].nonzero()[:, 0]
-        if len(vis) == 0:
-            outs.append(torch.zeros(height * width, feats.shape[-1], dtype=feats.dtype))
-            Ts.append(torch.ones(height * width, dtype=feats.dtype))
-            ambs.append(torch.zeros(height * width, dtype=torch.bool))
-            continue
         depth32 = proj["depths"][c, vis].detach().to(torch.float32).numpy()
-        order = torch.from_numpy(np.lexsort((vis.numpy(), depth32)))   # (float32 depth, id)
-        g = vis[order]
+        g = vis[torch.from_numpy(np.lexsort((vis.numpy(), depth32)))]   # (float32 depth, id)
+        if height * width * max(1, len(g)) <= dense_limit:
+            o, T, a = _composite_pixels(proj, c, g, feats, xs.reshape(-1), ys.reshape(-1),
+                                        tile_size, cfg, margin, chunk)
+            outs.append(o.reshape(height, width, -1))
+            Ts.append(T.reshape(height, width))
+            ambs.append(a.reshape(height, width))
+            continue
         r = proj["rects"][c, g].long()
-        inside = ((tx[:, None] >= r[None, :, 0]) & (tx[:, None] < r[None, :, 2]) &
-                  (ty[:, None] >= r[None, :, 1]) & (ty[:, None] < r[None, :, 3]))
-        xy, co = proj["means2d"][c, g], proj["conics"][c, g]
+        rows_o, rows_T, amb = [], [], torch.zeros((height, width), dtype=torch.bool)
+        for y0 in range(0, height, tile_size):
+            row_o, row_T = [], []
+            for x0 in range(0, width, tile_size):
+                tx, ty = x0 // tile_size, y0 // tile_size
+                gt = g[(r[:, 0] <= tx) & (r[:, 2] > tx) & (r[:, 1] <= ty) & (r[:, 3] > ty)]
+                yy, xx = ys[y0:y0 + tile_size, x0:x0 + tile_size], xs[y0:y0 + tile_size, x0:x0 + tile_size]
+                o, T, a = _composite_pixels(proj, c, gt, feats, xx.reshape(-1), yy.reshape(-1),
+                                            tile_size, cfg, margin, chunk)
+                row_o.append(o.reshape(*xx.shape, -1))
+                row_T.append(T.reshape(xx.shape))
+                amb[y0:y0 + tile_size, x0:x0 + tile_size] = a.reshape(xx.shape)
+            rows_o.append(torch.cat(row_o, 1))
+            rows_T.append(torch.cat(row_T, 1))
+        outs.append(torch.cat(rows_o, 0))
+        Ts.append(torch.cat(rows_T, 0))
+        ambs.append(amb)
+    if not C:
+        return (feats.new_zeros((0, height, width, feats.shape[-1])), feats.new_ones((0, height, width)),
+                torch.zeros((0, height, width), dtype=torch.bool))
+    return torch.stack(outs), torch.stack(Ts), torch.stack(ambs)
+
+
+def _composite_pixels(proj: dict, c: int, g: torch.Tensor, feats: torch.Tensor, xs: torch.Tensor,
+                      ys: torch.Tensor, tile_size: int, cfg: RenderConfig, margin: float, chunk: int):
+    """Pixels (xs, ys) [P] of camera c over the depth-ordered Gaussians ``g`` ->
+    (out [P,CH], T [P], ambiguous [P])."""
+    px, py = xs.to(F64) + K.PIXEL_CENTRE, ys.to(F64) + K.PIXEL_CENTRE
+    tx, ty = (xs // tile_size)[:, None], (ys // tile_size)[:, None]
+    P = px.numel()
+    out = feats.new_zeros((P, feats.shape[-1]))
+    T = feats.new_ones((P,))
+    done = torch.zeros(P, dtype=torch.bool)
+    amb = torch.zeros(P, dtype=torch.bool)
+    s, size = 0, min(32, chunk)  # most pixels of dense scenes stop within a few dozen samples
+    while s < len(g):
+        gi = g[s:s + size]
+        s, size = s + size, min(2 * size, chunk)
+        r = proj["rects"][c, gi].long()
+        inside = (tx >= r[None, :, 0]) & (tx < r[None, :, 2]) & (ty >= r[None, :, 1]) & (ty < r[None, :, 3])
+        xy, co = proj["means2d"][c, gi], proj["conics"][c, gi]
         dx, dy = xy[None, :, 0] - px[:, None], xy[None, :, 1] - py[:, None]
         sigma = 0.5 * (co[None, :, 0] * dx * dx + co[None, :, 2] * dy * dy) + co[None, :, 1] * dx * dy
-        raw = proj["opacities"][c, g][None] * torch.exp(-sigma)
-        alpha = raw.clamp_max(K.ALPHA_MAX)
-        valid = inside & (sigma >= 0) & (alpha >= cfg.alpha_min)
+        # beyond sigma = 200 alpha is ~1e-87, far below alpha_min: clamping keeps exp() out of
+        # the (slow) denormal range and changes no decision
+        raw = proj["opacities"][c, gi][None] * torch.exp(-sigma.clamp_max(200.0))
+        alpha = raw.clamp_max(cfg.alpha_max)
+        live_px = inside & ~done[:, None]
+        valid = live_px & (sigma >= 0) & (alpha >= cfg.alpha_min)
         a = torch.where(valid, alpha, torch.zeros_like(alpha))
         one_minus = 1 - a
-        T_excl = torch.cumprod(torch.cat([torch.ones_like(a[:, :1]), one_minus[:, :-1]], 1), 1)
+        T_excl = T[:, None] * torch.cumprod(torch.cat([torch.ones_like(a[:, :1]), one_minus[:, :-1]], 1), 1)
         next_T = T_excl * one_minus
         stop = valid & (next_T <= cfg.t_min)
-        keep = valid & (torch.cumsum(stop.int(), 1) == 0)
-        w = torch.where(keep, a * T_excl, torch.zeros_like(a))
-        outs.append(w @ feats[c, g])
-        Ts.append(torch.where(keep, one_minus, torch.ones_like(a)).prod(1))
+        before = torch.cumsum(stop.int(), 1)
+        keep = valid & (before == 0)
+        out = out + torch.where(keep, a * T_excl, torch.zeros_like(a)) @ feats[c, gi]
+        T = T * torch.where(keep, one_minus, torch.ones_like(a)).prod(1)
         with torch.no_grad():
-            live = inside & (torch.cumsum(stop.int(), 1) - stop.int() == 0)  # reached by the pixel
+            live = live_px & (before - stop.int() == 0)  # samples the pixel reaches
             near_a = live & ((raw - cfg.alpha_min).abs() <= margin * cfg.alpha_min)
             near_t = live & valid & ((next_T - cfg.t_min).abs() <= margin * cfg.t_min)
-            ambs.append((near_a | near_t).any(1))
-    return (torch.stack(outs).reshape(C, height, width, -1), torch.stack(Ts).reshape(C, height, width),
-            torch.stack(ambs).reshape(C, height, width))
+            amb |= (near_a | near_t).any(1)
+            done = done | stop.any(1)
+        if bool(done.all()):
+            break
+    return out, T, amb
 
 
 def rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width: int, height: int,
                   near_plane: float = 0.01, far_plane: float = 1e10, radius_clip: float = 0.0,
-                  eps2d: float = K.EPS2D, sh_degree: Optional[int] = None, tile_size: int = 16,
-                  backgrounds=None, render_mode: str = "RGB", rasterize_mode: str = "classic",
-                  config: RenderConfig = RenderConfig(), margin: float = 0.0, **_ignored):
-    """Same arguments and results as :func:`clsplat.rasterization`, computed densely in float64.
+                  eps2d: float = K.EPS2D, sh_degree: Optional[int] = None, packed: bool = True,
+                  tile_size: Optional[int] = None, backgrounds=None, render_mode: str = "RGB",
+                  sparse_grad: bool = False, absgrad: bool = False,
+                  rasterize_mode: str = "classic", config: RenderConfig = RenderConfig(),
+                  margin: float = 0.0, **_ignored):
+    """Same arguments and images as :func:`clsplat.rasterization`, computed in float64.
 
-    ``meta`` additionally holds ``ambiguous`` [C,H,W]: pixels with a threshold decision within
-    relative ``margin`` of flipping (see :func:`composite`).
+    Batch dimensions: means [..., N, 3] with viewmats [..., C, 4, 4] and colours
+    [..., (C,) N, D] or [..., (C,) N, K, 3]. ``packed``, ``sparse_grad`` and ``absgrad`` do not
+    change images and are ignored. ``meta`` holds the unpacked per-pair tensors
+    ([..., C, N, ...]) and ``ambiguous`` [..., C, H, W]: pixels with a threshold decision
+    within relative ``margin`` of flipping (see :func:`composite`).
     """
+    tile_size = 16 if tile_size is None else tile_size
+    batch = tuple(means.shape[:-2])
+    B = int(np.prod(batch)) if batch else 1
+    flat = lambda x: None if x is None else x.reshape((B,) + tuple(x.shape[len(batch):]))  # noqa: E731
+    args = [flat(x) for x in (means, quats, scales, opacities, colors, viewmats, Ks)]
+    bgs = flat(backgrounds)
+    outs = [_render_one(*(x[b] for x in args), width, height, near_plane, far_plane, radius_clip,
+                        eps2d, sh_degree, tile_size, None if bgs is None else bgs[b], render_mode,
+                        rasterize_mode, config, margin) for b in range(B)]
+    # Without batch dimensions, meta holds the graph's own nodes (means2d accepts retain_grad()).
+    unflat = (lambda xs: xs[0]) if not batch else (  # noqa: E731
+        lambda xs: torch.stack(xs).reshape(batch + tuple(xs[0].shape)))
+    img = unflat([o[0] for o in outs])
+    alphas = unflat([o[1] for o in outs])
+    meta = {k: unflat([o[2][k] for o in outs])
+            for k in ("means2d", "conics", "depths", "radii", "opacities", "ambiguous")}
+    meta.update({"width": width, "height": height, "n_cameras": viewmats.shape[-3],
+                 "n_batches": B, "tile_size": tile_size})
+    return img, alphas, meta
+
+
+def _rasterization(*args, **kwargs):
+    """:func:`rasterization` with results in the dtype of ``means``: a stand-in for gsplat's
+    ``gsplat.rendering._rasterization`` in gsplat's own tests."""
+    means = kwargs["means"] if "means" in kwargs else args[0]
+    img, alphas, meta = rasterization(*args, **kwargs)
+    return img.to(means.dtype), alphas.to(means.dtype), meta
+
+
+def _render_one(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane,
+                far_plane, radius_clip, eps2d, sh_degree, tile_size, backgrounds, render_mode,
+                rasterize_mode, config, margin):
+    """One batch element: means [N,3], viewmats [C,4,4] -> (image, alphas, meta)."""
     check_rasterization_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width,
                                height, near_plane, far_plane, radius_clip, eps2d, sh_degree,
                                tile_size, backgrounds, render_mode)
@@ -212,5 +340,5 @@ def rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width: 
     if render_mode in ("ED", "RGB+ED"):
         out = torch.cat([out[..., :-1], out[..., -1:] / alphas.clamp_min(1e-10)], -1)
     meta = {k: proj[k] for k in ("means2d", "conics", "depths", "radii", "opacities")}
-    meta.update({"ambiguous": amb, "width": width, "height": height, "n_cameras": C, "tile_size": tile_size})
+    meta["ambiguous"] = amb
     return out, alphas, meta

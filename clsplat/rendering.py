@@ -1,22 +1,40 @@
 """The front door: :func:`rasterization`, gsplat's interface on the OpenCL engine.
 
-It validates input, chooses the channels to composite (colour, depth or both, by render
-mode), chains the autograd Functions of :mod:`clsplat.autograd` (project, SH, rasterize;
-each runs the stage drivers of :mod:`clsplat.stages`), adds the background and assembles
-gsplat's return values.
+It takes gsplat 1.6's arguments in gsplat's order, checks them, moves tensors from any torch
+device to the host, splits leading batch dimensions into independent renders, chains the
+autograd Functions of :mod:`clsplat.autograd` (project, SH, rasterize; each runs the stage
+drivers of :mod:`clsplat.stages`) per batch element, adds the background, and assembles
+gsplat's return values (packed or unpacked ``meta``, via :mod:`clsplat.packed`) on the
+inputs' device and dtype.
 """
 from __future__ import annotations
 
+import math
+from dataclasses import replace
+from enum import Enum
 from typing import Optional
 
 import torch
 
 from .autograd import ProjectFn, RasterizeFn, Settings, ShFn
 from .config import RenderConfig
+from .packed import AbsgradSink, SparseRowsGrad, intersection_meta, pack_pairs
 from .runtime import Runtime, get_runtime
 from .validate import check_options, check_rasterization_inputs, check_screen_extent, rescale_large_quats
 
-__all__ = ["rasterization"]
+__all__ = ["rasterization", "RollingShutterType", "DEFAULT_TILE_SIZE"]
+
+DEFAULT_TILE_SIZE = 16  # what gsplat uses for tile_size=None
+
+
+class RollingShutterType(Enum):
+    """gsplat's shutter types (same names and values); clsplat renders GLOBAL only."""
+
+    ROLLING_TOP_TO_BOTTOM = 0
+    ROLLING_LEFT_TO_RIGHT = 1
+    ROLLING_BOTTOM_TO_TOP = 2
+    ROLLING_RIGHT_TO_LEFT = 3
+    GLOBAL = 4
 
 
 def _channels(render_mode: str, D: int) -> tuple[int, int]:
@@ -28,83 +46,188 @@ def _channels(render_mode: str, D: int) -> tuple[int, int]:
     return D, -1
 
 
+def _check_not_implemented(distributed, camera_model, covars, with_ut, with_eval3d,
+                           radial_coeffs, tangential_coeffs, thin_prism_coeffs, ftheta_coeffs,
+                           rolling_shutter, viewmats_rs) -> None:
+    """gsplat features clsplat does not implement are accepted only at gsplat's defaults."""
+    if distributed is not False:
+        raise ValueError(f"distributed: multi-process rendering is not implemented; only "
+                         f"distributed=False is accepted, got {distributed!r}")
+    if camera_model != "pinhole":
+        raise ValueError(f"camera_model: only 'pinhole' is implemented ('ortho', 'fisheye' and "
+                         f"'ftheta' are not), got {camera_model!r}")
+    if covars is not None:
+        raise ValueError("covars: explicit covariances are not implemented; pass quats and scales")
+    for name, v in (("with_ut", with_ut), ("with_eval3d", with_eval3d)):
+        if v is not False:
+            raise ValueError(f"{name}: the unscented transform / 3D evaluation is not "
+                             f"implemented; only {name}=False is accepted, got {v!r}")
+    for name, v in (("radial_coeffs", radial_coeffs), ("tangential_coeffs", tangential_coeffs),
+                    ("thin_prism_coeffs", thin_prism_coeffs), ("ftheta_coeffs", ftheta_coeffs),
+                    ("viewmats_rs", viewmats_rs)):
+        if v is not None:
+            raise ValueError(f"{name}: lens distortion and rolling shutter are not implemented; "
+                             "only None is accepted")
+    if rolling_shutter is not None and getattr(rolling_shutter, "name", rolling_shutter) != "GLOBAL":
+        raise ValueError(f"rolling_shutter: only RollingShutterType.GLOBAL is implemented, got "
+                         f"{rolling_shutter!r}")
+
+
+def _host(name: str, x):
+    """A torch tensor on any device -> the same values on the CPU (differentiably)."""
+    if not isinstance(x, torch.Tensor) or x.device.type == "cpu":
+        return x
+    if x.device.type == "meta":
+        raise ValueError(f"{name}: a tensor on the 'meta' device holds no data")
+    return x.to("cpu")
+
+
+def _check_batch(batch: tuple, **tensors) -> None:
+    """Each tensor's leading dimensions must be the batch dimensions of ``means``."""
+    nb = len(batch)
+    for name, x in tensors.items():
+        if x is None and name == "backgrounds":
+            continue
+        if not isinstance(x, torch.Tensor):
+            raise ValueError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
+        if x.layout != torch.strided:
+            raise ValueError(f"{name}: expected a dense (strided) tensor, got layout {x.layout}; "
+                             "call .to_dense() first")
+        if tuple(x.shape[:nb]) != batch or x.dim() <= nb:
+            raise ValueError(f"{name}: expected the batch dimensions {list(batch)} of means "
+                             f"[..., N, 3] in front, got shape {list(x.shape)}")
+
+
 def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
                   opacities: torch.Tensor, colors: torch.Tensor, viewmats: torch.Tensor,
                   Ks: torch.Tensor, width: int, height: int, near_plane: float = 0.01,
                   far_plane: float = 1e10, radius_clip: float = 0.0, eps2d: float = 0.3,
-                  sh_degree: Optional[int] = None, packed: bool = True, tile_size: int = 16,
-                  backgrounds: Optional[torch.Tensor] = None, render_mode: str = "RGB",
-                  sparse_grad: bool = False, absgrad: bool = False,
+                  sh_degree: Optional[int] = None, packed: bool = True,
+                  tile_size: Optional[int] = None, backgrounds: Optional[torch.Tensor] = None,
+                  render_mode: str = "RGB", sparse_grad: bool = False, absgrad: bool = False,
                   rasterize_mode: str = "classic", channel_chunk: int = 32,
                   distributed: bool = False, camera_model: str = "pinhole",
-                  covars: Optional[torch.Tensor] = None, *, device: str | Runtime | None = None,
-                  precision: Optional[str] = None, config: Optional[RenderConfig] = None,
-                  bwd_divide: bool = False, events: Optional[list] = None,
+                  segmented: bool = False, covars: Optional[torch.Tensor] = None,
+                  with_ut: bool = False, with_eval3d: bool = False,
+                  radial_coeffs: Optional[torch.Tensor] = None,
+                  tangential_coeffs: Optional[torch.Tensor] = None,
+                  thin_prism_coeffs: Optional[torch.Tensor] = None,
+                  ftheta_coeffs=None, rolling_shutter=RollingShutterType.GLOBAL,
+                  viewmats_rs: Optional[torch.Tensor] = None, *,
+                  device: str | Runtime | None = None, precision: Optional[str] = None,
+                  config: Optional[RenderConfig] = None, bwd_divide: bool = False,
+                  events: Optional[list] = None,
                   ) -> tuple[torch.Tensor, torch.Tensor, dict]:
-    """Rasterise 3D Gaussians into C images, with gsplat's arguments and return values.
+    """Rasterise 3D Gaussians into images, with gsplat's arguments and return values.
 
     Args:
-        means: [N, 3] centres in world space.
-        quats: [N, 4] rotations, wxyz, need not be normalised.
-        scales: [N, 3] post-activation scales.
-        opacities: [N] post-activation opacities in [0, 1].
-        colors: [N, D] or [C, N, D] features, or SH coefficients [N, K, 3] with ``sh_degree``.
-        viewmats: [C, 4, 4] world-to-camera matrices (OpenCV: x right, y down, z forward).
-        Ks: [C, 3, 3] pinhole intrinsics.
+        means: [..., N, 3] centres in world space; ``...`` are batch dimensions.
+        quats: [..., N, 4] rotations, wxyz, need not be normalised.
+        scales: [..., N, 3] post-activation scales of either sign (the covariance uses s^2).
+        opacities: [..., N] post-activation opacities in [0, 1].
+        colors: [..., N, D] or [..., C, N, D] features, or SH coefficients [..., N, K, 3] or
+            [..., C, N, K, 3] with ``sh_degree``.
+        viewmats: [..., C, 4, 4] world-to-camera matrices (OpenCV: x right, y down, z forward).
+        Ks: [..., C, 3, 3] pinhole intrinsics.
         width, height: image size in pixels.
         near_plane, far_plane: Gaussians with camera depth outside [near, far] are culled.
         radius_clip: Gaussians whose screen radius is <= this (pixels) are culled.
         eps2d: added to the diagonal of every 2D covariance.
-        sh_degree: SH degree to evaluate (0-3), or None when ``colors`` are plain features.
-        packed, sparse_grad, channel_chunk: accepted for gsplat compatibility; ``meta`` always
-            has gsplat's unpacked layout and the images are the same either way.
-        tile_size: tile side in pixels (4, 8, 16 or 32).
-        backgrounds: [C, D] colour behind the Gaussians (colour channels only).
+        sh_degree: SH degree to evaluate (0-4), or None when ``colors`` are plain features.
+        packed: True: per-pair ``meta`` entries are packed [nnz, ...] over the visible
+            (camera, Gaussian) pairs, with ``batch_ids``, ``camera_ids``, ``gaussian_ids``;
+            False: [..., C, N, ...]. Images are the same either way.
+        tile_size: tile side in pixels (4, 8, 16 or 32); None: 16.
+        backgrounds: [..., C, D] colour behind the Gaussians (colour channels only).
         render_mode: "RGB", "D", "ED", "RGB+D" or "RGB+ED"; D is accumulated camera depth,
             ED is D divided by alpha.
-        rasterize_mode: "classic" or "antialiased" (opacity scaled by the eps2d compensation).
-        device: OpenCL device (see :mod:`clsplat.runtime`), default ``CLSPLAT_DEVICE``.
-        precision: "float32" or "float64"; default: float64 for float64 means, else float32.
-        config: accuracy knobs (:class:`RenderConfig`); ``precision`` overrides its precision.
+        sparse_grad: with ``packed`` and no batch dimensions, the gradients of means, quats
+            and scales are sparse COO tensors over the Gaussians visible in some camera.
         absgrad: after backward, ``meta["means2d"].absgrad`` holds the per-pair sum of
             absolute screen-space gradients (gsplat's densification criterion).
-        bwd_divide: recover transmittance in backward by division instead of forward replay
-            (see kernels/composite_bwd.cl for the trade-off).
-        events: a list that receives ``(stage, pyopencl.Event)`` for every kernel launched,
-            forward and (later) backward, for profiling.
+        rasterize_mode: "classic" or "antialiased" (opacity scaled by the eps2d compensation).
+        channel_chunk: accepted for gsplat compatibility (clsplat composites all channels in
+            one pass); must be a positive int.
+        segmented: accepted for gsplat compatibility; clsplat's sort is always per tile.
+        distributed, camera_model, covars, with_ut, with_eval3d, radial_coeffs,
+            tangential_coeffs, thin_prism_coeffs, ftheta_coeffs, rolling_shutter, viewmats_rs:
+            gsplat features clsplat does not implement: accepted at gsplat's defaults only,
+            a ValueError naming the argument otherwise.
+        device: OpenCL device (see :mod:`clsplat.runtime`), default ``CLSPLAT_DEVICE``. Input
+            tensors may live on any torch device; results and gradients return to it.
+        precision: "float32" or "float64"; default: float64 for float64 means, else float32.
+        config: accuracy knobs (:class:`RenderConfig`); ``precision`` overrides its precision.
+        bwd_divide: recover transmittance in backward by division instead of forward replay.
+        events: a list that receives ``(stage, pyopencl.Event)`` for every kernel launched.
 
     Differentiable with respect to means, quats, scales, opacities, colors (or SH),
     backgrounds and viewmats; ``meta["means2d"]`` accepts ``retain_grad()``.
 
     Returns:
-        render_colors [C, H, W, X] (X = D, 1 or D+1 by mode), render_alphas [C, H, W, 1], and
-        ``meta`` with means2d [C,N,2], radii [C,N,2], depths [C,N], conics [C,N,3],
-        opacities [C,N], tiles_per_gauss [C,N], isect_offsets [C,th,tw], flatten_ids [M],
-        tile_width, tile_height, tile_size, width, height, n_cameras. Outputs have the dtype
-        of ``means``.
+        render_colors [..., C, H, W, X] (X = D, 1 or D+1 by mode), render_alphas
+        [..., C, H, W, 1], and ``meta`` as gsplat's: batch_ids, camera_ids, gaussian_ids
+        ([nnz] int64 when packed, else None), radii [..., C, N, 2] / [nnz, 2] int32, means2d,
+        depths, conics, opacities (per pair), tiles_per_gauss, isect_ids [M] int64,
+        flatten_ids [M] int32, isect_offsets [..., C, th, tw] int32, tile_width, tile_height,
+        tile_size, width, height, n_batches, n_cameras. Results have the dtype and device of
+        ``means``.
     """
-    info = check_rasterization_inputs(means, quats, scales, opacities, colors, viewmats, Ks,
-                                      width, height, near_plane, far_plane, radius_clip, eps2d,
-                                      sh_degree, tile_size, backgrounds, render_mode)
+    _check_not_implemented(distributed, camera_model, covars, with_ut, with_eval3d, radial_coeffs,
+                           tangential_coeffs, thin_prism_coeffs, ftheta_coeffs, rolling_shutter,
+                           viewmats_rs)
     if rasterize_mode not in ("classic", "antialiased"):
         raise ValueError(f"rasterize_mode: expected 'classic' or 'antialiased', got {rasterize_mode!r}")
-    if camera_model != "pinhole":
-        raise ValueError(f"camera_model: only 'pinhole' is supported, got {camera_model!r}")
-    if covars is not None:
-        raise ValueError("covars: explicit covariances are not supported; pass quats and scales")
-    if distributed:
-        raise ValueError("distributed: multi-process rendering is not supported")
     check_options(config, events)
+    if isinstance(channel_chunk, bool) or not isinstance(channel_chunk, int) or channel_chunk < 1:
+        raise ValueError(f"channel_chunk: expected a positive int, got {channel_chunk!r}")
+    for name, v in (("packed", packed), ("sparse_grad", sparse_grad), ("absgrad", absgrad),
+                    ("segmented", segmented)):
+        if not isinstance(v, bool):
+            raise ValueError(f"{name}: expected a bool, got {type(v).__name__}")
+    if tile_size is None:
+        tile_size = DEFAULT_TILE_SIZE
+    if not isinstance(means, torch.Tensor):
+        raise ValueError(f"means: expected a torch.Tensor, got {type(means).__name__}")
+    if means.dim() < 2:
+        raise ValueError(f"means: expected shape [..., N, 3], got {list(means.shape)}")
+    out_device, out_dtype = means.device, means.dtype
+    batch = tuple(means.shape[:-2])
+    B, N = math.prod(batch), means.shape[-2]
+    t = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
+             viewmats=viewmats, Ks=Ks, backgrounds=backgrounds)
+    _check_batch(batch, **t)
+    if sparse_grad and not packed:
+        raise ValueError("sparse_grad: needs packed=True (as in gsplat)")
+    if sparse_grad and batch:
+        raise ValueError(f"sparse_grad: not supported with batch dimensions {list(batch)} (as in gsplat)")
+    sparse = SparseRowsGrad() if sparse_grad else None
+    if sparse is not None:  # on the leaves' device, nearest them: they receive sparse gradients
+        t.update({k: sparse.wrap(t[k]) for k in ("means", "quats", "scales")})
+    t = {k: _host(k, v) for k, v in t.items()}
+
+    # One validated single-batch view per batch element.
+    flat = {k: (None if v is None else v.reshape((B,) + tuple(v.shape[len(batch):])))
+            for k, v in t.items()}
+    infos = [check_rasterization_inputs(
+        *(flat[k][b] for k in ("means", "quats", "scales", "opacities", "colors", "viewmats", "Ks")),
+        width, height, near_plane, far_plane, radius_clip, eps2d, sh_degree, tile_size,
+        None if flat["backgrounds"] is None else flat["backgrounds"][b], render_mode)
+        for b in range(B)] if B else []
+    if B == 0:
+        raise ValueError(f"means: batch dimensions {list(batch)} hold no elements")
+    C, D = infos[0]["C"], infos[0]["D"]
+
     if precision is None:
         precision = (config.precision if config is not None else None) or (
-            "float64" if means.dtype == torch.float64 else "float32")
+            "float64" if out_dtype == torch.float64 else "float32")
     cfg = (config or RenderConfig()).with_(precision=precision)
     rt = get_runtime(device)
     if cfg.precision == "float64" and not rt.has_fp64:
         raise ValueError(f"precision: float64 needs cl_khr_fp64, which {rt.name} lacks")
-    quats = rescale_large_quats(quats)
-    check_screen_extent(means, scales, viewmats, Ks, float(near_plane), float(far_plane), cfg.precision)
-    C, N, D = info["C"], info["N"], info["D"]
+    flat["quats"] = rescale_large_quats(flat["quats"])
+    for b in range(B):
+        check_screen_extent(flat["means"][b], flat["scales"][b], flat["viewmats"][b], flat["Ks"][b],
+                            float(near_plane), float(far_plane), cfg.precision)
     n_col, depth_col = _channels(render_mode, D)
     CH = n_col + (depth_col >= 0)
     nbytes = C * height * width * CH * (8 if cfg.precision == "float64" else 4)
@@ -113,48 +236,98 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
                          f"over the device's {rt.device.max_mem_alloc_size >> 20} MiB allocation limit")
 
     dt = cfg.dtype
-    tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
-    st = Settings(rt, cfg, width, height, tile_size, float(near_plane), float(far_plane),
-                  float(eps2d), float(radius_clip), rasterize_mode == "antialiased",
-                  absgrad=absgrad, sh_degree=sh_degree, bwd_divide=bwd_divide, events=events)
     cast = lambda x: x.to(dt).contiguous()  # noqa: E731  (differentiable: grads come back cast)
-    means_r, viewmats_r = cast(means), cast(viewmats)
-    means2d, conics, depths, opac, radii, rects, extents = ProjectFn.apply(
-        means_r, cast(quats), cast(scales), cast(opacities), viewmats_r, cast(Ks).detach(), st)
-    parts = []
-    if n_col:
-        if sh_degree is not None:
-            parts.append(ShFn.apply(cast(colors), means_r, viewmats_r, radii, st))
-        else:
-            c = cast(colors)
-            parts.append(c.expand(C, N, D) if c.dim() == 2 else c)
-    if depth_col >= 0:
-        parts.append(depths[..., None])
-    feats = parts[0] if len(parts) == 1 else torch.cat(parts, -1)
-    if N == 0:
-        render = torch.zeros((C, height, width, CH), dtype=dt)
-        T = torch.ones((C, height, width), dtype=dt)
-        isect_offsets = torch.zeros((C * tiles_y * tiles_x + 1,), dtype=torch.int32)
-        keys = torch.zeros((0,), dtype=torch.int64)
-    else:
-        render, T = RasterizeFn.apply(means2d, conics, opac, feats.contiguous(), rects, extents,
-                                      depths.detach(), st)
-        isect_offsets, keys = st.isect
+    st0 = Settings(rt, cfg, width, height, tile_size, float(near_plane), float(far_plane),
+                   float(eps2d), float(radius_clip), rasterize_mode == "antialiased",
+                   absgrad=absgrad, sh_degree=sh_degree, bwd_divide=bwd_divide, events=events)
+    means_f, quats_f, scales_f = flat["means"], flat["quats"], flat["scales"]
 
+    # Project every batch element, then gather the per-pair tensors gsplat exposes.
+    proj = []
+    for b in range(B):
+        proj.append(ProjectFn.apply(cast(means_f[b]), cast(quats_f[b]), cast(scales_f[b]),
+                                    cast(flat["opacities"][b]), cast(flat["viewmats"][b]),
+                                    cast(flat["Ks"][b]).detach(), st0))
+    means2d, conics, depths, opac, radii, rects, extents = (
+        torch.stack([p[i] for p in proj]) for i in range(7))            # [B, C, N, ...]
+    if sparse is not None:
+        sparse.set_visible((radii[0] > 0).all(-1).any(0))
+    pairs = pack_pairs(radii) if packed else None
+    m2d_meta = means2d.reshape(-1, 2)[pairs.flat] if packed else means2d.reshape(batch + (C, N, 2))
+    m2d_user = m2d_meta
+    if out_device.type != "cpu" or out_dtype != dt:  # the user's node must lie on the loss path
+        m2d_user = m2d_meta.to(device=out_device, dtype=out_dtype)
+        m2d_meta = m2d_user.to(device="cpu", dtype=dt)
+    m2d_used = pairs.scatter(m2d_meta, (B, C, N, 2)) if packed else m2d_meta.reshape(B, C, N, 2)
+    sink = AbsgradSink(m2d_user, (B, C, N, 2), dt, pairs) if absgrad else None
+
+    renders, Ts, isects = [], [], []
+    for b in range(B):
+        st = replace(st0, absgrad_sink=None if sink is None else sink.for_batch(b))
+        parts = []
+        if n_col:
+            c = flat["colors"][b]
+            if sh_degree is not None:
+                vm_b = cast(flat["viewmats"][b])
+                if c.dim() == 4:  # per-view SH coefficients [C, N, K, 3]
+                    parts.append(torch.cat([ShFn.apply(cast(c[i]), cast(means_f[b]), vm_b[i:i + 1],
+                                                       radii[b, i:i + 1], st) for i in range(C)]))
+                else:
+                    parts.append(ShFn.apply(cast(c), cast(means_f[b]), vm_b, radii[b], st))
+            else:
+                c = cast(c)
+                parts.append(c.expand(C, N, D) if c.dim() == 2 else c)
+        if depth_col >= 0:
+            parts.append(depths[b][..., None])
+        feats = parts[0] if len(parts) == 1 else torch.cat(parts, -1)
+        if N == 0:
+            render = torch.zeros((C, height, width, CH), dtype=dt)
+            T = torch.ones((C, height, width), dtype=dt)
+            tiles = C * (-(-width // tile_size)) * (-(-height // tile_size))
+            isects.append((torch.zeros((tiles + 1,), dtype=torch.int32), torch.zeros((0,), dtype=torch.int64)))
+        else:
+            render, T = RasterizeFn.apply(m2d_used[b], conics[b], opac[b], feats.contiguous(),
+                                          rects[b], extents[b], depths[b].detach(), st)
+            isects.append(st.isect)
+        if flat["backgrounds"] is not None and n_col:
+            bg = cast(flat["backgrounds"][b])[:, None, None, :]
+            render = torch.cat([render[..., :n_col] + T.unsqueeze(-1) * bg, render[..., n_col:]], -1)
+        renders.append(render)
+        Ts.append(T)
+    render, T = torch.stack(renders), torch.stack(Ts)
     alphas = (1 - T).unsqueeze(-1)
-    if backgrounds is not None and n_col:
-        bg = cast(backgrounds)[:, None, None, :]
-        render = torch.cat([render[..., :n_col] + T.unsqueeze(-1) * bg, render[..., n_col:]], -1)
     if render_mode in ("ED", "RGB+ED"):
         render = torch.cat([render[..., :-1], render[..., -1:] / alphas.clamp_min(1e-10)], -1)
-    meta = {
-        "means2d": means2d, "radii": radii, "depths": depths, "conics": conics, "opacities": opac,
-        "tiles_per_gauss": ((rects[..., 2] - rects[..., 0]) * (rects[..., 3] - rects[..., 1])).to(torch.int32),
-        "isect_offsets": isect_offsets[:-1].reshape(C, tiles_y, tiles_x),
-        "flatten_ids": (keys & 0xFFFFFFFF).to(torch.int32),
-        "tile_width": tiles_x, "tile_height": tiles_y, "tile_size": tile_size,
-        "width": width, "height": height, "n_cameras": C,
-        "gaussian_ids": None, "camera_ids": None,
-    }
-    out_dt = means.dtype
-    return render.to(out_dt), alphas.to(out_dt), meta
+
+    meta = intersection_meta(isects, rects, depths, C, N, width, height, tile_size, pairs)
+    opac_pairs = opac.reshape(B, C, N)
+    if packed:
+        sel = pairs.flat
+        meta.update(batch_ids=pairs.batch_ids, camera_ids=pairs.camera_ids,
+                    gaussian_ids=pairs.gaussian_ids, radii=radii.reshape(-1, 2)[sel],
+                    depths=depths.reshape(-1)[sel], conics=conics.reshape(-1, 3)[sel],
+                    opacities=opac_pairs.reshape(-1)[sel])
+    else:
+        meta.update(batch_ids=None, camera_ids=None, gaussian_ids=None, radii=radii,
+                    depths=depths, conics=conics, opacities=opac_pairs)
+    unbatch = (lambda x: x.reshape(batch + tuple(x.shape[1:]))) if not packed else (lambda x: x)
+    for k in ("radii", "depths", "conics", "opacities"):
+        meta[k] = _to_user(unbatch(meta[k]), out_device, out_dtype)
+    meta["means2d"] = m2d_user
+    for k in ("batch_ids", "camera_ids", "gaussian_ids", "tiles_per_gauss", "isect_ids",
+              "flatten_ids"):
+        if meta[k] is not None:
+            meta[k] = meta[k].to(out_device)
+    tpg = meta["tiles_per_gauss"]
+    meta["tiles_per_gauss"] = tpg if packed else tpg.reshape(batch + (C, N))
+    meta["isect_offsets"] = meta["isect_offsets"].reshape(batch + tuple(meta["isect_offsets"].shape[1:])).to(out_device)
+    meta["n_batches"] = B
+    shape = batch + (C, height, width)
+    return (_to_user(render.reshape(shape + (render.shape[-1],)), out_device, out_dtype),
+            _to_user(alphas.reshape(shape + (1,)), out_device, out_dtype), meta)
+
+
+def _to_user(x: torch.Tensor, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    if x.is_floating_point():
+        return x.to(device=device, dtype=dtype)
+    return x.to(device=device)

@@ -118,10 +118,11 @@ def check_rasterization_inputs(means, quats, scales, opacities, colors, viewmats
         if D == 0:
             raise ValueError("colors: needs at least one channel, got D=0")
     else:
-        check_int("sh_degree", sh_degree, 0, 3)
-        check_tensor("colors", colors, (N, None, 3))
+        check_int("sh_degree", sh_degree, 0, 4)
+        per_view = isinstance(colors, torch.Tensor) and colors.dim() == 4
+        check_tensor("colors", colors, (C, N, None, 3) if per_view else (N, None, 3))
         need = (sh_degree + 1) ** 2
-        if colors.shape[1] < need:
+        if colors.shape[-2] < need:
             raise ValueError(f"colors: sh_degree={sh_degree} needs {need} SH coefficients per "
                              f"Gaussian, got {colors.shape[1]}")
         D = 3
@@ -136,8 +137,6 @@ def check_rasterization_inputs(means, quats, scales, opacities, colors, viewmats
     if N and bool((qn < 1e-12).any()):
         raise ValueError(f"quats: {int((qn < 1e-12).sum())} quaternion(s) have (near) zero norm, "
                          "which defines no rotation")
-    if N and bool((scales < 0).any()):
-        raise ValueError("scales: must be non-negative (post-activation scales)")
     if N and bool(((opacities < 0) | (opacities > 1)).any()):
         raise ValueError("opacities: must lie in [0, 1] (post-activation opacities)")
     fx, fy = Ks[:, 0, 0], Ks[:, 1, 1]

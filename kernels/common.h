@@ -11,13 +11,15 @@
  *   TILE             tile side in pixels
  *   PIX              pixels per work-item along a tile row in compositing (1 = GPU layout)
  *   ALPHA_MIN, ALPHA_MAX, T_MIN, RADIUS_SIGMA, OPACITY_AWARE_RADIUS   accuracy knobs
+ *   (OPACITY_AWARE_RADIUS: gsplat's rule, extent min(RADIUS_SIGMA, sqrt(2 ln(o / ALPHA_MIN))))
  */
 #ifndef CLSPLAT_COMMON_H
 #define CLSPLAT_COMMON_H
 
 /* ---- named defaults (parsed by clsplat/constants.py) -------------------------------- */
 #define CLS_DEFAULT_ALPHA_MIN (1.0 / 255.0)
-#define CLS_DEFAULT_ALPHA_MAX 0.99
+/* gsplat's clamp; the original 3DGS value 0.99 is RenderConfig(alpha_max=0.99). */
+#define CLS_DEFAULT_ALPHA_MAX 0.999
 #define CLS_DEFAULT_T_MIN 1e-4
 #define CLS_DEFAULT_RADIUS_SIGMA 3.33
 #define CLS_DEFAULT_EPS2D 0.3
@@ -170,7 +172,7 @@ inline int4 tile_rect(REAL2 mean2d, int2 radius, int tiles_x, int tiles_y) {
 }
 #endif
 
-/* ---- real spherical harmonics up to degree 3 (gsplat's constants and sign convention) --- */
+/* ---- real spherical harmonics up to degree 4 (gsplat's constants and sign convention) --- */
 #ifdef SH_DEGREE
 #define SH_BASIS_LEN ((SH_DEGREE + 1) * (SH_DEGREE + 1))
 inline void sh_basis(REAL3 d, REAL *b) {
@@ -200,6 +202,21 @@ inline void sh_basis(REAL3 d, REAL *b) {
     b[13] = fTmp0C * d.x;
     b[14] = fTmp1B * fC1;
     b[15] = (REAL)-0.5900435899266435 * fC2;
+#endif
+#if SH_DEGREE >= 4
+    const REAL fC3 = d.x * fC2 - d.y * fS2, fS3 = d.x * fS2 + d.y * fC2;
+    const REAL fTmp0D = d.z * ((REAL)-4.683325804901025 * z2 + (REAL)2.007139630671868);
+    const REAL fTmp1D = (REAL)3.31161143515146 * z2 - (REAL)0.47308734787878;
+    const REAL fTmp2D = (REAL)-1.770130769779931 * d.z;
+    b[16] = (REAL)0.6258357354491763 * fS3;
+    b[17] = fTmp2D * fS2;
+    b[18] = fTmp1D * fS1;
+    b[19] = fTmp0D * d.y;
+    b[20] = (REAL)1.984313483298443 * d.z * b[12] - (REAL)1.006230589874905 * b[6];
+    b[21] = fTmp0D * d.x;
+    b[22] = fTmp1D * fC1;
+    b[23] = fTmp2D * fC2;
+    b[24] = (REAL)0.6258357354491763 * fC3;
 #endif
 }
 #endif

@@ -65,9 +65,10 @@ __kernel void project(const int C, const int N,
     op *= sqrt(fmax((REAL)0, det_orig * inv_det));
 #endif
 #if OPACITY_AWARE_RADIUS
-    /* Beyond this many sigmas the sample falls below ALPHA_MIN and would be skipped anyway. */
+    /* gsplat's rule: beyond sqrt(2 ln(o / ALPHA_MIN)) sigmas the sample falls below
+     * ALPHA_MIN and would be skipped anyway; never more than RADIUS_SIGMA. */
     if (!(op >= (REAL)ALPHA_MIN)) return;
-    const REAL extent = sqrt(2 * log(op / (REAL)ALPHA_MIN));
+    const REAL extent = fmin((REAL)RADIUS_SIGMA, sqrt(2 * log(op / (REAL)ALPHA_MIN)));
 #else
     const REAL extent = (REAL)RADIUS_SIGMA;
 #endif

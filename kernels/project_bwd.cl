@@ -83,12 +83,13 @@ __kernel void project_bwd(const int C, const int N,
 #if ANTIALIASED
             const REAL comp2 = fmax((REAL)0, det_o * inv_det), comp = sqrt(comp2);
             vo_acc += vop * comp;
-            if (comp > 0) {
-                const REAL vc2 = vop * o / (2 * comp) * inv_det * inv_det;
-                va += vc2 * ((d - eps2d) * det - det_o * d);
-                vd += vc2 * ((a - eps2d) * det - det_o * a);
-                vb += vc2 * (-2 * b * (det - det_o));
-            }
+            /* d comp = d(comp^2) / (2 comp), with gsplat's floor comp + 1e-6 in the
+             * denominator; d(comp^2)/d cov2d = (1 - comp^2) conic - eps2d det(conic) I. */
+            const REAL vsq = vop * o * (REAL)0.5 / (comp + (REAL)1e-6);
+            const REAL one_m = 1 - comp2;
+            va += vsq * (one_m * A - eps2d * inv_det);
+            vd += vsq * (one_m * Cc - eps2d * inv_det);
+            vb += vsq * 2 * one_m * B;
 #else
             vo_acc += vop;
 #endif

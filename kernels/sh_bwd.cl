@@ -37,6 +37,34 @@ inline REAL3 sh_basis_vjp(REAL3 d, const REAL *vb) {
     g += vb[14] * (REAL3)(2 * C7 * z * x, -2 * C7 * z * y, C7 * (x * x - y * y));
     g += vb[15] * (REAL3)(-3 * C10 * (x * x - y * y), 6 * C10 * x * y, 0);
 #endif
+#if SH_DEGREE >= 4
+    {
+        const REAL K1 = (REAL)0.6258357354491763, K2 = (REAL)1.770130769779931;
+        const REAL K3 = (REAL)3.31161143515146, K4 = (REAL)0.47308734787878;
+        const REAL K5 = (REAL)4.683325804901025, K6 = (REAL)2.007139630671868;
+        const REAL K7 = (REAL)1.984313483298443, K8 = (REAL)1.006230589874905;
+        const REAL x2 = x * x, y2 = y * y, z2 = z * z;
+        const REAL c1 = x2 - y2, s1 = 2 * x * y;
+        const REAL c2 = x * c1 - y * s1, s2 = x * s1 + y * c1;
+        /* gradients of the planar harmonics c_k + i s_k = (x + i y)^k */
+        const REAL3 dc1 = (REAL3)(2 * x, -2 * y, 0), ds1 = (REAL3)(2 * y, 2 * x, 0);
+        const REAL3 dc2 = (REAL3)(3 * c1, -3 * s1, 0), ds2 = (REAL3)(3 * s1, 3 * c1, 0);
+        const REAL3 dc3 = (REAL3)(4 * c2, -4 * s2, 0), ds3 = (REAL3)(4 * s2, 4 * c2, 0);
+        const REAL t = z * (-K5 * z2 + K6), dt = -3 * K5 * z2 + K6;   /* b19 = t y, b21 = t x */
+        const REAL u = K3 * z2 - K4, du = 2 * K3 * z;                  /* b18 = u s1, b22 = u c1 */
+        const REAL b12 = z * (C8 * z2 - C9), db12 = 3 * C8 * z2 - C9;
+        const REAL db6 = 2 * C11 * z;
+        g += vb[16] * K1 * ds3;
+        g += vb[17] * -K2 * (z * ds2 + (REAL3)(0, 0, s2));
+        g += vb[18] * (u * ds1 + (REAL3)(0, 0, du * s1));
+        g += vb[19] * (REAL3)(0, t, dt * y);
+        g += vb[20] * (REAL3)(0, 0, K7 * (b12 + z * db12) - K8 * db6);
+        g += vb[21] * (REAL3)(t, 0, dt * x);
+        g += vb[22] * (u * dc1 + (REAL3)(0, 0, du * c1));
+        g += vb[23] * -K2 * (z * dc2 + (REAL3)(0, 0, c2));
+        g += vb[24] * K1 * dc3;
+    }
+#endif
     return g;
 }
 

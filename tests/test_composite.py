@@ -44,7 +44,7 @@ def _replay(got, feats, W, H, tile, cfg, c, ys, xs):
             m, co, op = got["means2d"][c, g], got["conics"][c, g], float(got["opacities"][c, g])
             dx, dy = float(m[0]) - (x + 0.5), float(m[1]) - (y + 0.5)
             sig = 0.5 * (float(co[0]) * dx * dx + float(co[2]) * dy * dy) + float(co[1]) * dx * dy
-            a = min(0.99, op * np.exp(-sig))
+            a = min(cfg.alpha_max, op * np.exp(-sig))
             if sig < 0 or a < cfg.alpha_min:
                 assert i != n_last - 1, "the last contributor must contribute"
                 continue

@@ -100,7 +100,7 @@ def test_radius_rules(rt, make_scene, run_project, ref_project, rule):
     got = run_project(rt, cfg, scene)
     want = ref_project(scene, cfg)
     check_against_reference(got, want, 1e-9)
-    base = ref_project(scene, RenderConfig(precision="float64"))
+    base = ref_project(scene, RenderConfig(precision="float64", radius_rule="3.33sigma"))
     v = want["visible"] & base["visible"]
     if rule == "4sigma":
         assert torch.equal(want["visible"], base["visible"])

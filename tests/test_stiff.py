@@ -36,6 +36,7 @@ def scene_from(means, scales, quats=None, opacities=0.8, colors=None, W=32, H=24
 
 def check(scene, f32_bound=1e-5, **kw):
     """float64 to 1e-9 and float32 to f32_bound (unambiguous pixels) against the reference."""
+    kw = {"packed": False, **kw}  # the checks below read the unpacked [C, N] meta layout
     img, alpha, meta = clsplat.rasterization(**scene, **kw)
     w_img, w_alpha, w_meta = ref.rasterization(**scene, **kw, margin=1e-4)
     assert torch.isfinite(img).all() and torch.isfinite(alpha).all()
@@ -112,8 +113,8 @@ def test_subpixel_and_zero_scales(s):
 
 
 def test_opaque_stack(run_forward):
-    """300 Gaussians of opacity 0.999 on one pixel: alpha clamps at ALPHA_MAX = 0.99 (a little
-    less off the pixel centre: ~0.7 here), so the pixel stops after a few
+    """300 Gaussians of opacity 0.999 on one pixel: alpha would clamp at ALPHA_MAX = 0.999 (gsplat's)
+    at the mean, but is ~0.7 at this pixel centre, off the mean, so the pixel stops after a few
     samples with T_MIN < T < 1e-2."""
     n = 300
     means = torch.zeros(n, 3, dtype=F64)

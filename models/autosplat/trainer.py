@@ -277,7 +277,7 @@ class Trainer:
         bg = torch.sigmoid(self.model.sky_color).expand(C, 3)
         t0 = time.perf_counter()
         out = gs.render(viewmats, self.data.Ks, self.data.width, self.data.height, backgrounds=bg,
-                        absgrad=absgrad, device=self.device, events=self._events)
+                        absgrad=absgrad, packed=False, device=self.device, events=self._events)
         self._render_wall += time.perf_counter() - t0
         return out
 

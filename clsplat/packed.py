@@ -1,0 +1,149 @@
+"""gsplat's packed layout and intersection bookkeeping, built from the engine's results.
+
+The engine projects every (camera, Gaussian) pair into [C, N] buffers. This module turns
+those into what gsplat exposes in ``meta``:
+
+* :func:`pack_pairs`: the visible pairs of a [B, C, N] batch as gsplat's packed ids
+  (``batch_ids``, ``camera_ids``, ``gaussian_ids``), in gsplat's order (by image, then id);
+* :func:`intersection_meta`: ``isect_ids`` (image | tile | depth bits), ``flatten_ids``,
+  ``isect_offsets`` and ``tiles_per_gauss`` from the sorted tile segments of each render;
+* :class:`AbsgradSink`: routes the absolute screen-space gradients of each batch element's
+  backward to ``meta["means2d"].absgrad`` in the layout the user sees;
+* :class:`SparseRowsGrad`: ``sparse_grad=True`` — an identity whose backward hands the leaf
+  a sparse COO gradient over the Gaussians visible in some camera.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+__all__ = ["PackedPairs", "pack_pairs", "intersection_meta", "AbsgradSink", "SparseRowsGrad"]
+
+
+@dataclass
+class PackedPairs:
+    """The visible pairs of a [B, C, N] projection.
+
+    flat [nnz] int64: index of each pair in the flattened [B*C*N]; batch_ids, camera_ids,
+    gaussian_ids [nnz] int64; lookup [B*C*N] int64: packed index of each pair, -1 if culled.
+    """
+
+    flat: torch.Tensor
+    batch_ids: torch.Tensor
+    camera_ids: torch.Tensor
+    gaussian_ids: torch.Tensor
+    lookup: torch.Tensor
+
+    def scatter(self, values: torch.Tensor, shape: tuple) -> torch.Tensor:
+        """[nnz, k] per-pair values -> [B, C, N, k] with zeros at culled pairs (differentiable)."""
+        full = values.new_zeros((math.prod(shape[:-1]), shape[-1]))
+        return full.index_copy(0, self.flat, values).reshape(shape)
+
+
+def pack_pairs(radii: torch.Tensor) -> PackedPairs:
+    """radii [B, C, N, 2] int32 -> the packed ids of the pairs with both radii > 0."""
+    B, C, N = radii.shape[:3]
+    vis = (radii > 0).all(-1).reshape(-1)
+    flat = vis.nonzero()[:, 0]
+    lookup = torch.full((B * C * N,), -1, dtype=torch.int64)
+    lookup[flat] = torch.arange(len(flat))
+    return PackedPairs(flat=flat, batch_ids=flat // (C * N), camera_ids=(flat // N) % C,
+                       gaussian_ids=flat % N, lookup=lookup)
+
+
+def _bits(n: int) -> int:
+    """Bits gsplat reserves for ids in [0, n): floor(log2(n)) + 1."""
+    return int(math.floor(math.log2(n))) + 1 if n > 0 else 0
+
+
+def intersection_meta(isects: list, rects: torch.Tensor, depths: torch.Tensor, C: int, N: int,
+                      width: int, height: int, tile_size: int,
+                      pairs: PackedPairs | None) -> dict:
+    """gsplat's intersection entries of ``meta`` for B renders.
+
+    isects: per batch element, (tile offsets [C*T+1] int32, sorted keys [M_b] int64 holding
+    float32 depth bits << 32 | c*N+g) from the engine; rects [B, C, N, 4] tile rectangles.
+    Returns tile_width, tile_height, tile_size, width, height, n_cameras, tiles_per_gauss
+    ([B, C, N] int32, or [nnz] when packed), isect_ids [M] int64 (image id | tile id | depth
+    bits, image id = b*C + c), flatten_ids [M] int32 (into [B*C*N], or [nnz] when packed) and
+    isect_offsets [B, C, th, tw] int32 into the concatenated intersections.
+    """
+    B = rects.shape[0]
+    tw, th = -(-width // tile_size), -(-height // tile_size)
+    T = tw * th
+    tile_shift = 32 + _bits(T)
+    ids, flats, offs = [], [], []
+    total = 0
+    for b, (offsets, keys) in enumerate(isects):
+        offsets = offsets.to(torch.int64)
+        counts = offsets[1:] - offsets[:-1]
+        tile = torch.repeat_interleave(torch.arange(C * T), counts)        # c*T + t per key
+        image = b * C + tile // T
+        ids.append((image << tile_shift) | ((tile % T) << 32) | (keys >> 32))
+        flats.append(b * C * N + (keys & 0xFFFFFFFF))
+        offs.append(offsets[:-1] + total)
+        total += int(offsets[-1])
+    isect_ids = torch.cat(ids) if ids else torch.zeros((0,), dtype=torch.int64)
+    flatten = torch.cat(flats) if flats else torch.zeros((0,), dtype=torch.int64)
+    r = rects.to(torch.int64)
+    tpg = ((r[..., 2] - r[..., 0]) * (r[..., 3] - r[..., 1])).to(torch.int32)
+    if pairs is not None:
+        flatten = pairs.lookup[flatten]
+        tpg = tpg.reshape(-1)[pairs.flat]
+    return {"tile_width": tw, "tile_height": th, "tile_size": tile_size, "width": width,
+            "height": height, "n_cameras": C, "tiles_per_gauss": tpg, "isect_ids": isect_ids,
+            "flatten_ids": flatten.to(torch.int32),
+            "isect_offsets": torch.stack(offs).reshape(B, C, th, tw).to(torch.int32)}
+
+
+class AbsgradSink:
+    """Collects each batch element's absgrad [C, N, 2] and exposes the sum on ``target``.
+
+    target: the user's ``meta["means2d"]`` ([..., C, N, 2], or [nnz, 2] with ``pairs``).
+    """
+
+    def __init__(self, target: torch.Tensor, shape: tuple, dtype: torch.dtype,
+                 pairs: PackedPairs | None) -> None:
+        self.target, self.pairs = target, pairs
+        self.buffer = torch.zeros(shape, dtype=dtype)
+
+    def for_batch(self, b: int):
+        def put(g: torch.Tensor) -> None:
+            self.buffer[b] = g
+            v = self.buffer.reshape(-1, 2)[self.pairs.flat] if self.pairs is not None else self.buffer
+            self.target.absgrad = v.reshape(self.target.shape).to(self.target.device, self.target.dtype)
+        return put
+
+
+class _Rows(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x, holder):
+        ctx.holder = holder
+        return x.clone()
+
+    @staticmethod
+    def backward(ctx, g):
+        rows = ctx.holder.rows
+        if rows is None:  # nothing projected (e.g. no forward finished): keep it dense
+            return g, None
+        g, rows = g.contiguous(), rows.to(g.device)
+        return torch.sparse_coo_tensor(rows[None], g[rows], g.shape, is_coalesced=True,
+                                       check_invariants=False), None
+
+
+class SparseRowsGrad:
+    """``sparse_grad``: wrap leaves [N, ...] so their gradients come back as sparse COO over the
+    rows (Gaussians) visible in at least one camera; :meth:`set_visible` names the rows once
+    the projection has run."""
+
+    def __init__(self) -> None:
+        self.rows: torch.Tensor | None = None
+
+    def wrap(self, x: torch.Tensor) -> torch.Tensor:
+        return _Rows.apply(x, self) if x.requires_grad else x
+
+    def set_visible(self, visible: torch.Tensor) -> None:
+        """visible [N] bool."""
+        self.rows = visible.nonzero()[:, 0]
