@@ -80,7 +80,7 @@ def load_sequence(spec: str, cameras: list[str] | None, frames: tuple[int, int] 
 
 
 def _parser() -> argparse.ArgumentParser:
-    from ..common.cli import add_common_args
+    from ..common.cli import add_common_args, add_lpips_args
     p = argparse.ArgumentParser(prog="clsplat train autosplat", description=__doc__.split("\n")[0])
     add_common_args(p, default_preset="demo")
     p.add_argument("--cameras", nargs="+", default=None, help="camera names (default: all)")
@@ -90,8 +90,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--masks", default=None, help="folder of semantic masks <CAM>/<NN>.png (class indices)")
     for flag in ("decompose", "flatness", "symmetry", "residual-sh", "pose-correction", "densify"):
         p.add_argument(f"--no-{flag}", action="store_true", help=f"switch the {flag.replace('-', ' ')} constraint off")
-    p.add_argument("--lpips-vgg", default=None, help="local VGG-16 weights for LPIPS (else LPIPS is off)")
-    p.add_argument("--lpips-lin", default=None, help="local LPIPS v0.1 linear-layer weights")
+    add_lpips_args(p)
     p.add_argument("--stop-after", type=int, default=None,
                    help="stop after this many iterations in all (checkpointed; continue with --resume)")
     p.add_argument("--no-progress", action="store_true")

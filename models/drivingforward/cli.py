@@ -2,7 +2,7 @@
 
     clsplat train drivingforward --data synthetic|pandaset:PATH|nuscenes:PATH --preset tiny|small|paper
                                  --steps N --out DIR [--resume] [--weights RESNET18.pth]
-                                 [--vgg-weights VGG.pth --lin-weights LIN.pth] [--eval-scenes K]
+                                 [--lpips-vgg VGG.pth --lpips-lin LIN.pth] [--eval-scenes K]
     clsplat eval drivingforward --checkpoint FILE --data ... [--cameras ...] [--frames ...] --out DIR
 
 Training uses the shared loop (``clsplat.models.common.train``): Adam at the preset's learning
@@ -18,7 +18,7 @@ import sys
 
 import torch
 
-from ..common.cli import add_common_args, add_eval_args
+from ..common.cli import add_common_args, add_eval_args, add_lpips_args, lpips_from_args
 from ..common.data import parse_data
 from ..common.presets import get_preset
 
@@ -29,8 +29,7 @@ FAMILY = "drivingforward"
 
 def _add_model_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--weights", default=None, help="local torchvision ResNet-18 state dict for both encoders")
-    p.add_argument("--vgg-weights", default=None, help="local torchvision VGG-16 state dict (LPIPS)")
-    p.add_argument("--lin-weights", default=None, help="local lpips v0.1 vgg.pth linear layers (LPIPS)")
+    add_lpips_args(p)
     p.add_argument("--cameras", nargs="+", default=None, help="camera names (default: all, rig order)")
 
 
@@ -60,14 +59,6 @@ def make_sample_loss(source, preset, seed: int, cameras=None, lpips=None):
     return sample_loss
 
 
-def _lpips(args):
-    from ..common.metrics import lpips_or_none
-
-    module, message = lpips_or_none(args.vgg_weights, args.lin_weights)
-    print(message, flush=True)
-    return module
-
-
 def train(argv: list[str]) -> int:
     """Entry point of ``clsplat train drivingforward``; returns the exit code."""
     from ..common.train import TrainSpec, seed_everything, set_threads, train as run
@@ -86,7 +77,7 @@ def train(argv: list[str]) -> int:
         threads = set_threads(args.threads, args.device)
         seed_everything(args.seed)
         model = build_model(preset, args.weights, args.device)
-        lpips = _lpips(args)
+        lpips = lpips_from_args(args)
         opt = torch.optim.Adam(model.parameters(), lr=preset.lr)
         spec = TrainSpec(out_dir=args.out, steps=args.steps or preset.steps,
                          batch_size=args.batch_size or preset.batch_size, checkpoint_every=args.checkpoint_every,
@@ -139,7 +130,7 @@ def evaluate(argv: list[str]) -> int:
         set_threads(args.threads, args.device)
         model, preset = load_model(args.checkpoint, args.device, args.preset)
         source = parse_data(args.data, seed=args.seed)
-        lpips = _lpips(args)
+        lpips = lpips_from_args(args)
         m = evaluate_model(model, source, args.num_scenes, args.cameras, args.frames, args.target, lpips,
                            out_dir=args.out, oracle=not args.no_oracle, progress=True)
         print(_summary(m))
