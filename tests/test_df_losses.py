@@ -102,3 +102,42 @@ def test_losses_prefer_true_depth_scale_and_motion(seq):
     assert spatial[1.0] < min(spatial[0.5], spatial[2.0])  # the rig's baseline fixes metric scale
     assert st[1.0] < min(st[0.5], st[2.0])
     assert tmp < still
+
+
+
+def _scale_gradient(loss_fn, depth, k):
+    """d loss / d log(scale) at depth * k: negative means descent makes the depth farther."""
+    s = torch.zeros((), requires_grad=True)
+    loss_fn(depth * k * s.exp()).backward()
+    return float(s.grad)
+
+
+def test_rig_losses_pull_the_depth_scale_towards_the_truth(seq):
+    """Not only a minimum at the true scale: from too near and from too far, the rig losses'
+    gradient points towards the true scale."""
+    fr = seq["frames"]
+    tgt, Ks, E = fr[1]["images"], fr[1]["Ks"], fr[1]["cam_to_ego"]
+    depth = fr[1]["depths"].clamp(max=200)[:, None]
+    srcs = [fr[0]["images"], fr[2]["images"]]
+    M = [torch.linalg.inv(fr[s]["ego_to_world"]) @ fr[1]["ego_to_world"] for s in (0, 2)]
+    for name, fn in (("spatial", lambda d: L.spatial_loss(tgt, d, Ks, E)),
+                     ("spatio-temporal", lambda d: L.spatio_temporal_loss(tgt, srcs, d, Ks, E, M))):
+        g = {k: _scale_gradient(fn, depth, k) for k in (0.5, 2.0)}
+        print(f"{name}: d/dlog(scale) at x0.5 {g[0.5]:+.3e}, x2 {g[2.0]:+.3e}")
+        assert g[0.5] < 0 < g[2.0], name
+
+
+def test_rig_overlap_counts_only_pixels_whose_ssim_window_is_inside(seq):
+    """A thin overlap strip is mostly border: a pixel whose 3x3 SSIM window reaches the warp's
+    zero-filled outside must not count (those windows dominated the error and its gradient)."""
+    fr = seq["frames"]
+    tgt, Ks, E = fr[1]["images"], fr[1]["Ks"], fr[1]["cam_to_ego"]
+    depth = fr[1]["depths"].clamp(max=200)[:, None]
+    pairs = L.rig_neighbours(E)
+    c, n = [a for a, _ in pairs], [b for _, b in pairs]
+    T = invert_rigid(E[n]) @ E[c]
+    _, raw = warp(tgt[n], depth[c, 0], Ks[c], Ks[n], T)
+    _, counted = L._neighbour_errors(tgt, tgt, depth, Ks, T, pairs)
+    window_inside = -torch.nn.functional.max_pool2d(-raw, 3, 1, 1)
+    assert 0 < counted.sum() < raw.sum()
+    assert torch.equal(counted, window_inside)

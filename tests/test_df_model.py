@@ -32,7 +32,8 @@ def _without_grad(m, prefix=""):
 def test_gradients_reach_every_parameter_through_render_and_through_warps(model, sample):
     net = colour_jitter(sample["images"], torch.Generator().manual_seed(0))
     terms = model.training_losses(sample["images"], net, sample["Ks"], sample["cam_to_ego"])
-    assert set(terms) == {"loss", "reproj", "smooth", "spatial", "spatio_temporal", "render", "mse"}  # no lpips
+    assert set(terms) == {"loss", "reproj", "smooth", "spatial", "spatio_temporal", "render", "mse",
+                          "diag_depth_median", "diag_translation"}  # no lpips
     assert all(torch.isfinite(v) for v in terms.values())
     model.zero_grad()
     terms["render"].backward(retain_graph=True)       # renderer alone: depth (means), pose (viewmats), Gaussians

@@ -213,8 +213,9 @@ def plot_losses(log_jsonl: str | Path, png: str | Path, keys: list[str] | None =
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    skip = {"step", "time_s", "lr", "skipped", "n_samples"}
-    keys = keys or [k for k in recs[0] if k not in skip and isinstance(recs[0][k], (int, float))]
+    skip = {"step", "time_s", "lr", "skipped", "n_samples", "grad_norm"}
+    keys = keys or [k for k in recs[0] if k not in skip and not k.startswith("diag_")
+                    and isinstance(recs[0][k], (int, float))]
     fig, ax = plt.subplots(figsize=(7, 4), dpi=110)
     for k in keys:
         pts = [(r["step"], r[k]) for r in recs if isinstance(r.get(k), (int, float)) and math.isfinite(r[k]) and r[k] > 0]
@@ -399,8 +400,9 @@ def train(model: torch.nn.Module, optimizer: torch.optim.Optimizer, spec: TrainS
             grads_ok = all(torch.isfinite(p.grad).all() for p in params if p.grad is not None)
             ok = bool(stats[-1] == 0) and grads_ok
             if ok:
-                if spec.grad_clip is not None:
-                    torch.nn.utils.clip_grad_norm_(params, spec.grad_clip)
+                # the total norm is logged whether or not it is clipped (max_norm inf scales by exactly 1)
+                grad_norm = float(torch.nn.utils.clip_grad_norm_(
+                    params, spec.grad_clip if spec.grad_clip is not None else math.inf))
                 optimizer.step()
                 if scheduler is not None:
                     scheduler.step()
@@ -416,7 +418,9 @@ def train(model: torch.nn.Module, optimizer: torch.optim.Optimizer, spec: TrainS
                                        f"or resume from the last checkpoint ({ckpt_path})")
             rec = {"step": step + 1, **{k: float(v) / B for k, v in zip(keys, stats[:-1].tolist())},
                    "lr": optimizer.param_groups[0]["lr"], "time_s": time.perf_counter() - t0}
-            if not ok:
+            if ok:
+                rec["grad_norm"] = grad_norm
+            else:
                 rec["skipped"] = True
             last = rec
             if log is not None and ((step + 1) % spec.log_every == 0 or step + 1 == spec.steps):

@@ -54,7 +54,7 @@ def make_sample_loss(source, preset, seed: int, cameras=None, lpips=None):
         net = colour_jitter(s["images"], g, preset.jitter)
         V = s["Ks"].shape[0]
         noise = torch.randn(V, 2, preset.height, preset.width, generator=g) * preset.automask_noise
-        return model.training_losses(s["images"], net, s["Ks"], s["cam_to_ego"], noise, lpips)
+        return model.training_losses(s["images"], net, s["Ks"], s["cam_to_ego"], noise, lpips, step)
 
     return sample_loss
 
@@ -81,7 +81,7 @@ def train(argv: list[str]) -> int:
         opt = torch.optim.Adam(model.parameters(), lr=preset.lr)
         spec = TrainSpec(out_dir=args.out, steps=args.steps or preset.steps,
                          batch_size=args.batch_size or preset.batch_size, checkpoint_every=args.checkpoint_every,
-                         seed=args.seed, resume=args.resume, progress=not args.no_progress)
+                         grad_clip=preset.grad_clip, seed=args.seed, resume=args.resume, progress=not args.no_progress)
         print(f"data {source.name}, torch threads {threads}", flush=True)
         run(model, opt, spec, preset, FAMILY, make_sample_loss(source, preset, args.seed, args.cameras, lpips))
         from ..common.train import distributed_info

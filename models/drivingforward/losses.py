@@ -102,6 +102,10 @@ def _neighbour_errors(target: Tensor, sources: Tensor, depth: Tensor, Ks: Tensor
     c = torch.tensor([p[0] for p in pairs], device=depth.device)
     n = torch.tensor([p[1] for p in pairs], device=depth.device)
     w, valid = warp(sources[n], depth[c, 0], Ks[c], Ks[n], T)
+    # only pixels whose whole 3x3 SSIM window is valid: in a rig's overlap strip (a few pixels wide
+    # at small sizes) the windows that reach the zero-filled outside otherwise dominate the error,
+    # and its gradient pushes depth away from the true scale
+    valid = -F.max_pool2d(-valid, 3, 1, 1)
     tgt = target[c]
     w = brightness_normalise(w, tgt, valid)
     return photometric_error(w, tgt), valid

@@ -161,16 +161,19 @@ class DrivingForward(nn.Module):
 
     # ------------------------------------------------------------------ training
     def training_losses(self, raw: Tensor, net: Tensor, Ks: Tensor, cam_to_ego: Tensor,
-                        noise: Tensor | None = None, lpips: nn.Module | None = None) -> dict[str, Tensor]:
+                        noise: Tensor | None = None, lpips: nn.Module | None = None,
+                        step: int | None = None) -> dict[str, Tensor]:
         """Every loss term of one sample (frames t-1, t, t+1).
 
         Args:
             raw: ``[3, V, 3, H, W]`` images (loss targets); net: the same, colour-jittered (network inputs);
             Ks ``[V, 3, 3]``; cam_to_ego ``[V, 4, 4]``; noise ``[V, 2, H, W]`` automask tie-break;
             lpips: LPIPS module for the render loss (None: the term is off and not reported).
+            step: the training step (for the preset's warm-up; None: no warm-up).
         Returns:
             ``loss`` (weighted total) and the terms ``reproj, smooth, spatial, spatio_temporal, render,
-            mse`` (and ``lpips`` when on).
+            mse`` (and ``lpips`` when on), and the logged-only ``diag_depth_median`` and
+            ``diag_translation`` (metres, pose network t -> t+1), no gradient.
         """
         p = self.preset
         for f in range(3):
@@ -184,11 +187,14 @@ class DrivingForward(nn.Module):
         d = self.depth_net(net[1], Ks, E)
         depth = d["depth"]
         tgt, srcs = raw[1], [raw[0], raw[2]]
+        warm = step is not None and step < p.warmup_steps
+        d_t = depth.detach() if warm and p.warmup_mode == "detach" else depth
+        ramp = min(1.0, (step + 1) / p.warmup_steps) if warm and p.warmup_mode == "ramp" else 1.0
         terms = {
-            "reproj": temporal_loss(tgt, srcs, depth, Ks, Tc, noise),
+            "reproj": temporal_loss(tgt, srcs, d_t, Ks, Tc, noise),
             "smooth": smoothness_loss(depth, tgt),
             "spatial": spatial_loss(tgt, depth, Ks, E),
-            "spatio_temporal": spatio_temporal_loss(tgt, srcs, depth, Ks, E, M),
+            "spatio_temporal": spatio_temporal_loss(tgt, srcs, d_t, Ks, E, M),
         }
         inv_E = invert_rigid(E)
         if p.mode == "SF":
@@ -208,6 +214,8 @@ class DrivingForward(nn.Module):
                 renders.append(self.render(gc, inv_E[c:c + 1], Ks[c:c + 1])[0])
             r = render_loss(torch.cat(renders), tgt, lpips, p.w_lpips)
         terms.update(r)
-        terms["loss"] = (terms["reproj"] + p.w_smooth * terms["smooth"] + p.w_spatial * terms["spatial"]
-                         + p.w_spatio_temporal * terms["spatio_temporal"] + p.w_render * terms["render"])
+        terms["diag_depth_median"] = depth.detach().median()   # logged, not optimised: shows a collapse
+        terms["diag_translation"] = T_next.detach()[:3, 3].norm()
+        terms["loss"] = (ramp * terms["reproj"] + p.w_smooth * terms["smooth"] + p.w_spatial * terms["spatial"]
+                         + ramp * p.w_spatio_temporal * terms["spatio_temporal"] + p.w_render * terms["render"])
         return terms

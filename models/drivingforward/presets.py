@@ -60,6 +60,7 @@ class DFPreset(Preset):
         background: render background colour (white in the release).
         near_plane, far_plane: renderer clipping.
         lr, batch_size, steps: Adam learning rate, global batch and default step count.
+        grad_clip: total gradient-norm clip (None: off, as in the paper).
         jitter: colour jitter (brightness, contrast, saturation, hue) on network inputs only.
         scenes_dt: seconds between frames t-1, t, t+1 of a synthetic sample.
     """
@@ -103,6 +104,9 @@ class DFPreset(Preset):
     near_plane: float = 0.01
     far_plane: float = 80.0
     lr: float = 1e-4
+    grad_clip: float | None = None
+    warmup_steps: int = 0
+    warmup_mode: str = "detach"
     batch_size: int = 1
     steps: int = 1000
     jitter: tuple[float, float, float, float] = (0.2, 0.2, 0.2, 0.05)
