@@ -45,6 +45,20 @@ def test_gradients_reach_every_parameter_through_render_and_through_warps(model,
     model.zero_grad()
 
 
+def test_warmup_trains_the_pose_network_only_through_the_temporal_terms(sample):
+    torch.manual_seed(0)
+    m = DrivingForward(TINY.replace(warmup_steps=2))
+    for step, depth_trained in ((1, False), (2, True)):
+        terms = m.training_losses(sample["images"], sample["images"], sample["Ks"], sample["cam_to_ego"],
+                                  step=step)
+        m.zero_grad()
+        (terms["reproj"] + terms["spatio_temporal"]).backward()
+        assert _without_grad(m, "pose_net") == []
+        assert (_without_grad(m, "depth_net") == []) == depth_trained, step
+    with pytest.raises(ValueError, match="warmup_steps"):
+        TINY.replace(warmup_steps=-1)
+
+
 def test_mf_mode_renders_frame_t_from_its_neighbours(sample):
     torch.manual_seed(0)
     m = DrivingForward(TINY.replace(mode="MF"))

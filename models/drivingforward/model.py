@@ -187,9 +187,10 @@ class DrivingForward(nn.Module):
         d = self.depth_net(net[1], Ks, E)
         depth = d["depth"]
         tgt, srcs = raw[1], [raw[0], raw[2]]
+        # warm-up: the temporal terms train the pose network only (their pull on an untrained
+        # pose's depth is towards the far plane; bench/RESULTS.md, DrivingForward)
         warm = step is not None and step < p.warmup_steps
-        d_t = depth.detach() if warm and p.warmup_mode == "detach" else depth
-        ramp = min(1.0, (step + 1) / p.warmup_steps) if warm and p.warmup_mode == "ramp" else 1.0
+        d_t = depth.detach() if warm else depth
         terms = {
             "reproj": temporal_loss(tgt, srcs, d_t, Ks, Tc, noise),
             "smooth": smoothness_loss(depth, tgt),
@@ -216,6 +217,6 @@ class DrivingForward(nn.Module):
         terms.update(r)
         terms["diag_depth_median"] = depth.detach().median()   # logged, not optimised: shows a collapse
         terms["diag_translation"] = T_next.detach()[:3, 3].norm()
-        terms["loss"] = (ramp * terms["reproj"] + p.w_smooth * terms["smooth"] + p.w_spatial * terms["spatial"]
-                         + ramp * p.w_spatio_temporal * terms["spatio_temporal"] + p.w_render * terms["render"])
+        terms["loss"] = (terms["reproj"] + p.w_smooth * terms["smooth"] + p.w_spatial * terms["spatial"]
+                         + p.w_spatio_temporal * terms["spatio_temporal"] + p.w_render * terms["render"])
         return terms

@@ -61,6 +61,8 @@ class DFPreset(Preset):
         near_plane, far_plane: renderer clipping.
         lr, batch_size, steps: Adam learning rate, global batch and default step count.
         grad_clip: total gradient-norm clip (None: off, as in the paper).
+        warmup_steps: for this many first steps the temporal and spatio-temporal losses train the
+            pose network only (the depth is detached from them); 0: off, as in the paper.
         jitter: colour jitter (brightness, contrast, saturation, hue) on network inputs only.
         scenes_dt: seconds between frames t-1, t, t+1 of a synthetic sample.
     """
@@ -106,7 +108,6 @@ class DFPreset(Preset):
     lr: float = 1e-4
     grad_clip: float | None = None
     warmup_steps: int = 0
-    warmup_mode: str = "detach"
     batch_size: int = 1
     steps: int = 1000
     jitter: tuple[float, float, float, float] = (0.2, 0.2, 0.2, 0.05)
@@ -122,6 +123,9 @@ class DFPreset(Preset):
             raise ValueError(f"preset {self.name}: sh_degree must be 0..3, got {self.sh_degree}")
         if not 0 < self.min_depth < self.max_depth:
             raise ValueError(f"preset {self.name}: need 0 < min_depth < max_depth")
+        if self.warmup_steps < 0 or (self.grad_clip is not None and not self.grad_clip > 0):
+            raise ValueError(f"preset {self.name}: warmup_steps must be >= 0 and grad_clip None or > 0, "
+                             f"got {self.warmup_steps} and {self.grad_clip}")
 
 
 PAPER = register("drivingforward", DFPreset(name="paper", height=352, width=640, steps=100000))

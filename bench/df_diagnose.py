@@ -1,0 +1,136 @@
+"""DrivingForward depth-collapse diagnosis: which loss term moves the depth scale, and where to.
+
+Two probes on fresh synthetic training streets (``bench/RESULTS.md``, DrivingForward, "Why the
+depth collapses"):
+
+* ``landscape``: every loss term with the depth replaced by the generator's true depth times a
+  factor (0.25 .. 8), with the true camera motion and with the pose network's; the Gaussian and
+  pose networks as initialised (seeded).
+* ``grads CHECKPOINT|init``: per term, the weighted gradient of the term with respect to the
+  logarithm of the predicted depth, summed over pixels (negative: a descent step makes the depth
+  farther), with the temporal terms attached as after any warm-up.
+
+    .venv/bin/python -m clsplat.bench.df_diagnose landscape --scenes 2
+    .venv/bin/python -m clsplat.bench.df_diagnose grads bench/out/df_small/checkpoint.pt --scenes 3
+"""
+from __future__ import annotations
+
+import argparse
+
+import torch
+
+FACTORS = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
+TERMS = ("reproj", "spatial", "spatio_temporal", "smooth", "render")
+
+
+def _setup(preset_name: str, checkpoint: str | None):
+    from clsplat.models.common.data import parse_data
+    from clsplat.models.common.presets import get_preset
+    from clsplat.models.drivingforward.model import DrivingForward
+
+    torch.manual_seed(0)
+    torch.set_num_threads(1)
+    if checkpoint:
+        from clsplat.models.drivingforward.cli import load_model
+        model, preset = load_model(checkpoint)
+    else:
+        preset = get_preset("drivingforward", preset_name)
+        model = DrivingForward(preset)
+    return model, preset, parse_data("synthetic")
+
+
+def landscape(preset_name: str, scenes: int) -> dict:
+    """Mean of each term over ``scenes`` streets for (pose in {true, net}, factor)."""
+    from clsplat.models.drivingforward.data import load_triplet
+
+    model, p, src = _setup(preset_name, None)
+    depth_fwd, pose_fwd = model.depth_net.forward, model.pose_net.forward
+    rows: dict = {}
+    try:
+        for idx in range(scenes):
+            s = load_triplet(src, idx, p, "train")
+            true_depth = s["depths"][1].unsqueeze(1).float().clamp(max=p.max_depth * 1.5)
+            V = s["viewmats"][:, 0].float()
+            true_motion = [V[1] @ torch.linalg.inv(V[0]), V[2] @ torch.linalg.inv(V[1])]
+            for pose in ("true", "net"):
+                for f in FACTORS:
+                    def depth_net(*a, f=f, **k):
+                        d = depth_fwd(*a, **k)
+                        d["depth"] = true_depth * f
+                        return d
+                    calls = iter(true_motion)   # training_losses asks for t-1 -> t, then t -> t+1
+                    model.depth_net.forward = depth_net
+                    model.pose_net.forward = (lambda *a, **k: next(calls)) if pose == "true" else pose_fwd
+                    with torch.no_grad():
+                        t = model.training_losses(s["images"], s["images"], s["Ks"], s["cam_to_ego"])
+                    for k in TERMS + ("mse", "loss"):
+                        rows.setdefault((pose, f), {}).setdefault(k, []).append(float(t[k]))
+    finally:
+        model.depth_net.forward, model.pose_net.forward = depth_fwd, pose_fwd
+    return {key: {k: sum(v) / len(v) for k, v in d.items()} for key, d in rows.items()}
+
+
+def grads(checkpoint: str | None, preset_name: str, scenes: int) -> list[dict]:
+    """Per street: median predicted depth and, per term, sum(d(w L)/d depth * depth)."""
+    from clsplat.models.drivingforward.data import load_triplet
+
+    model, p, src = _setup(preset_name, checkpoint)
+    w = {"reproj": 1.0, "spatial": p.w_spatial, "spatio_temporal": p.w_spatio_temporal,
+         "smooth": p.w_smooth, "render": p.w_render}
+    depth_fwd = model.depth_net.forward
+    out = []
+    try:
+        for idx in range(scenes):
+            s = load_triplet(src, 1000 + idx, p, "train")
+            box = {}
+
+            def depth_net(*a, **k):
+                d = depth_fwd(*a, **k)
+                d["depth"].retain_grad()
+                box["d"] = d["depth"]
+                return d
+            model.depth_net.forward = depth_net
+            t = model.training_losses(s["images"], s["images"], s["Ks"], s["cam_to_ego"])
+            row = {"median_depth": float(box["d"].median())}
+            for k in TERMS:
+                model.zero_grad()
+                box["d"].grad = None
+                (w[k] * t[k]).backward(retain_graph=True)
+                g = box["d"].grad
+                row[k] = 0.0 if g is None else float((g * box["d"]).sum())
+            out.append(row)
+    finally:
+        model.depth_net.forward = depth_fwd
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="cmd", required=True)
+    a1 = sub.add_parser("landscape")
+    a1.add_argument("--preset", default="small")
+    a1.add_argument("--scenes", type=int, default=2)
+    a2 = sub.add_parser("grads")
+    a2.add_argument("checkpoint", help="a DrivingForward checkpoint, or 'init' for the seeded initialisation")
+    a2.add_argument("--preset", default="small", help="with 'init'")
+    a2.add_argument("--scenes", type=int, default=3)
+    a = p.parse_args(argv)
+    if a.cmd == "landscape":
+        res = landscape(a.preset, a.scenes)
+        keys = TERMS[:-1] + ("mse", "loss")
+        print("| pose | depth x | " + " | ".join(keys) + " |")
+        print("|---|---|" + "---|" * len(keys))
+        for (pose, f), r in res.items():
+            print(f"| {pose} | {f} | " + " | ".join(f"{r[k]:.4f}" for k in keys) + " |")
+    else:
+        rows = grads(None if a.checkpoint == "init" else a.checkpoint, a.preset, a.scenes)
+        print("| street | median depth (m) | " + " | ".join(TERMS) + " |")
+        print("|---|---|" + "---|" * len(TERMS))
+        for i, r in enumerate(rows + [{k: sum(x[k] for x in rows) / len(rows) for k in rows[0]}]):
+            name = str(i) if i < len(rows) else "mean"
+            print(f"| {name} | {r['median_depth']:.1f} | " + " | ".join(f"{r[k]:+.2e}" for k in TERMS) + " |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
