@@ -38,6 +38,7 @@ def _run_phase(preset_name: str, phase: str, reps: int, threads: int = 1) -> dic
     from clsplat.models.common.presets import get_preset
     from clsplat.models.common.train import sample_generator
     from clsplat.models.drivingforward.data import colour_jitter, load_triplet
+    from clsplat.models.drivingforward.cli import make_optimizer
     from clsplat.models.drivingforward.model import DrivingForward
 
     torch.set_num_threads(threads)
@@ -53,7 +54,7 @@ def _run_phase(preset_name: str, phase: str, reps: int, threads: int = 1) -> dic
         return t
 
     if phase == "train":
-        opt = torch.optim.Adam(model.parameters(), lr=p.lr)
+        opt = make_optimizer(model, p)
         seen: list = []
         render = model.render
 

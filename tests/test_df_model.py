@@ -126,3 +126,14 @@ def test_bad_inputs_name_the_argument(model, sample):
         get_preset("drivingforward", "huge")
     with pytest.raises(ValueError, match="CAM_TOP"):
         load_triplet(parse_data("synthetic"), 0, TINY, cameras=["CAM_FRONT", "CAM_TOP"])
+
+
+def test_optimizer_gives_the_pose_network_its_own_learning_rate(model):
+    from clsplat.models.drivingforward.cli import make_optimizer
+
+    for pose_lr, expected in ((None, TINY.lr), (1e-3, 1e-3)):
+        opt = make_optimizer(model, TINY.replace(pose_lr=pose_lr))
+        rest, pose = opt.param_groups
+        assert rest["lr"] == TINY.lr and pose["lr"] == expected
+        assert {id(q) for q in pose["params"]} == {id(q) for q in model.pose_net.parameters()}
+        assert len(rest["params"]) + len(pose["params"]) == len(list(model.parameters()))

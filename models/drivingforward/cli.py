@@ -42,6 +42,15 @@ def build_model(preset, weights=None, device=None):
     return model
 
 
+def make_optimizer(model, preset) -> torch.optim.Adam:
+    """Adam at ``preset.lr``; the pose network at ``preset.pose_lr`` when the preset sets one."""
+    pose = list(model.pose_net.parameters())
+    ids = {id(q) for q in pose}
+    rest = [q for q in model.parameters() if id(q) not in ids]
+    groups = [{"params": rest}, {"params": pose, "lr": preset.pose_lr or preset.lr}]
+    return torch.optim.Adam(groups, lr=preset.lr)
+
+
 def make_sample_loss(source, preset, seed: int, cameras=None, lpips=None):
     """``sample_loss(model, step, index)`` for :func:`clsplat.models.common.train.train`: window
     ``index`` of the train split, jitter and automask noise from the sample's own generator."""
@@ -78,7 +87,7 @@ def train(argv: list[str]) -> int:
         seed_everything(args.seed)
         model = build_model(preset, args.weights, args.device)
         lpips = lpips_from_args(args)
-        opt = torch.optim.Adam(model.parameters(), lr=preset.lr)
+        opt = make_optimizer(model, preset)
         spec = TrainSpec(out_dir=args.out, steps=args.steps or preset.steps,
                          batch_size=args.batch_size or preset.batch_size, checkpoint_every=args.checkpoint_every,
                          grad_clip=preset.grad_clip, seed=args.seed, resume=args.resume, progress=not args.no_progress)

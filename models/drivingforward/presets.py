@@ -60,6 +60,7 @@ class DFPreset(Preset):
         background: render background colour (white in the release).
         near_plane, far_plane: renderer clipping.
         lr, batch_size, steps: Adam learning rate, global batch and default step count.
+        pose_lr: Adam learning rate of the pose network (None: ``lr``, as in the paper).
         grad_clip: total gradient-norm clip (None: off, as in the paper).
         warmup_steps: for this many first steps the temporal and spatio-temporal losses train the
             pose network only (the depth is detached from them); 0: off, as in the paper.
@@ -106,6 +107,7 @@ class DFPreset(Preset):
     near_plane: float = 0.01
     far_plane: float = 80.0
     lr: float = 1e-4
+    pose_lr: float | None = None
     grad_clip: float | None = None
     warmup_steps: int = 0
     batch_size: int = 1
@@ -123,9 +125,12 @@ class DFPreset(Preset):
             raise ValueError(f"preset {self.name}: sh_degree must be 0..3, got {self.sh_degree}")
         if not 0 < self.min_depth < self.max_depth:
             raise ValueError(f"preset {self.name}: need 0 < min_depth < max_depth")
-        if self.warmup_steps < 0 or (self.grad_clip is not None and not self.grad_clip > 0):
-            raise ValueError(f"preset {self.name}: warmup_steps must be >= 0 and grad_clip None or > 0, "
-                             f"got {self.warmup_steps} and {self.grad_clip}")
+        if self.warmup_steps < 0:
+            raise ValueError(f"preset {self.name}: warmup_steps must be >= 0, got {self.warmup_steps}")
+        for name in ("pose_lr", "grad_clip"):
+            v = getattr(self, name)
+            if v is not None and not v > 0:
+                raise ValueError(f"preset {self.name}: {name} must be None or > 0, got {v}")
 
 
 PAPER = register("drivingforward", DFPreset(name="paper", height=352, width=640, steps=100000))
