@@ -9,9 +9,16 @@ depth collapses"):
 * ``grads CHECKPOINT|init``: per term, the weighted gradient of the term with respect to the
   logarithm of the predicted depth, summed over pixels (negative: a descent step makes the depth
   farther), with the temporal terms attached as after any warm-up.
+* ``motion CHECKPOINT|init``: the temporal terms and the render error with the network's own depth
+  and the true camera motion scaled by 0 .. 3, and per street the pose network's t -> t+1
+  translation beside the true one and the gradient of the total loss with respect to it.
+
+A checkpoint's weights are loaded into ``--preset``'s networks as they are (its optimisation
+fields, such as a probe's learning rate, need not match).
 
     .venv/bin/python -m clsplat.bench.df_diagnose landscape --scenes 2
     .venv/bin/python -m clsplat.bench.df_diagnose grads bench/out/df_small/checkpoint.pt --scenes 3
+    .venv/bin/python -m clsplat.bench.df_diagnose motion bench/out/df_small/checkpoint.pt --scenes 3
 """
 from __future__ import annotations
 
@@ -30,12 +37,11 @@ def _setup(preset_name: str, checkpoint: str | None):
 
     torch.manual_seed(0)
     torch.set_num_threads(1)
+    preset = get_preset("drivingforward", preset_name)
+    model = DrivingForward(preset)
     if checkpoint:
-        from clsplat.models.drivingforward.cli import load_model
-        model, preset = load_model(checkpoint)
-    else:
-        preset = get_preset("drivingforward", preset_name)
-        model = DrivingForward(preset)
+        from clsplat.models.common.train import load_checkpoint
+        model.load_state_dict(load_checkpoint(checkpoint, "drivingforward")["model"])
     return model, preset, parse_data("synthetic")
 
 
@@ -104,6 +110,55 @@ def grads(checkpoint: str | None, preset_name: str, scenes: int) -> list[dict]:
     return out
 
 
+MOTION_SCALES = (0.0, 0.1, 0.25, 0.5, 1.0, 2.0, 3.0)
+
+
+def motion(checkpoint: str | None, preset_name: str, scenes: int) -> tuple[dict, list[dict]]:
+    """(mean terms per motion scale, per street the predicted and true translation and dL/dt)."""
+    from clsplat.models.drivingforward import pose as pose_module
+    from clsplat.models.drivingforward.data import load_triplet
+
+    model, p, src = _setup(preset_name, checkpoint)
+    pose_fwd, se3_exp = model.pose_net.forward, pose_module.se3_exp
+    scan: dict = {}
+    streets = []
+    try:
+        for idx in range(scenes):
+            s = load_triplet(src, 1000 + idx, p, "train")
+            V = s["viewmats"][:, 0].float()
+            true = [V[1] @ torch.linalg.inv(V[0]), V[2] @ torch.linalg.inv(V[1])]
+            for a in MOTION_SCALES:
+                scaled = []
+                for T in true:
+                    T = T.clone()
+                    T[:3, 3] *= a
+                    scaled.append(T)
+                calls = iter(scaled)
+                model.pose_net.forward = lambda *x, **k: next(calls)
+                with torch.no_grad():
+                    t = model.training_losses(s["images"], s["images"], s["Ks"], s["cam_to_ego"])
+                for k in ("reproj", "spatio_temporal", "mse"):
+                    scan.setdefault(a, {}).setdefault(k, []).append(float(t[k]))
+            model.pose_net.forward = pose_fwd
+            outs = []
+
+            def hooked(rot, trans):
+                trans.retain_grad()
+                outs.append(trans)
+                return se3_exp(rot, trans)
+            pose_module.se3_exp = hooked
+            t = model.training_losses(s["images"], s["images"], s["Ks"], s["cam_to_ego"])
+            pose_module.se3_exp = se3_exp
+            model.zero_grad()
+            t["loss"].backward()
+            nxt = outs[1]                       # training_losses asks for t-1 -> t, then t -> t+1
+            streets.append({"true": true[1][:3, 3].tolist(), "pred": nxt.detach().tolist(),
+                            "dL_dt": nxt.grad.tolist()})
+    finally:
+        model.pose_net.forward, pose_module.se3_exp = pose_fwd, se3_exp
+    return {a: {k: sum(v) / len(v) for k, v in d.items()} for a, d in scan.items()}, streets
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -114,6 +169,10 @@ def main(argv: list[str] | None = None) -> int:
     a2.add_argument("checkpoint", help="a DrivingForward checkpoint, or 'init' for the seeded initialisation")
     a2.add_argument("--preset", default="small", help="with 'init'")
     a2.add_argument("--scenes", type=int, default=3)
+    a3 = sub.add_parser("motion")
+    a3.add_argument("checkpoint", help="a DrivingForward checkpoint, or 'init'")
+    a3.add_argument("--preset", default="small")
+    a3.add_argument("--scenes", type=int, default=3)
     a = p.parse_args(argv)
     if a.cmd == "landscape":
         res = landscape(a.preset, a.scenes)
@@ -122,6 +181,17 @@ def main(argv: list[str] | None = None) -> int:
         print("|---|---|" + "---|" * len(keys))
         for (pose, f), r in res.items():
             print(f"| {pose} | {f} | " + " | ".join(f"{r[k]:.4f}" for k in keys) + " |")
+    elif a.cmd == "motion":
+        scan, streets = motion(None if a.checkpoint == "init" else a.checkpoint, a.preset, a.scenes)
+        print("| true motion x | reproj | spatio_temporal | mse |")
+        print("|---|---|---|---|")
+        for f, r in scan.items():
+            print(f"| {f} | {r['reproj']:.4f} | {r['spatio_temporal']:.4f} | {r['mse']:.4f} |")
+        print("\n| street | true t -> t+1 (m) | predicted (m) | dL/dt |")
+        print("|---|---|---|---|")
+        for i, r in enumerate(streets):
+            fmt = lambda v, f: "(" + ", ".join(format(x, f) for x in v) + ")"  # noqa: E731
+            print(f"| {i} | {fmt(r['true'], '.3f')} | {fmt(r['pred'], '.4f')} | {fmt(r['dL_dt'], '+.1e')} |")
     else:
         rows = grads(None if a.checkpoint == "init" else a.checkpoint, a.preset, a.scenes)
         print("| street | median depth (m) | " + " | ".join(TERMS) + " |")
