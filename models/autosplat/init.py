@@ -63,6 +63,26 @@ class BackgroundInit:
         return int(self.means.shape[0])
 
 
+def project_to_pixels(seq: DrivingSequence, i: int, cam: str, points: np.ndarray, min_z: float):
+    """Where world ``points [N, 3]`` land in camera ``cam`` at frame ``i``.
+
+    Returns:
+        ``vis [N]`` (in front, z > ``min_z``, and inside the image), ``lin [N]`` int64 row-major
+        pixel index (0 where not visible), ``z [N]`` camera depth, ``u, v [N]`` pixel columns and
+        rows (floored; NaN or inf behind the camera).
+    """
+    c = seq.camera(cam)
+    w2c = np.linalg.inv(seq.cam_to_world(i, cam))
+    pc = points @ w2c[:3, :3].T + w2c[:3, 3]
+    uvw = pc @ c.K.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.floor(uvw[:, 0] / uvw[:, 2])
+        v = np.floor(uvw[:, 1] / uvw[:, 2])
+    vis = (pc[:, 2] > min_z) & (u >= 0) & (u < c.width) & (v >= 0) & (v < c.height)
+    lin = np.where(vis, v * c.width + u, 0).astype(np.int64)
+    return vis, lin, pc[:, 2], u, v
+
+
 def pixel_classes(frame: Frame, camera: str) -> np.ndarray | None:
     """``[H, W]`` uint8 background class of each pixel from the frame's semantics, None without."""
     sem = frame.semantics.get(camera)
@@ -174,15 +194,7 @@ def _colour_points(seq: DrivingSequence, i: int, cams: Sequence[str], pts: np.nd
         zimg = torch.from_numpy(zbuf.reshape(1, 1, H, W))
         zimg = -torch.nn.functional.max_pool2d(-zimg, ZBUF_WINDOW, 1, ZBUF_WINDOW // 2)
         zbuf = zimg.reshape(-1).numpy()
-        pc = pts @ w2c[:3, :3].T + w2c[:3, 3]
-        z = pc[:, 2]
-        front = z > 0.1
-        uvw = pc @ cam.K.T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = np.floor(uvw[:, 0] / uvw[:, 2])
-            v = np.floor(uvw[:, 1] / uvw[:, 2])
-        vis = front & (u >= 0) & (u < W) & (v >= 0) & (v < H)
-        lin = np.where(vis, v * W + u, 0).astype(np.int64)
+        vis, lin, z, u, v = project_to_pixels(seq, i, c, pts, 0.1)
         vis &= z <= zbuf[lin] * 1.03 + 0.1
         # prefer the view that sees the point closest to the image centre
         centre = np.hypot(u - W / 2, v - H / 2) / max(W, H)
@@ -222,15 +234,7 @@ def _sky_dome(seq: DrivingSequence, frame_ids: Sequence[int], cams: Sequence[str
             pcls = pixel_classes(f, c)
             if pcls is None:
                 continue
-            cam = seq.camera(c)
-            w2c = np.linalg.inv(seq.cam_to_world(i, c))
-            pc = means @ w2c[:3, :3].T + w2c[:3, 3]
-            uvw = pc @ cam.K.T
-            with np.errstate(divide="ignore", invalid="ignore"):
-                u = np.floor(uvw[:, 0] / uvw[:, 2])
-                v = np.floor(uvw[:, 1] / uvw[:, 2])
-            vis = (pc[:, 2] > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-            lin = np.where(vis, v * cam.width + u, 0).astype(np.int64)
+            vis, lin, _, _, _ = project_to_pixels(seq, i, c, means, 0.0)
             vis &= pcls.reshape(-1)[lin] == SKY
             acc[vis] += f.images[c].reshape(-1, 3)[lin[vis]]
             cnt[vis] += 1

@@ -25,6 +25,8 @@ from torch import nn
 
 from clsplat.data.scene import DrivingSequence, invert_transform
 
+from .init import project_to_pixels
+
 __all__ = ["car_template", "box_surface_template", "sh_mirror_signs", "mirror_means", "mirror_quats",
            "mirror_sh", "ResidualSH", "object_points_and_colours"]
 
@@ -172,15 +174,7 @@ def object_points_and_colours(seq: DrivingSequence, track_id: int, frame_ids: Se
         f = seq.frames[i]
         pw = pts @ b.box_to_world[:3, :3].T + b.box_to_world[:3, 3]
         for c in cameras:
-            cam = seq.camera(c)
-            w2c = np.linalg.inv(seq.cam_to_world(i, c))
-            pc = pw @ w2c[:3, :3].T + w2c[:3, 3]
-            uvw = pc @ cam.K.T
-            with np.errstate(divide="ignore", invalid="ignore"):
-                u = np.floor(uvw[:, 0] / uvw[:, 2])
-                v = np.floor(uvw[:, 1] / uvw[:, 2])
-            vis = (pc[:, 2] > 0.1) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-            lin = np.where(vis, v * cam.width + u, 0).astype(np.int64)
+            vis, lin, _, _, _ = project_to_pixels(seq, i, c, pw, 0.1)
             inst = f.instances.get(c)
             if inst is not None:
                 vis &= inst.reshape(-1)[lin] == track_id

@@ -34,7 +34,7 @@ from ..common.train import (JsonlLog, capture_rng, load_checkpoint, plot_losses,
                             save_checkpoint, seed_everything)
 from .background import flatness, foreground_mask, masked_photometric, reference_frames
 from .densify import GaussianParams, GradStats, densify_and_prune
-from .init import OTHER, ROAD, SKY, UNKNOWN, BG_CLASSES, init_background, pixel_classes
+from .init import OTHER, ROAD, SKY, UNKNOWN, BG_CLASSES, init_background, pixel_classes, project_to_pixels
 from .model import AutoSplatModel, Switches, collect_tracks
 from .objects import object_points_and_colours
 from .presets import AutoSplatPreset
@@ -78,15 +78,9 @@ def _lidar_classes(seq: DrivingSequence, i: int, cam: str) -> np.ndarray:
         return out
     pts = f.lidar.to_world(f.ego_to_world).points.astype(np.float64)
     lab = np.asarray(labels[i])
-    w2c = np.linalg.inv(seq.cam_to_world(i, cam))
-    pc = pts @ w2c[:3, :3].T + w2c[:3, 3]
-    ok = pc[:, 2] > 0.1
-    uvw = pc[ok] @ c.K.T
-    u = np.floor(uvw[:, 0] / uvw[:, 2]).astype(np.int64)
-    v = np.floor(uvw[:, 1] / uvw[:, 2]).astype(np.int64)
-    ins = (u >= 0) & (u < c.width) & (v >= 0) & (v < c.height)
+    vis, lin, _, _, _ = project_to_pixels(seq, i, cam, pts, 0.1)
     road = np.zeros((c.height, c.width), np.float32)
-    road[v[ins], u[ins]] = (lab[ok][ins] == ROAD_SEMANTIC)
+    road.reshape(-1)[lin[vis]] = lab[vis] == ROAD_SEMANTIC
     road = torch.nn.functional.max_pool2d(torch.from_numpy(road)[None, None], 3, 1, 1)[0, 0].numpy() > 0
     out[road] = ROAD
     return out
