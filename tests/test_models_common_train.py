@@ -182,6 +182,21 @@ def test_presets_registry_and_description():
         presets.get_preset("toy2", "x")
 
 
+def test_checkpoint_from_before_a_new_preset_field_loads_while_the_field_keeps_its_default():
+    @dataclass(frozen=True)
+    class P(presets.Preset):
+        name: str
+        size: int = 3
+        added_later: float | None = None
+
+    old = {"name": "x", "size": 3}
+    presets.check_preset_matches(old, P("x"), "old.pt")
+    with pytest.raises(ValueError, match="old.pt.*added_later: None != 0.5"):
+        presets.check_preset_matches(old, P("x", added_later=0.5), "old.pt")
+    with pytest.raises(ValueError, match="size: 3 != 4"):
+        presets.check_preset_matches(old, P("x", size=4), "old.pt")
+
+
 def test_sample_generator_depends_only_on_seed_and_index():
     a = torch.rand(3, generator=sample_generator(1, 5))
     torch.rand(10)

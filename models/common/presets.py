@@ -84,7 +84,14 @@ def check_preset_matches(saved: dict, preset: Preset, where: str) -> None:
         return
     if not isinstance(saved, dict):
         raise ValueError(f"{where}: checkpoint has no preset record")
-    diff = sorted(k for k in set(saved) | set(mine) if saved.get(k) != mine.get(k))
+    # a field added to the preset class after the checkpoint was written matches while it keeps
+    # its default: the run that wrote the checkpoint behaved as that default does
+    defaults = json.loads(json.dumps({f.name: f.default for f in dataclasses.fields(preset)  # type: ignore[arg-type]
+                                      if f.default is not dataclasses.MISSING}))
+    diff = sorted(k for k in set(saved) | set(mine) if saved.get(k) != mine.get(k)
+                  and not (k not in saved and k in defaults and mine.get(k) == defaults[k]))
+    if not diff:
+        return
     shown = ", ".join(f"{k}: {saved.get(k)!r} != {mine.get(k)!r}" for k in diff[:5])
     raise ValueError(f"{where}: checkpoint was made with preset {saved.get('name')!r}, not "
                      f"{mine.get('name')!r} ({shown}{', ...' if len(diff) > 5 else ''})")
