@@ -202,23 +202,35 @@ def _live(params: Params, min_opacity: float, what: str) -> Tensor:
     return live
 
 
+def _draw_and_share(params: Params, n: int, binoms: Tensor, min_opacity: float, relocation: Callable,
+                    what: str) -> tuple[Tensor, Callable[[str, Tensor], Tensor]]:
+    """Draw ``n`` live sources by opacity; returns them and ``shared(name, p)``: a copy of the
+    parameter ``p`` with each source's opacity and scale already reduced for its copies."""
+    live = _live(params, min_opacity, what)
+    o = torch.sigmoid(params["opacities"].flatten())
+    src = live[_sample(o[live], n)]
+    logit_o, log_s = _relocated(params, src, binoms, min_opacity, relocation)
+
+    def shared(name: str, p: Tensor) -> Tensor:
+        p = p.clone()
+        if name == "opacities":
+            p[src] = logit_o
+        elif name == "scales":
+            p[src] = log_s
+        return p
+    return src, shared
+
+
 @torch.no_grad()
 def relocate(params: Params, optimizers, state: Dict[str, Any], mask: Tensor, binoms: Tensor,
              min_opacity: float = 0.005, relocation: Callable = compute_relocation) -> None:
     """Move every dead Gaussian (``mask``) onto a live one drawn by opacity; the source and
     its copies share its opacity and scale (``relocation``, default :func:`compute_relocation`)."""
     dead = mask.nonzero()[:, 0]
-    live = _live(params, min_opacity, "relocate")
-    o = torch.sigmoid(params["opacities"].flatten())
-    src = live[_sample(o[live], len(dead))]
-    logit_o, log_s = _relocated(params, src, binoms, min_opacity, relocation)
+    src, shared = _draw_and_share(params, len(dead), binoms, min_opacity, relocation, "relocate")
 
     def param_fn(name: str, p: Tensor) -> Tensor:
-        p = p.clone()
-        if name == "opacities":
-            p[src] = logit_o
-        elif name == "scales":
-            p[src] = log_s
+        p = shared(name, p)
         p[dead] = p[src]
         return p
 
@@ -235,17 +247,10 @@ def relocate(params: Params, optimizers, state: Dict[str, Any], mask: Tensor, bi
 def sample_add(params: Params, optimizers, state: Dict[str, Any], n: int, binoms: Tensor,
                min_opacity: float = 0.005, relocation: Callable = compute_relocation) -> None:
     """Append n Gaussians, copies of live ones drawn by opacity (sharing as in :func:`relocate`)."""
-    live = _live(params, min_opacity, "sample_add")
-    o = torch.sigmoid(params["opacities"].flatten())
-    src = live[_sample(o[live], n)]
-    logit_o, log_s = _relocated(params, src, binoms, min_opacity, relocation)
+    src, shared = _draw_and_share(params, n, binoms, min_opacity, relocation, "sample_add")
 
     def param_fn(name: str, p: Tensor) -> Tensor:
-        p = p.clone()
-        if name == "opacities":
-            p[src] = logit_o
-        elif name == "scales":
-            p[src] = log_s
+        p = shared(name, p)
         return torch.cat([p, p[src]])
 
     _rebuild(params, optimizers, param_fn,

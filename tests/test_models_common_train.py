@@ -15,8 +15,8 @@ import pytest
 import torch
 
 from clsplat.models.common import presets
-from clsplat.models.common.train import (JsonlLog, TrainSpec, atomic_write, load_checkpoint, sample_generator,
-                                         save_checkpoint, train)
+from clsplat.models.common.train import (JsonlLog, TrainSpec, atomic_write, clip_and_measure, load_checkpoint,
+                                         sample_generator, save_checkpoint, train)
 
 # The toy family lives in a module the DDP subprocess can import too.
 TOY = textwrap.dedent('''
@@ -153,6 +153,11 @@ def test_checkpoint_errors_name_the_file(toy, tmp_path):
         load_checkpoint(tmp_path / "other.pt")
     with pytest.raises(ValueError, match="steps: the checkpoint is at step 2"):
         t.run(tmp_path / "c", 1, resume=True)
+    model = t.Toy(8).double()
+    two_groups = torch.optim.Adam([{"params": model.net.parameters()}, {"params": model.unused.parameters()}])
+    spec = TrainSpec(out_dir=tmp_path / "c", steps=3, resume=True, progress=False)
+    with pytest.raises(ValueError, match="resume: .*checkpoint.pt does not fit this model or optimiser"):
+        train(model, two_groups, spec, t.ToyPreset(), "toy", lambda m, s, i: t.sample_loss(m, s, i))
 
 
 def test_atomic_write_keeps_the_old_file_when_writing_fails(tmp_path):
@@ -210,3 +215,16 @@ def test_log_keeps_lines_up_to_the_resumed_step(tmp_path):
     log = JsonlLog(p, resume_step=3)
     log.write({"step": 4, "loss": 0.5})
     assert [json.loads(x)["step"] for x in p.read_text().splitlines()] == [1, 2, 3, 4]
+
+
+def test_gradient_norm_is_measured_without_touching_unclipped_gradients():
+    """Finite gradients whose norm overflows float32: logged as inf, left as they are without a
+    clip (a clip to inf would have made them NaN), scaled to zero with one."""
+    p = torch.nn.Parameter(torch.zeros(3))
+    p.grad = torch.tensor([1e20, 1e20, 1.0])
+    assert clip_and_measure([p], None) == float("inf")
+    assert torch.equal(p.grad, torch.tensor([1e20, 1e20, 1.0]))
+    q = torch.nn.Parameter(torch.zeros(2))
+    q.grad = torch.tensor([3.0, 4.0])
+    assert clip_and_measure([q], 1.0) == 5.0 and torch.allclose(q.grad.norm(), torch.tensor(1.0))
+    assert clip_and_measure([torch.nn.Parameter(torch.zeros(1))], None) == 0.0

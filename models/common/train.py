@@ -275,6 +275,18 @@ def _allreduce_gradients(params: list[torch.nn.Parameter], extra: torch.Tensor) 
 # ---------------------------------------------------------------------------------------
 # the loop
 # ---------------------------------------------------------------------------------------
+def clip_and_measure(params: list[torch.nn.Parameter], clip: float | None) -> float:
+    """Total gradient norm of ``params`` (logged every step), clipping to ``clip`` when given.
+
+    Without a clip the gradients are only measured, never rescaled: ``clip_grad_norm_`` with an
+    infinite bound would multiply them by inf/inf = NaN when finite gradients overflow the norm.
+    """
+    if clip is not None:
+        return float(torch.nn.utils.clip_grad_norm_(params, clip))
+    grads = [q.grad for q in params if q.grad is not None]
+    return float(torch.nn.utils.get_total_norm(grads)) if grads else 0.0
+
+
 @dataclass
 class TrainSpec:
     """How to run: steps, global batch, checkpoints, seed, clipping, resume."""
@@ -342,10 +354,14 @@ def train(model: torch.nn.Module, optimizer: torch.optim.Optimizer, spec: TrainS
     start, resumed_from = 0, None
     if spec.resume:
         ck = load_checkpoint(ckpt_path, family, preset)
-        model.load_state_dict(ck["model"])
-        optimizer.load_state_dict(ck["optimizer"])
-        if scheduler is not None and ck.get("scheduler") is not None:
-            scheduler.load_state_dict(ck["scheduler"])
+        try:
+            model.load_state_dict(ck["model"])
+            optimizer.load_state_dict(ck["optimizer"])
+            if scheduler is not None and ck.get("scheduler") is not None:
+                scheduler.load_state_dict(ck["scheduler"])
+        except (RuntimeError, ValueError, KeyError) as e:
+            raise ValueError(f"resume: {ckpt_path} does not fit this model or optimiser (written by another "
+                             f"version of clsplat?): {str(e).splitlines()[0]}") from e
         if extra_state is not None:
             extra_state.update(ck.get("extra", {}))
         restore_rng(ck["rng"])
@@ -400,9 +416,7 @@ def train(model: torch.nn.Module, optimizer: torch.optim.Optimizer, spec: TrainS
             grads_ok = all(torch.isfinite(p.grad).all() for p in params if p.grad is not None)
             ok = bool(stats[-1] == 0) and grads_ok
             if ok:
-                # the total norm is logged whether or not it is clipped (max_norm inf scales by exactly 1)
-                grad_norm = float(torch.nn.utils.clip_grad_norm_(
-                    params, spec.grad_clip if spec.grad_clip is not None else math.inf))
+                grad_norm = clip_and_measure(params, spec.grad_clip)
                 optimizer.step()
                 if scheduler is not None:
                     scheduler.step()
