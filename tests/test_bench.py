@@ -51,7 +51,7 @@ def test_backward_schema(out):
         for st in b["backward_stages_ms"].values():
             assert {"median", "min", "max", "spread_pct"} <= set(st)
         assert b["backward_kernel_total_ms"]["median"] > 0 and b["forward_kernel_total_ms"]["median"] > 0
-        assert b["bwd_fwd_ratio_kernels"] > 0 and b["bwd_fwd_target"] == 2.5
+        assert b["bwd_fwd_ratio_kernels"] > 0
         assert "backward_kernel_total" in b["first_call_ms"]
         m = b["slot_memory"]
         assert m["sizeof_real"] == 4 and m["bytes_per_intersection"] == m["slot_width"] * 4
