@@ -5,7 +5,6 @@ import math
 import pytest
 import torch
 
-from clsplat.models.common.backbones import ResidualBlock, ResidualUNetEncoder
 from clsplat.models.common.data import parse_data
 from clsplat.models.common.presets import get_preset
 from clsplat.models.drivingforward.data import load_triplet
@@ -36,6 +35,21 @@ def resnet18(cin):
     return n
 
 
+def residual_block(i, o, s=1):
+    """GPS-Gaussian's residual block: two 3x3 convs with bias, each followed by a GroupNorm
+    (weight + bias), and a 1x1 conv + GroupNorm shortcut when the shape changes."""
+    n = conv(i, o, 3) + 2 * o + conv(o, o, 3) + 2 * o
+    return n + (conv(i, o, 1) + 2 * o if s != 1 or i != o else 0)
+
+
+def residual_unet_encoder(cin, channels):
+    """5x5 stride-2 stem conv + GroupNorm, then stages of two residual blocks (1/2, 1/4, 1/8)."""
+    c0, c1, c2 = channels
+    R = residual_block
+    return (conv(cin, c0, 5) + 2 * c0 + 2 * R(c0, c0) + R(c0, c1, 2) + R(c1, c1)
+            + R(c1, c2, 2) + R(c2, c2))
+
+
 def paper_counts(p):
     X, Y, Z = p.voxel_shape
     reduce = conv(128 + 256 + 512, 256, 1)
@@ -49,9 +63,9 @@ def paper_counts(p):
     depth = resnet18(3) + reduce + depth_fusion + decoder
     pose = (resnet18(6) + reduce + conv(c1 * Z, 256, 3) + conv(256, 128, 3)
             + conv(128, 256, 1) + 2 * conv(256, 256, 3) + conv(256, 6, 1))
-    R = ResidualBlock.num_params
+    R = residual_block
     K = (p.sh_degree + 1) ** 2
-    gauss = (ResidualUNetEncoder.num_params(1, (32, 48, 96), "group")
+    gauss = (residual_unet_encoder(1, (32, 48, 96))
              + R(128 + 96, 96) + R(96 + 64 + 48, 64) + R(64 + 64 + 32, 48) + conv(48 + 3 + 1, 32, 3)
              + sum(conv(32, 32, 3) + conv(32, o, 1) for o in (4, 3, 1, 3 * K)))
     return {"pose": pose, "depth": depth, "gaussian": gauss}
