@@ -53,7 +53,7 @@ def test_project_bwd_matches_reference(make_scene, seed, antialiased):
     (0.01, 4.2, 0.3, 0.0),     # a far plane that culls part of it
     (0.01, 1e10, 0.0, 0.0),    # no screen-space dilation
     (0.01, 1e10, 3.0, 0.0),    # heavy dilation (radii and conics dominated by eps2d)
-    (0.01, 1e10, 0.3, 2.5),    # radius_clip drops the small splats
+    (0.01, 1e10, 0.3, 5.0),    # radius_clip drops the small splats
 ])
 def test_project_bwd_matches_reference_at_each_culling_knob(make_scene, near, far, eps2d, radius_clip):
     """Gradients match the reference for each projection knob, with part of the scene culled
@@ -66,6 +66,6 @@ def test_project_bwd_matches_reference_at_each_culling_knob(make_scene, near, fa
                       scene["width"], scene["height"], near_plane=near, far_plane=far, eps2d=eps2d,
                       radius_clip=radius_clip)["visible"]
     if near > 1 or far < 100 or radius_clip > 0:
-        assert 0.1 < vis.double().mean() < 0.995    # the knob culls part of the scene, not all
+        assert 0.1 < vis.double().mean() < 0.9   # the knob culls part of the scene, not all
     for name, a, b in zip(("means", "quats", "scales", "opacities", "viewmats"), g64, g_ref):
         assert ((a - b).norm() / b.norm().clamp_min(1e-12)).item() < 1e-9, name
