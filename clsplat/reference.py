@@ -20,20 +20,12 @@ import torch
 
 from . import constants as K
 from .config import RenderConfig
+from .quaternion import quat_to_rotmat
 from .validate import check_rasterization_inputs
 
 __all__ = ["project", "sh_colors", "composite", "rasterization", "_rasterization", "SH_C"]
 
 F64 = torch.float64
-
-
-def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
-    """[..., 4] wxyz (any norm) -> [..., 3, 3]."""
-    w, x, y, z = (q / q.norm(dim=-1, keepdim=True)).unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1).reshape(*q.shape[:-1], 3, 3)
 
 
 class _Compensation(torch.autograd.Function):

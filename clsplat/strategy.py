@@ -27,8 +27,9 @@ from dataclasses import dataclass
 from typing import Any, Callable, Dict, Optional, Union
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
+
+from .quaternion import quat_to_rotmat
 
 __all__ = ["Strategy", "DefaultStrategy", "MCMCStrategy", "compute_relocation",
            "quat_scale_to_covar_preci", "duplicate", "split", "remove", "reset_opa",
@@ -39,15 +40,6 @@ Params = Union[Dict[str, torch.nn.Parameter], torch.nn.ParameterDict]
 
 # ---- geometry and relocation ----------------------------------------------------------------
 
-def _rotmats(quats: Tensor) -> Tensor:
-    """[N, 4] wxyz (any norm) -> [N, 3, 3]."""
-    w, x, y, z = F.normalize(quats, dim=-1).unbind(-1)
-    return torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-                        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-                        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-                       -1).reshape(quats.shape[:-1] + (3, 3))
-
-
 def quat_scale_to_covar_preci(quats: Tensor, scales: Tensor, compute_covar: bool = True,
                               compute_preci: bool = True, triu: bool = False):
     """Covariances R S S R^T and precisions (their inverses) of Gaussians, in torch.
@@ -55,7 +47,7 @@ def quat_scale_to_covar_preci(quats: Tensor, scales: Tensor, compute_covar: bool
     quats [..., 4] wxyz, scales [..., 3] -> (covars, precis), each [..., 3, 3] or, with
     ``triu``, the upper triangle [..., 6] (xx, xy, xz, yy, yz, zz); None where not asked for.
     """
-    R = _rotmats(quats)
+    R = quat_to_rotmat(quats)
     out = []
     for want, s in ((compute_covar, scales), (compute_preci, 1.0 / scales)):
         if not want:
@@ -138,7 +130,7 @@ def split(params: Params, optimizers, state: Dict[str, Any], mask: Tensor,
     survivors keep their order and the new pairs are appended."""
     sel, rest = mask.nonzero()[:, 0], (~mask).nonzero()[:, 0]
     s = torch.exp(params["scales"][sel])
-    R = _rotmats(params["quats"][sel])
+    R = quat_to_rotmat(params["quats"][sel])
     offsets = (R[None] @ (s[None] * torch.randn(2, len(sel), 3, device=s.device,
                                                  dtype=s.dtype))[..., None])[..., 0]  # [2, n, 3]
 

@@ -14,6 +14,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from clsplat.quaternion import quat_to_rotmat
+
 __all__ = ["pixel_centres", "unproject", "project", "warp", "axis_angle_to_matrix",
            "matrix_to_axis_angle", "se3_exp", "invert_rigid", "check_rigid", "quat_to_matrix",
            "matrix_to_quat", "quat_multiply"]
@@ -177,13 +179,10 @@ def check_rigid(T: torch.Tensor, name: str, atol: float = 1e-4) -> None:
 
 
 def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
-    """[..., 4] wxyz (normalised here) -> [..., 3, 3]."""
+    """[..., 4] wxyz (normalised here) -> [..., 3, 3]: :func:`clsplat.quaternion.quat_to_rotmat`
+    with this module's input check."""
     _check(q, "q", (4,))
-    w, x, y, z = F.normalize(q, dim=-1).unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1).reshape(*q.shape[:-1], 3, 3)
+    return quat_to_rotmat(q)
 
 
 def matrix_to_quat(R: torch.Tensor) -> torch.Tensor:
