@@ -9,6 +9,9 @@
 * :mod:`.precision`  the work-precision diagram (DESIGN.md §6);
 * :mod:`.stability`  the stiff and extreme catalogue (DESIGN.md §5) at increasing severity.
 
-Run with ``clsplat bench {stages,precision,stability,all} --out DIR`` (see
-:mod:`clsplat.bench_cli`). ``bench/RESULTS.md`` holds the latest figures.
+* :mod:`.timing`     event milliseconds and the median/min/max/spread summary;
+* :mod:`.cli`        ``clsplat bench {stages,precision,stability,all} --out DIR``.
+
+``bench/RESULTS.md`` holds the latest figures. The model experiments behind its model sections
+are scripts in ``bench/experiments/`` (not installed).
 """

@@ -1,4 +1,4 @@
 """``python -m clsplat.bench ...`` = ``clsplat bench ...``."""
-from clsplat.bench_cli import main
+from .cli import main
 
 raise SystemExit(main())

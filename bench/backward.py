@@ -32,20 +32,12 @@ from clsplat import stages as engine
 from clsplat.config import RenderConfig
 from clsplat.runtime import Runtime, get_runtime
 
+from .timing import event_ms, summarise
+
 __all__ = ["BWD_STAGES", "time_backward", "training_steps", "slot_memory", "specialisation"]
 
 BWD_STAGES = ("composite_bwd", "reduce", "sh_bwd", "project_bwd")
 PARAMS = ("means", "quats", "scales", "opacities", "colors")
-
-
-def _summary(values):
-    from .stages import _summary as s
-    return s(values)
-
-
-def _ms(ev):
-    from .stages import _ms as m
-    return m(ev)
 
 
 def _leaves(scene: dict, cfg: RenderConfig, grad=PARAMS) -> dict:
@@ -89,7 +81,7 @@ def time_backward(scene: dict, repeats: int = 5, device=None, cfg: RenderConfig 
         f_ms, b_ms, meta = fwd_bwd(rt, cfg, scene, p, w, wa, ev)
         per = defaultdict(float)
         for name, e in ev:
-            per[name] += _ms(e)
+            per[name] += event_ms(e)
         runs.append(dict(per))
         fw.append(f_ms)
         bw.append(b_ms)
@@ -104,12 +96,12 @@ def time_backward(scene: dict, repeats: int = 5, device=None, cfg: RenderConfig 
     res = {
         "scene": scene["name"], "n_gaussians": int(scene["means"].shape[0]), "repeats": repeats,
         "precision": cfg.precision, "intersections": int(meta["flatten_ids"].numel()),
-        "backward_stages_ms": {n: _summary([r.get(n, 0.0) for r in warm]) for n in bnames},
-        "forward_stages_ms": {n: _summary([r.get(n, 0.0) for r in warm]) for n in fnames},
+        "backward_stages_ms": {n: summarise([r.get(n, 0.0) for r in warm]) for n in bnames},
+        "forward_stages_ms": {n: summarise([r.get(n, 0.0) for r in warm]) for n in fnames},
         "first_call_ms": {n: runs[0].get(n, 0.0) for n in names},
-        "forward_kernel_total_ms": _summary(ftot),
-        "backward_kernel_total_ms": _summary(btot),
-        "forward_wall_ms": _summary(fw[1:]), "backward_wall_ms": _summary(bw[1:]),
+        "forward_kernel_total_ms": summarise(ftot),
+        "backward_kernel_total_ms": summarise(btot),
+        "forward_wall_ms": summarise(fw[1:]), "backward_wall_ms": summarise(bw[1:]),
         "first_call_wall_ms": {"forward": fw[0], "backward": bw[0]},
     }
     res["first_call_ms"]["backward_kernel_total"] = sum(runs[0].get(n, 0.0) for n in bnames)
@@ -175,7 +167,7 @@ def training_steps(scene: dict, steps: int = 5, device=None, cfg: RenderConfig |
         opt.step()
         times.append((time.perf_counter() - t0) * 1e3)
     rt.finish()
-    s = _summary(times[1:])
+    s = summarise(times[1:])
     return {"scene": scene["name"], "steps": steps, "step_ms": s, "first_step_ms": times[0],
             "steps_per_s": 1e3 / s["median"], "steps_per_s_best": 1e3 / s["min"],
             "optimiser": f"torch.optim.Adam(lr={lr}) on means, quats, log-scales, logit-opacities, colours/SH",
@@ -220,8 +212,8 @@ def specialisation(scene: dict, repeats: int = 5, device=None, cfg: RenderConfig
         for name, (sc, p, w, wa, mode) in jobs.items():
             ev: list = []
             fwd_bwd(rt, cfg, sc, p, w, wa, ev, mode)
-            f = sum(_ms(e) for n, e in ev if n not in BWD_STAGES and not n.endswith("_bwd"))
-            b = sum(_ms(e) for n, e in ev if n in BWD_STAGES or n.endswith("_bwd"))
+            f = sum(event_ms(e) for n, e in ev if n not in BWD_STAGES and not n.endswith("_bwd"))
+            b = sum(event_ms(e) for n, e in ev if n in BWD_STAGES or n.endswith("_bwd"))
             fwd[name].append(f)
             bwd[name].append(b)
             tot[name].append(f + b)

@@ -145,7 +145,8 @@ def pareto_front(points: list[dict], x: str = "kernel_ms_min", y: str = "rmse") 
 def run_scene(scene: dict, repeats: int, device=None, quick: bool = False, with_grads: bool = False) -> list[dict]:
     """Errors from one render per point; times from ``repeats`` rounds that visit every point
     once per round (round-robin), so that load from other processes hits all points alike."""
-    from .stages import _inputs, _ms, run_forward
+    from .stages import _inputs, run_forward
+    from .timing import event_ms
 
     rt = clsplat.get_runtime(device)
     ref_cfg = RenderConfig(precision="float64")
@@ -168,8 +169,8 @@ def run_scene(scene: dict, repeats: int, device=None, quick: bool = False, with_
             ev: list = []
             run_forward(rt, pt["config"], sc, ev, x)
             rt.queue.finish()
-            times[i].append(sum(_ms(e) for _, e in ev))
-            comp[i].append(sum(_ms(e) for n, e in ev if n == "composite"))
+            times[i].append(sum(event_ms(e) for _, e in ev))
+            comp[i].append(sum(event_ms(e) for n, e in ev if n == "composite"))
             rt.finish()
     default_img = next(img for pt, _, _, img in jobs if pt["knob"] == "precision" and pt["value"] == "float32")
     rows = []

@@ -33,7 +33,9 @@ from clsplat import stages as engine
 from clsplat.config import RenderConfig
 from clsplat.runtime import Runtime, get_runtime
 
+from . import backward as BW
 from . import scenes as S
+from .timing import event_ms, summarise
 
 __all__ = ["time_forward", "count_evaluations", "sort_vs_numpy", "stage_bytes", "scaling",
            "FLOPS_PER_EVAL"]
@@ -44,14 +46,6 @@ __all__ = ["time_forward", "count_evaluations", "sort_vs_numpy", "stage_bytes", 
 FLOPS_PER_EVAL = 40
 
 STAGE_ORDER = ("project", "sh", "bin_count", "scan", "bin_scatter", "sort_local", "sort_merge", "composite")
-
-
-def _ms(ev) -> float:
-    """Device milliseconds of an event. pyopencl's scan kernels return the output Array, whose
-    ``events`` hold the launches still pending on it (their sum is used)."""
-    if hasattr(ev, "events"):
-        return sum(_ms(e) for e in ev.events)
-    return (ev.profile.end - ev.profile.start) * 1e-6
 
 
 def _inputs(scene: dict, cfg: RenderConfig) -> dict:
@@ -80,15 +74,6 @@ def run_forward(rt: Runtime, cfg: RenderConfig, scene: dict, events=None, inputs
     return Forward(rt, cfg, scene, render, alpha, meta)
 
 
-def _summary(values: list[float]) -> dict:
-    a = np.asarray(values, dtype=np.float64)
-    if a.size == 0:
-        return {"median": 0.0, "min": 0.0, "max": 0.0, "spread_pct": 0.0}
-    med = float(np.median(a))
-    return {"median": med, "min": float(a.min()), "max": float(a.max()),
-            "spread_pct": float(100 * (a.max() - a.min()) / med) if med > 0 else 0.0}
-
-
 def time_forward(scene: dict, repeats: int = 5, device=None, cfg: RenderConfig | None = None,
                  fresh: bool = True, keep_state: bool = False) -> dict:
     """Per-stage device milliseconds (first call apart) and wall time per forward pass."""
@@ -105,7 +90,7 @@ def time_forward(scene: dict, repeats: int = 5, device=None, cfg: RenderConfig |
         walls.append((time.perf_counter() - t0) * 1e3)
         per = defaultdict(float)
         for name, ev in events:
-            per[name] += _ms(ev)
+            per[name] += event_ms(ev)
         runs.append(dict(per))
         if r == repeats and keep_state:
             state = st
@@ -119,9 +104,9 @@ def time_forward(scene: dict, repeats: int = 5, device=None, cfg: RenderConfig |
         "n_cameras": int(scene["viewmats"].shape[0]), "width": scene["width"], "height": scene["height"],
         "precision": cfg.precision, "repeats": repeats,
         "first_call_ms": {n: runs[0].get(n, 0.0) for n in names} | {"wall": walls[0]},
-        "stages_ms": {n: _summary([run.get(n, 0.0) for run in warm]) for n in names},
-        "kernel_total_ms": _summary([sum(run.values()) for run in warm]),
-        "wall_ms": _summary(walls[1:]),
+        "stages_ms": {n: summarise([run.get(n, 0.0) for run in warm]) for n in names},
+        "kernel_total_ms": summarise([sum(run.values()) for run in warm]),
+        "wall_ms": summarise(walls[1:]),
     }
     out["first_call_ms"]["kernel_total"] = sum(runs[0].values())
     out["build_and_jit_ms"] = walls[0] - out["wall_ms"]["median"]
@@ -220,7 +205,7 @@ def sort_vs_numpy(st, repeats: int = 5) -> dict:
             order = np.lexsort((k_np, seg))
             ok = bool(np.array_equal(ka.host().numpy().view(np.uint64), k_np[order]))
             continue
-        res["clsplat_kernel_ms"].append(sum(_ms(e) for _, e in ev))
+        res["clsplat_kernel_ms"].append(sum(event_ms(e) for _, e in ev))
         res["clsplat_wall_ms"].append(wall)
         for name, fn in (("np_argsort_stable_ms", lambda: np.argsort(k_np, kind="stable")),
                          ("np_argsort_ms", lambda: np.argsort(k_np)),
@@ -259,7 +244,6 @@ def scaling(scene_iter, repeats: int = 3, device=None, x_key: str = "n_gaussians
             backward: bool = True) -> dict:
     """Time per forward (and forward+backward) vs a size; log-log slopes of total kernel time,
     composite, sort, project, wall and the backward's kernel total."""
-    from .backward import time_backward
 
     rows = []
     for sc in scene_iter:
@@ -268,7 +252,7 @@ def scaling(scene_iter, repeats: int = 3, device=None, x_key: str = "n_gaussians
                "kernel_total_ms": r["kernel_total_ms"]["median"], "wall_ms": r["wall_ms"]["median"],
                "stages_ms": {k: v["median"] for k, v in r["stages_ms"].items()}}
         if backward:
-            b = time_backward(sc, max(1, repeats - 1), device)
+            b = BW.time_backward(sc, max(1, repeats - 1), device)
             row["backward_kernel_total_ms"] = b["backward_kernel_total_ms"]["median"]
             row["backward_stages_ms"] = {k: v["median"] for k, v in b["backward_stages_ms"].items()}
             row["bwd_fwd_ratio"] = b["bwd_fwd_ratio_kernels"]
@@ -358,7 +342,6 @@ def run(out_dir, device=None, quick: bool = False, repeats: int = 5) -> dict:
               "backward": {}, "training": {}, "specialisation": {}}
     for key, sc in (("A", sa), ("B", sb)):
         result["scenes"][key] = scene_report(sc, repeats, device, limits)
-    from . import backward as BW
     for key, sc in (("A", sa), ("B", sb)):
         result["backward"][key] = BW.time_backward(sc, repeats, device)
         result["training"][key] = BW.training_steps(sc, max(2, repeats), device)
@@ -411,8 +394,7 @@ def markdown(res: dict) -> str:
                  f"**{sv['ratio_kernel_vs_argsort_stable']:.2f}**.")
         L.append("")
     if res.get("backward"):
-        from .backward import markdown as bw_markdown
-        L.append(bw_markdown(res))
+        L.append(BW.markdown(res))
     for key, label in (("scaling_n", "N (fixed resolution, SH3)"), ("scaling_pixels", "pixels (fixed Gaussians)")):
         sc = res[key]
         L += [f"### Scaling with {label}", "",

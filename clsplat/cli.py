@@ -1,50 +1,58 @@
 """The ``clsplat`` console command.
 
     clsplat info                      OpenCL platforms, devices and the features clsplat uses
-    clsplat demo [--out DIR]          the main job: AutoSplat reconstruction of the built-in
-                                      street (PoCL CPU by default), against the oracle-depth baseline
     clsplat fit OUT [...]             fit Gaussians to an image (the optimisation example)
-    clsplat bench REPORT [...]        benchmark reports (stages, precision, stability, all)
-    clsplat train FAMILY [...]        train a model (drivingforward, pgt, autosplat)
-    clsplat eval FAMILY [...]         evaluate a trained model
+    clsplat COMMAND [...]             a command another package registers (see below)
+
+The engine owns ``info`` and ``fit``. Every other command is registered by the package that
+implements it, through the ``clsplat.commands`` entry-point group (setup.cfg): an entry point
+``NAME = module:function`` makes ``clsplat NAME ARGS...`` call ``function(ARGS)`` (a list of
+strings; it returns the exit status, and the first line of its docstring is its help). This
+distribution registers ``demo``, ``train`` and ``eval`` (clsplat.models) and ``bench``
+(clsplat.bench), so ``import clsplat`` never imports a model or a benchmark, and a model family
+could live in a distribution of its own.
 """
 from __future__ import annotations
 
 import argparse
-import json
 import sys
+from importlib.metadata import EntryPoint, entry_points
 
-__all__ = ["main"]
+__all__ = ["main", "COMMAND_GROUP", "registered_commands"]
 
-
-def _info(_: argparse.Namespace) -> int:
-    from .runtime import describe_devices
-    print(describe_devices())
-    return 0
-
-
-def _demo(a: argparse.Namespace) -> int:
-    import torch
-
-    from .models.autosplat.demo import run_demo
-    torch.set_num_threads(1)  # torch and PoCL's workers otherwise fight over the cores
-    m = run_demo(a.out, seed=a.seed, device=a.device)
-    g, b = m["gaussians"], m["baseline"]
-    print(f"AutoSplat reconstruction of the built-in street: {len(m['cameras'])} cameras, "
-          f"{len(m['train_frames'])} training frames, held-out frames {m['test_frames']}")
-    print(f"  {g['total']} Gaussians (road {g['road']}, sky {g['sky']}, other {g['other']}, "
-          f"{g['tracks']} tracked objects {g['objects']}), {m['iterations']} iterations")
-    print(f"held-out PSNR {m['test_psnr']:.2f} dB  SSIM {m['test_ssim']:.3f}   "
-          f"(oracle-depth baseline, pixel_recon: PSNR {b['test_psnr']:.2f} dB  SSIM {b['test_ssim']:.3f})")
-    print("lane-change renders (rig shifted left), PSNR vs the generator: "
-          + "  ".join(f"{k} {v['psnr']:.2f} dB" for k, v in m["lateral_shift"].items()))
-    print("seconds per stage: " + json.dumps({k: round(v, 1) for k, v in m["seconds_per_stage"].items()}))
-    print(f"outputs in {a.out} (contact_sheet.png, lateral_shift_*m.png, scene.ply, metrics.json, loss.png)")
-    return 0
-
+#: the entry-point group through which packages add ``clsplat`` commands
+COMMAND_GROUP = "clsplat.commands"
 
 #: optional packages and the setup.cfg extra that installs each
 _EXTRAS = {"OpenImageIO": "io", "matplotlib": "io", "pandas": "data", "kornia": "models", "tqdm": "models"}
+
+_BUILTIN = {"info": "list OpenCL devices and features",
+            "fit": "fit Gaussians to an image (see clsplat fit --help)"}
+
+
+def registered_commands() -> dict[str, EntryPoint]:
+    """Commands other packages register, by name (the first of a name wins; built-ins cannot be
+    replaced)."""
+    found: dict[str, EntryPoint] = {}
+    for ep in entry_points(group=COMMAND_GROUP):
+        if ep.name not in _BUILTIN:
+            found.setdefault(ep.name, ep)
+    return found
+
+
+def _help_line(ep: EntryPoint) -> str:
+    """The first docstring line of a registered command (loading it), or where it comes from."""
+    try:
+        doc = (ep.load().__doc__ or "").strip()
+    except Exception as e:  # a broken plugin must not break `clsplat --help`
+        return f"(from {ep.value}; cannot be loaded: {type(e).__name__}: {e})"
+    return doc.splitlines()[0] if doc else f"(from {ep.value})"
+
+
+def _info() -> int:
+    from .runtime import describe_devices
+    print(describe_devices())
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -60,30 +68,22 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str]) -> int:
-    if argv[:1] == ["bench"]:
-        from .bench_cli import main as bench
-        return bench(argv[1:])
-    if argv[:1] in (["train"], ["eval"]):
-        from .models.common.cli import dispatch
-        return dispatch(argv[0], argv[1:])
+    plugins = registered_commands()
     if argv[:1] == ["fit"]:
         from .fit_image import _cli
         _cli(argv[1:])
         return 0
+    if argv and argv[0] in plugins:
+        return int(plugins[argv[0]].load()(argv[1:]) or 0)
     p = argparse.ArgumentParser(prog="clsplat", description=__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
-    sub.add_parser("info", help="list OpenCL devices and features").set_defaults(fn=_info)
-    d = sub.add_parser("demo", help="AutoSplat reconstruction of the built-in street")
-    d.add_argument("--out", default="out", help="output folder (default: out)")
-    d.add_argument("--seed", type=int, default=0)
-    d.add_argument("--device", default=None, help="OpenCL device (default: CLSPLAT_DEVICE, else GPU, else PoCL)")
-    d.set_defaults(fn=_demo)
-    sub.add_parser("fit", help="fit Gaussians to an image (see clsplat fit --help)")
-    sub.add_parser("bench", help="benchmark reports (see clsplat bench --help)")
-    sub.add_parser("train", help="train a model: clsplat train {drivingforward,pgt,autosplat} --help")
-    sub.add_parser("eval", help="evaluate a model: clsplat eval {drivingforward,pgt,autosplat} --help")
+    for name, text in _BUILTIN.items():
+        sub.add_parser(name, help=text)
+    for name, ep in sorted(plugins.items()):
+        sub.add_parser(name, help=_help_line(ep))
     a = p.parse_args(argv)
-    return a.fn(a)
+    assert a.cmd == "info"  # fit and the registered commands returned above
+    return _info()
 
 
 if __name__ == "__main__":

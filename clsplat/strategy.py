@@ -31,7 +31,7 @@ from torch import Tensor
 
 from .quaternion import quat_to_rotmat
 
-__all__ = ["Strategy", "DefaultStrategy", "MCMCStrategy", "compute_relocation",
+__all__ = ["Strategy", "swap_parameter", "DefaultStrategy", "MCMCStrategy", "compute_relocation",
            "quat_scale_to_covar_preci", "duplicate", "split", "remove", "reset_opa",
            "relocate", "sample_add", "inject_noise_to_position"]
 
@@ -85,6 +85,23 @@ def compute_relocation(opacities: Tensor, scales: Tensor, ratios: Tensor,
 
 # ---- parameter surgery that keeps the optimizers in step ---------------------------------
 
+def swap_parameter(optimizer: torch.optim.Optimizer, old: Tensor, new: Tensor,
+                   state_fn: Callable[[str, Tensor], Tensor]) -> None:
+    """Put ``new`` wherever ``old`` is in ``optimizer``'s parameter groups and carry ``old``'s
+    state over, each per-element tensor (not ``step``) replaced by ``state_fn(key, v)``.
+
+    The one piece of optimiser surgery every densifier needs (the strategies below, AutoSplat's
+    ``densify_and_prune``): an optimiser holding several parameters in several groups works as
+    well as gsplat's one optimiser per parameter."""
+    for group in optimizer.param_groups:
+        group["params"] = [new if p is old else p for p in group["params"]]
+    st = optimizer.state.pop(old, {})
+    for key, v in list(st.items()):
+        if key != "step" and isinstance(v, Tensor) and v.dim() > 0:
+            st[key] = state_fn(key, v)
+    optimizer.state[new] = st
+
+
 @torch.no_grad()
 def _rebuild(params: Params, optimizers: Dict[str, torch.optim.Optimizer],
              param_fn: Callable[[str, Tensor], Tensor], state_fn: Callable[[str, Tensor], Tensor],
@@ -100,12 +117,7 @@ def _rebuild(params: Params, optimizers: Dict[str, torch.optim.Optimizer],
             if old.requires_grad:
                 raise ValueError(f"optimizers: parameter {name!r} is trainable but has no optimizer")
             continue
-        st = opt.state.pop(old, {})
-        for key, v in list(st.items()):
-            if key != "step" and isinstance(v, Tensor) and v.dim() > 0:
-                st[key] = state_fn(key, v)
-        opt.param_groups[0]["params"] = [new]
-        opt.state[new] = st
+        swap_parameter(opt, old, new, state_fn)
 
 
 def _edit_state(state: Dict[str, Any], fn: Callable[[Tensor], Tensor]) -> None:

@@ -3,7 +3,7 @@ import json
 
 import pytest
 
-from clsplat.bench_cli import main
+from clsplat.bench.cli import main
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,7 @@ import torch
 
 import clsplat
 from clsplat.data.scene import quat_to_rotmat as scene_quat_to_rotmat
-from clsplat.strategy import (DefaultStrategy, MCMCStrategy, compute_relocation, duplicate,
+from clsplat.strategy import (DefaultStrategy, MCMCStrategy, compute_relocation, duplicate, swap_parameter,
                               quat_scale_to_covar_preci, remove, split)
 
 
@@ -237,3 +237,23 @@ def test_mcmc_strategy_relocates_dead_and_adds_five_percent():
     # every relocated Gaussian sits on a live one's position
     moved = params["means"][:10].detach()
     assert torch.cdist(moved, live_means).min(dim=1).values.max() == 0
+
+
+def test_swap_parameter_in_a_shared_multi_group_optimizer():
+    """The surgery AutoSplat's densifier shares: a parameter inside one Adam with several groups
+    is replaced in its own group, its moments carried by state_fn, the others untouched."""
+    a, b = torch.nn.Parameter(torch.randn(4, 3)), torch.nn.Parameter(torch.randn(4))
+    opt = torch.optim.Adam([{"params": [a], "lr": 1e-2}, {"params": [b], "lr": 1e-3}])
+    (a.sum() + b.sum()).backward()
+    opt.step()
+    moments_b = opt.state[b]["exp_avg"].clone()
+    new = torch.nn.Parameter(torch.cat([a.data, a.data[:1]]))
+    swap_parameter(opt, a, new, lambda key, v: torch.cat([v, torch.zeros_like(v[:1])]))
+    assert opt.param_groups[0]["params"] == [new] and opt.param_groups[1]["params"] == [b]
+    assert a not in opt.state and opt.state[new]["exp_avg"].shape == (5, 3)
+    assert torch.equal(opt.state[new]["exp_avg"][4], torch.zeros(3))
+    assert torch.equal(opt.state[new]["step"], torch.tensor(1.0))          # step is not per row
+    assert torch.equal(opt.state[b]["exp_avg"], moments_b)
+    new.grad = torch.ones_like(new)
+    b.grad = torch.ones_like(b)
+    opt.step()                                                             # Adam runs on the new set

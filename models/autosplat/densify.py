@@ -12,13 +12,16 @@ Per trainable set (:class:`GaussianParams`), while a stage trains it:
 * Gaussians with opacity < ``prune_opacity``, or (if ``growable``) a scale > ``prune_scale``, are
   removed; then the accumulators restart.
 
-Adam's moments follow the Gaussians (new ones start at zero), so the optimiser state stays
-consistent when parameter counts change; ``GaussianParams.sizes`` records them for checkpoints.
+Adam's moments follow the Gaussians (new ones start at zero; the optimiser surgery is
+:func:`clsplat.strategy.swap_parameter`, shared with gsplat's strategies), so the optimiser
+state stays consistent when parameter counts change; ``GaussianParams.sizes`` records them for checkpoints.
 """
 from __future__ import annotations
 
 import torch
 from torch import nn
+
+from clsplat.strategy import swap_parameter
 
 from ..common.geometry import quat_to_matrix
 
@@ -113,21 +116,11 @@ class GradStats:
         self.grad, self.count = st["grad"].clone(), st["count"].clone()
 
 
-def _replace(opt: torch.optim.Optimizer, old: nn.Parameter, new: nn.Parameter, src: torch.Tensor,
-             fresh: torch.Tensor) -> None:
-    """Swap ``old`` for ``new`` in ``opt``; per-row state gathered by ``src``, rows ``fresh`` zeroed."""
-    for group in opt.param_groups:
-        for k, p in enumerate(group["params"]):
-            if p is old:
-                group["params"][k] = new
-    st = opt.state.pop(old, None)
-    if st:
-        for key, v in st.items():
-            if isinstance(v, torch.Tensor) and v.dim() > 0 and v.shape[0] == old.shape[0]:
-                v = v[src].clone()
-                v[fresh] = 0
-            st[key] = v
-        opt.state[new] = st
+def _gathered(v: torch.Tensor, src: torch.Tensor, fresh: torch.Tensor) -> torch.Tensor:
+    """Per-row optimiser state after the surgery: rows gathered by ``src``, rows ``fresh`` zeroed."""
+    v = v[src].clone()
+    v[fresh] = 0
+    return v
 
 
 @torch.no_grad()
@@ -172,7 +165,7 @@ def densify_and_prune(g: GaussianParams, stats: GradStats, opt: torch.optim.Opti
         if ns and name == "log_scales":
             val[s0:] -= torch.log(torch.tensor(1.6))
         new = nn.Parameter(val)
-        _replace(opt, old, new, src, fresh)
+        swap_parameter(opt, old, new, lambda key, v: _gathered(v, src, fresh))
         setattr(g, name, new)
     g.labels = g.labels[src].clone()
     g.normals = g.normals[src].clone()

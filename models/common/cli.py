@@ -13,7 +13,7 @@ import argparse
 import importlib
 import sys
 
-__all__ = ["dispatch", "add_common_args", "add_eval_args", "add_lpips_args", "lpips_from_args", "positive_int"]
+__all__ = ["dispatch", "train_command", "eval_command", "add_common_args", "add_eval_args", "add_lpips_args", "lpips_from_args", "positive_int"]
 
 
 def positive_int(text: str) -> int:
@@ -89,3 +89,13 @@ def dispatch(command: str, argv: list[str]) -> int:
         print(f"clsplat {command} {family}: this family has no {command} command", file=sys.stderr)
         return 2
     return int(fn(argv[1:]) or 0)
+
+
+def train_command(argv: list[str]) -> int:
+    """train a model: clsplat train {drivingforward,pgt,autosplat} --help"""
+    return dispatch("train", argv)
+
+
+def eval_command(argv: list[str]) -> int:
+    """evaluate a trained model: clsplat eval {drivingforward,pgt,autosplat} --help"""
+    return dispatch("eval", argv)

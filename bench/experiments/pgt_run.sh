@@ -3,11 +3,11 @@
 # curve on held-out synthetic streets; seconds per step and per prediction for every preset; the
 # matcher comparison (plane sweep vs epipolar attention, MATCH_STEPS steps each; 0 skips it);
 # then the figures (bench/figures/pgt_curves.png, pgt_budget.png) and tables for the results page.
-# Usage: sh bench/pgt_run.sh OUT [BASE_STEPS] [BUDGET_STEPS] [SCENES] [MATCH_STEPS]
+# Usage: sh bench/experiments/pgt_run.sh OUT [BASE_STEPS] [BUDGET_STEPS] [SCENES] [MATCH_STEPS]
 # Runs niced, one torch thread (the machine is shared; timings are under that load). Every stage
 # resumes from its checkpoint, so a rerun after an interruption continues where it stopped.
 set -eu
-OUT=${1:?usage: sh bench/pgt_run.sh OUT [BASE_STEPS] [BUDGET_STEPS] [SCENES] [MATCH_STEPS]}
+OUT=${1:?usage: sh bench/experiments/pgt_run.sh OUT [BASE_STEPS] [BUDGET_STEPS] [SCENES] [MATCH_STEPS]}
 BASE=${2:-700}
 BUDGET=${3:-250}
 SCENES=${4:-8}
@@ -25,8 +25,8 @@ nice -n 10 $PY -c "import sys; from clsplat.models.pgt.cli import train; sys.exi
 nice -n 10 $PY -c "import sys; from clsplat.models.pgt.cli import evaluate; sys.exit(evaluate(sys.argv[1:]))" \
   --checkpoint "$OUT/budget/checkpoint.pt" --data synthetic --budgets 1,0.5,0.2,0.1,0.05 --num-scenes "$SCENES" \
   --threads 1 --out "$OUT/eval"
-nice -n 10 $PY bench/pgt_speed.py --out "$OUT/speed" --presets tiny,small,paper --repeats 3
+nice -n 10 $PY bench/experiments/pgt_speed.py --out "$OUT/speed" --presets tiny,small,paper --repeats 3
 if [ "$MATCH" -gt 0 ]; then
-  nice -n 10 $PY bench/pgt_matching.py --preset small --steps "$MATCH" --num-scenes 4 --out "$OUT/matching"
+  nice -n 10 $PY bench/experiments/pgt_matching.py --preset small --steps "$MATCH" --num-scenes 4 --out "$OUT/matching"
 fi
-$PY bench/pgt_figures.py "$OUT" --figures bench/figures
+$PY bench/experiments/pgt_figures.py "$OUT" --figures bench/figures

@@ -14,9 +14,9 @@ warm-up) is dropped; medians of the rest are reported.
 subprocesses ``--rounds`` times so that the settings see the same machine load (the torch / PoCL
 split: PoCL's CPU device always uses every core; torch's threads compete with it).
 
-    nice -n 10 .venv/bin/python -m clsplat.bench.df_speed --presets tiny small paper \\
+    nice -n 10 .venv/bin/python bench/experiments/df_speed.py --presets tiny small paper \\
         --out bench/out/df_speed.json
-    nice -n 10 .venv/bin/python -m clsplat.bench.df_speed --presets small --phases train \\
+    nice -n 10 .venv/bin/python bench/experiments/df_speed.py --presets small --phases train \\
         --threads 1 2 --rounds 3 --reps 3 --out bench/out/df_threads.json
 """
 from __future__ import annotations
@@ -122,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
             for rnd in range(a.rounds):
                 for threads in a.threads:
                     t = time.time()
-                    r = subprocess.run([sys.executable, "-m", "clsplat.bench.df_speed", "--child", preset, phase,
+                    r = subprocess.run([sys.executable, __file__, "--child", preset, phase,
                                         "--reps", str(reps), "--threads", str(threads)], capture_output=True, text=True)
                     if r.returncode:
                         print(r.stderr[-3000:], file=sys.stderr)

@@ -16,9 +16,9 @@ depth collapses"):
 A checkpoint's weights are loaded into ``--preset``'s networks as they are (its optimisation
 fields, such as a probe's learning rate, need not match).
 
-    .venv/bin/python -m clsplat.bench.df_diagnose landscape --scenes 2
-    .venv/bin/python -m clsplat.bench.df_diagnose grads bench/out/df_small/checkpoint.pt --scenes 3
-    .venv/bin/python -m clsplat.bench.df_diagnose motion bench/out/df_small/checkpoint.pt --scenes 3
+    .venv/bin/python bench/experiments/df_diagnose.py landscape --scenes 2
+    .venv/bin/python bench/experiments/df_diagnose.py grads bench/out/df_small/checkpoint.pt --scenes 3
+    .venv/bin/python bench/experiments/df_diagnose.py motion bench/out/df_small/checkpoint.pt --scenes 3
 """
 from __future__ import annotations
 

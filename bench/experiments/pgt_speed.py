@@ -3,7 +3,7 @@
 A step is one sample of the base stage: synthetic street generation excluded (timed apart as
 "data"), forward, rendering the target and source views through clsplat, loss, backward and the
 AdamW update. A prediction is the network's forward pass for the V source views (no rendering).
-Medians over ``--repeats`` after one warm-up. Run: ``python bench/pgt_speed.py --out DIR``.
+Medians over ``--repeats`` after one warm-up. Run: ``python bench/experiments/pgt_speed.py --out DIR``.
 """
 from __future__ import annotations
 

@@ -8,7 +8,7 @@ the synthetic evaluation's streets 0..7), then runs
 depth is scored against the LiDAR sweep projected into each camera, as on real data; there is no
 oracle-depth baseline for the same reason. With ``--write-only`` it only writes the folder.
 
-    nice -n 10 .venv/bin/python -m clsplat.bench.df_pandaset_eval \\
+    nice -n 10 .venv/bin/python bench/experiments/df_pandaset_eval.py \\
         --checkpoint bench/out/df_small/checkpoint.pt --seq bench/out/df_pandaset/001 \\
         --out bench/out/df_small/eval_pandaset
 """

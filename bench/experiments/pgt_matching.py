@@ -6,7 +6,7 @@ base-stage steps of the ``--preset`` (depth-supervised synthetic streets), then 
 held-out streets: depth AbsRel of the coarse matching depth (u0) and after the residual head,
 PSNR/SSIM of the rendered target view, and seconds per step (median over the log).
 
-Run: ``python bench/pgt_matching.py --preset small --steps 150 --out DIR`` (writes
+Run: ``python bench/experiments/pgt_matching.py --preset small --steps 150 --out DIR`` (writes
 DIR/pgt_matching.json and one run folder per matcher).
 """
 from __future__ import annotations

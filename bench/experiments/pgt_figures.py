@@ -1,4 +1,4 @@
-"""PGT benchmark figures and tables from a finished ``bench/pgt_run.sh`` run folder.
+"""PGT benchmark figures and tables from a finished ``bench/experiments/pgt_run.sh`` run folder.
 
 Reads RUN/base/log.jsonl, RUN/budget/log.jsonl, RUN/eval/{budget.json,metrics.json} and
 RUN/speed/pgt_speed.json and RUN/matching/pgt_matching.json (whichever exist) and writes:
@@ -9,7 +9,7 @@ RUN/speed/pgt_speed.json and RUN/matching/pgt_matching.json (whichever exist) an
   time, Pareto front);
 * markdown tables on stdout (budget curve, depth, speed, matchers) for the PGT section of bench/RESULTS.md.
 
-Run: ``python bench/pgt_figures.py bench/out/pgt --figures bench/figures``.
+Run: ``python bench/experiments/pgt_figures.py bench/out/pgt --figures bench/figures``.
 """
 from __future__ import annotations
 
@@ -83,7 +83,7 @@ def budget_table(rows: list[dict]) -> str:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("run", help="the OUT folder of bench/pgt_run.sh")
+    p.add_argument("run", help="the OUT folder of bench/experiments/pgt_run.sh")
     p.add_argument("--figures", default="bench/figures")
     p.add_argument("--window", type=int, default=50, help="running-mean window (steps)")
     args = p.parse_args()

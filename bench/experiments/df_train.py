@@ -8,7 +8,7 @@ draws the learning curves. The run directory then holds checkpoint.pt, log.jsonl
 curves.png, eval/metrics.json and the contact sheets. Interrupted, it can be restarted with the
 same command (it resumes).
 
-    nice -n 10 .venv/bin/python -m clsplat.bench.df_train --preset small --minutes 47 \\
+    nice -n 10 .venv/bin/python bench/experiments/df_train.py --preset small --minutes 47 \\
         --out bench/out/df_small --figure bench/figures/df_small_curves.png
 """
 from __future__ import annotations

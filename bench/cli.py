@@ -1,4 +1,5 @@
-"""``clsplat bench``: the benchmark reports of ``bench/`` (installed as ``clsplat.bench``).
+"""``clsplat bench``: the engine's benchmark reports (``bench/``, installed as ``clsplat.bench``;
+registered as the ``bench`` command through the ``clsplat.commands`` entry point).
 
     clsplat bench {stages,precision,stability,all} [--out DIR] [--device DEV] [--quick] [--repeats N]
 
@@ -8,7 +9,6 @@ Each report writes ``<name>.json`` and ``<name>.md`` into ``--out`` (precision a
 from __future__ import annotations
 
 import argparse
-import importlib
 import shlex
 import sys
 import time
@@ -18,6 +18,7 @@ __all__ = ["main"]
 
 
 def main(argv: list[str] | None = None) -> int:
+    """benchmark reports: clsplat bench {stages,precision,stability,all} --out DIR"""
     p = argparse.ArgumentParser(prog="clsplat bench", description=__doc__.split("\n")[0])
     p.add_argument("report", choices=("stages", "precision", "stability", "all"))
     p.add_argument("--out", default="bench_out", help="output folder (created)")
@@ -35,9 +36,12 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     import clsplat
+
+    from . import precision, stability, stages
+    reports = {"stages": stages, "precision": precision, "stability": stability}
     torch.set_num_threads(1)  # torch's CPU threads would fight PoCL's workers for the cores
     for name in names:
-        mod = importlib.import_module(f"clsplat.bench.{name}")
+        mod = reports[name]
         t0 = time.perf_counter()
         mod.run(out, device=a.device, quick=a.quick, repeats=a.repeats or defaults[name])
         secs[name] = time.perf_counter() - t0
