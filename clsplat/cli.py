@@ -47,16 +47,35 @@ def _demo(a: argparse.Namespace) -> int:
 _EXTRAS = {"OpenImageIO": "io", "matplotlib": "io", "pandas": "data", "kornia": "models", "tqdm": "models"}
 
 
+def _one_line(e: BaseException) -> str:
+    """``e`` as one line; an ``OSError(errno, message)`` without a file name is its message
+    (clsplat's write errors name the file themselves), without the "[Errno N]" prefix."""
+    text = str(e)
+    if isinstance(e, OSError) and e.filename is None and e.strerror:
+        text = e.strerror
+    return " ".join(text.split()) or type(e).__name__
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run the command; a user's mistake (ValueError, a missing input file) is one line on stderr
+    and exit status 2, a failed write (a full disk, a file-size limit, no permission) one line
+    naming the file and the cause and exit status 1, never a traceback."""
     argv = sys.argv[1:] if argv is None else argv
+    prog = f"clsplat {' '.join(argv[:2] if argv[:1] in (['train'], ['eval']) else argv[:1])}".strip()
     try:
         return _main(argv)
+    except (ValueError, FileNotFoundError) as e:
+        print(f"{prog}: {_one_line(e)}", file=sys.stderr)
+        return 2
     except ModuleNotFoundError as e:
         top = (e.name or "").split(".")[0]
         if top not in _EXTRAS:
             raise
         raise SystemExit(f"clsplat {' '.join(argv[:1])}: needs the optional package {top!r}, "
                          f"installed by: pip install 'clsplat[{_EXTRAS[top]}]'") from None
+    except OSError as e:  # after ModuleNotFoundError's and FileNotFoundError's handlers (subclasses)
+        print(f"{prog}: {_one_line(e)}", file=sys.stderr)
+        return 1
 
 
 def _main(argv: list[str]) -> int:

@@ -168,7 +168,7 @@ def test_atomic_write_keeps_the_old_file_when_writing_fails(tmp_path):
         tmp.write_text("partial")
         raise OSError(28, "No space left on device")
 
-    with pytest.raises(OSError, match="metrics.json failed.*previous file is unchanged"):
+    with pytest.raises(OSError, match="metrics.json.* failed .No space left on device.; the previous metrics.json is unchanged"):
         atomic_write(p, full_disk)
     assert p.read_text() == "old" and sorted(x.name for x in tmp_path.iterdir()) == ["metrics.json"]
 

@@ -19,11 +19,11 @@ that names the file, before it can crash, hang, exhaust memory or run code:
 """
 from __future__ import annotations
 
-import gzip
 import io
 import json
 import os
 import pickle
+import zlib
 from pathlib import Path
 
 __all__ = ["read_json", "path_inside", "read_pickled_dataframe", "MAX_JSON_BYTES", "MAX_PICKLE_BYTES",
@@ -138,13 +138,28 @@ def _safe_compat_unpickler():
 
 
 def _read_gzip_bounded(path: Path, max_bytes: int) -> bytes:
-    """The decompressed content of ``path``; ValueError when it exceeds ``max_bytes``."""
-    with gzip.open(path, "rb") as fh:
-        data = fh.read(max_bytes + 1)
-    if len(data) > max_bytes:
-        raise ValueError(f"{str(path)!r}: decompresses to more than {max_bytes} bytes (the limit; pass "
-                         "max_bytes= to read_pickled_dataframe to raise it)")
-    return data
+    """The decompressed content of gzip file ``path`` (every member); ValueError naming the file
+    when it exceeds ``max_bytes`` (decompression stops there) or is truncated.
+
+    One ``zlib`` call per member with ``max_length``: as fast as ``gzip.decompress`` and
+    faster than ``GzipFile.read`` (measured in bench/pickle_safety.py)."""
+    raw = path.read_bytes()
+    parts: list[bytes] = []
+    total = 0
+    while raw[:2] == b"\x1f\x8b":  # a gzip member; anything else after the first is trailing padding
+        z = zlib.decompressobj(wbits=31)
+        part = z.decompress(raw, max_bytes + 1 - total)
+        total += len(part)
+        parts.append(part)
+        if total > max_bytes or z.unconsumed_tail:
+            raise ValueError(f"{str(path)!r}: decompresses to more than {max_bytes} bytes (the limit; pass "
+                             "max_bytes= to read_pickled_dataframe to raise it)")
+        if not z.eof:
+            raise ValueError(f"{str(path)!r}: the gzip stream is truncated")
+        raw = z.unused_data
+    if not parts:
+        raise ValueError(f"{str(path)!r} is not a gzip file")
+    return parts[0] if len(parts) == 1 else b"".join(parts)
 
 
 def read_pickled_dataframe(path: Path, safe: bool = True, max_bytes: int = MAX_PICKLE_BYTES):
