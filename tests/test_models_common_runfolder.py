@@ -227,6 +227,7 @@ def test_a_publication_cut_short_is_finished_by_the_next_run(tmp_path):
 def test_resume_without_a_checkpoint_and_a_file_as_out(tmp_path):
     with pytest.raises(ValueError, match=r"^--resume: no checkpoint to resume in"):
         RunFolder(tmp_path / "none", resume=True).__enter__()
+    assert not (tmp_path / "none").exists()  # a failed resume creates nothing
     (tmp_path / "f").write_text("x")
-    with pytest.raises(ValueError, match=r"^--out: .*'f' exists and is not a folder"):
+    with pytest.raises(ValueError, match=r"^--out: '.*/f' exists and is not a folder"):
         RunFolder(tmp_path / "f").__enter__()

@@ -129,6 +129,8 @@ class RunFolder:
             return self
         if self.out.exists() and not self.out.is_dir():
             raise ValueError(f"{self.arg}: {str(self.out)!r} exists and is not a folder")
+        if self.resume and not self.out.is_dir():
+            raise ValueError(f"--resume: no checkpoint to resume in {str(self.out)!r} (the folder does not exist)")
         self.out.mkdir(parents=True, exist_ok=True)
         self._lock()
         try:
