@@ -14,7 +14,7 @@ import argparse
 import json
 import sys
 
-__all__ = ["main"]
+__all__ = ["main", "console"]
 
 
 def _info(_: argparse.Namespace) -> int:
@@ -56,26 +56,33 @@ def _one_line(e: BaseException) -> str:
     return " ".join(text.split()) or type(e).__name__
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Run the command; a user's mistake (ValueError, a missing input file) is one line on stderr
-    and exit status 2, a failed write (a full disk, a file-size limit, no permission) one line
-    naming the file and the cause and exit status 1, never a traceback."""
+def console(argv: list[str] | None = None) -> int:
+    """The console entry point: :func:`main`, with a user's mistake (ValueError, a missing input
+    file) as one line on stderr and exit status 2, and a failed write (a full disk, a file-size
+    limit, no permission) as one line naming the file and the cause and exit status 1, never a
+    traceback. (:func:`main` raises them, for callers that want the exception.)"""
     argv = sys.argv[1:] if argv is None else argv
     prog = f"clsplat {' '.join(argv[:2] if argv[:1] in (['train'], ['eval']) else argv[:1])}".strip()
     try:
-        return _main(argv)
+        return main(argv)
     except (ValueError, FileNotFoundError) as e:
         print(f"{prog}: {_one_line(e)}", file=sys.stderr)
         return 2
+    except OSError as e:  # after FileNotFoundError (a subclass)
+        print(f"{prog}: {_one_line(e)}", file=sys.stderr)
+        return 1
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    try:
+        return _main(argv)
     except ModuleNotFoundError as e:
         top = (e.name or "").split(".")[0]
         if top not in _EXTRAS:
             raise
         raise SystemExit(f"clsplat {' '.join(argv[:1])}: needs the optional package {top!r}, "
                          f"installed by: pip install 'clsplat[{_EXTRAS[top]}]'") from None
-    except OSError as e:  # after ModuleNotFoundError's and FileNotFoundError's handlers (subclasses)
-        print(f"{prog}: {_one_line(e)}", file=sys.stderr)
-        return 1
 
 
 def _main(argv: list[str]) -> int:
@@ -106,4 +113,4 @@ def _main(argv: list[str]) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(console())

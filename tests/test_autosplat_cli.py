@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from clsplat.cli import main
+from clsplat.cli import console as main  # the console entry point: errors as one line and an exit status
 from clsplat.models.common.runfolder import RunFolder
 
 ARGS = ["train", "autosplat", "--preset", "tiny", "--frames", "0:4", "--scale", "0.2", "--cameras", "CAM_FRONT",

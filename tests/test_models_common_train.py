@@ -228,3 +228,30 @@ def test_gradient_norm_is_measured_without_touching_unclipped_gradients():
     q.grad = torch.tensor([3.0, 4.0])
     assert clip_and_measure([q], 1.0) == 5.0 and torch.allclose(q.grad.norm(), torch.tensor(1.0))
     assert clip_and_measure([torch.nn.Parameter(torch.zeros(1))], None) == 0.0
+
+
+def test_a_log_line_that_cannot_be_written_names_the_log(tmp_path, monkeypatch):
+    import builtins
+    import errno
+
+    log = JsonlLog(tmp_path / "log.jsonl")
+    log.write({"step": 1})
+    real_open = builtins.open
+
+    class Full:
+        def __init__(self, *a, **k):
+            self.fh = real_open(*a, **k)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.fh.close()
+
+        def write(self, text):
+            raise OSError(errno.ENOSPC, "No space left on device")
+    monkeypatch.setattr(builtins, "open", Full)
+    with pytest.raises(OSError, match=r"writing '.*log\.jsonl' failed \(No space left on device\)"):
+        log.write({"step": 2})
+    monkeypatch.undo()
+    assert [json.loads(x) for x in (tmp_path / "log.jsonl").read_text().splitlines()] == [{"step": 1}]

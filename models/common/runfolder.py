@@ -55,11 +55,17 @@ def _rank() -> tuple[int, int]:
     return (int(os.environ.get("RANK", "0")), world) if world > 1 else (0, 1)
 
 
-def _barrier() -> None:
+def _share_outcome(error: str | None) -> str | None:
+    """Rank 0's outcome of preparing the folder ('' for success, else the error message), sent to
+    every rank (a collective: it is also the barrier the other ranks wait at). Without a process
+    group, ``error`` itself."""
     import torch.distributed as dist
 
-    if dist.is_available() and dist.is_initialized():
-        dist.barrier()
+    if not (dist.is_available() and dist.is_initialized()):
+        return error
+    box = [error]
+    dist.broadcast_object_list(box, src=0)
+    return box[0]
 
 
 def _remove(p: Path) -> None:
@@ -125,8 +131,19 @@ class RunFolder:
     # ------------------------------------------------------------------ enter / exit
     def __enter__(self) -> "RunFolder":
         if self.rank != 0:
-            _barrier()  # rank 0 prepares the stage
+            error = _share_outcome(None)  # rank 0 prepares the stage
+            if error:
+                raise ValueError(error)
             return self
+        try:
+            self._enter_rank0()
+        except BaseException as e:
+            _share_outcome(str(e) or type(e).__name__)
+            raise
+        _share_outcome("")
+        return self
+
+    def _enter_rank0(self) -> None:
         if self.out.exists() and not self.out.is_dir():
             raise ValueError(f"{self.arg}: {str(self.out)!r} exists and is not a folder")
         if self.resume and not self.out.is_dir():
@@ -140,8 +157,6 @@ class RunFolder:
         except BaseException:
             self._unlock()
             raise
-        _barrier()
-        return self
 
     def __exit__(self, *exc) -> None:
         self._unlock()

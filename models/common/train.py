@@ -187,8 +187,13 @@ class JsonlLog:
         atomic_write(self.path, lambda p: p.write_text("".join(k + "\n" for k in keep)))
 
     def write(self, record: dict) -> None:
-        with open(self.path, "a") as fh:
-            fh.write(json.dumps(record, allow_nan=True) + "\n")
+        """Append one line; a failed write (full disk) is an OSError naming the log file."""
+        try:
+            with open(self.path, "a") as fh:
+                fh.write(json.dumps(record, allow_nan=True) + "\n")
+        except OSError as e:
+            raise OSError(e.errno, f"writing {str(self.path)!r} failed ({e.strerror or e}); the lines "
+                                   "before this step are kept") from e
 
 
 def read_log(path: str | Path) -> list[dict]:
