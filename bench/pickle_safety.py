@@ -16,7 +16,10 @@ prints the median seconds per sequence of:
 * ``trusting_now``  ``read_pickled_dataframe(..., safe=False)``;
 
 and where the time goes: ``gunzip`` (bounded decompression alone) and ``unpickle_c`` /
-``unpickle_py`` (the C and the pure-Python unpickler on the decompressed bytes).
+``unpickle_py`` (the allow-listed C and pure-Python unpickler on the decompressed bytes),
+``unpickle_c_trusting`` (``pickle.loads``). Each reader's median wall time and median CPU time of
+this process (``time.process_time``: all readers are single-threaded, and CPU time is far less
+disturbed than wall time by other jobs on a shared machine) over ``--repeats`` interleaved rounds.
 """
 from __future__ import annotations
 
@@ -84,18 +87,20 @@ def main(argv: list[str] | None = None) -> None:
             if name.startswith(("safe", "trusting", "unpickle")):
                 assert fn(paths[0], 0).equals(ref), name
         times: dict[str, list[float]] = {k: [] for k in readers}
+        cpu: dict[str, list[float]] = {k: [] for k in readers}
         for _ in range(a.repeats):
             for name, fn in readers.items():
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 for i, p in enumerate(paths):
                     fn(p, i)
+                cpu[name].append(time.process_time() - c0)
                 times[name].append(time.perf_counter() - t0)
-        base = statistics.median(times["trusting"])
-        print(f"{'reader':22s} {'median s':>9s} {'vs trusting':>11s}   all runs")
-        for name, ts in times.items():
-            m = statistics.median(ts)
-            print(f"{name:22s} {m:9.3f} {m / base:10.2f}x   " + " ".join(f"{t:.3f}" for t in ts))
-
+        base, cbase = statistics.median(times["trusting"]), statistics.median(cpu["trusting"])
+        print(f"{'reader':22s} {'wall s':>7s} {'ratio':>6s} {'CPU s':>7s} {'ratio':>6s}   wall of each run")
+        for name in readers:
+            m, c = statistics.median(times[name]), statistics.median(cpu[name])
+            print(f"{name:22s} {m:7.3f} {m / base:5.2f}x {c:7.3f} {c / cbase:5.2f}x   "
+                  + " ".join(f"{t:.3f}" for t in times[name]))
 
 if __name__ == "__main__":
     main()

@@ -255,3 +255,32 @@ def test_a_log_line_that_cannot_be_written_names_the_log(tmp_path, monkeypatch):
         log.write({"step": 2})
     monkeypatch.undo()
     assert [json.loads(x) for x in (tmp_path / "log.jsonl").read_text().splitlines()] == [{"step": 1}]
+
+
+class _RunsCode:
+    """Unpickling this runs ``os.system``."""
+
+    def __init__(self, marker):
+        self.marker = marker
+
+    def __reduce__(self):
+        return os.system, (f"touch {self.marker}",)
+
+
+def test_checkpoints_and_weight_files_never_run_code(tmp_path):
+    """Checkpoints (--resume, --init, eval --checkpoint), backbone weights (--weights) and LPIPS
+    weights are read with torch.load(weights_only=True): a file carrying a pickle payload is
+    refused, naming the file, and the payload does not run."""
+    from clsplat.models.common.backbones import ResNet18, load_backbone_weights
+    from clsplat.models.common.metrics import LPIPS
+
+    marker = tmp_path / "ran"
+    bad = tmp_path / "bad.pt"
+    torch.save({"format": 1, "family": "toy", "model": {"w": torch.zeros(1)}, "x": _RunsCode(marker)}, bad)
+    with pytest.raises(ValueError, match=r"checkpoint: '.*bad\.pt' cannot be read"):
+        load_checkpoint(bad)
+    with pytest.raises(ValueError, match=r"bad\.pt"):
+        load_backbone_weights(ResNet18(), str(bad))
+    with pytest.raises(ValueError, match=r"bad\.pt"):
+        LPIPS(str(bad), str(bad))
+    assert not marker.exists()
