@@ -18,7 +18,7 @@ import argparse
 import sys
 from importlib.metadata import EntryPoint, entry_points
 
-__all__ = ["main", "COMMAND_GROUP", "registered_commands"]
+__all__ = ["main", "console", "COMMAND_GROUP", "registered_commands"]
 
 #: the entry-point group through which packages add ``clsplat`` commands
 COMMAND_GROUP = "clsplat.commands"
@@ -55,6 +55,32 @@ def _info() -> int:
     return 0
 
 
+def _one_line(e: BaseException) -> str:
+    """``e`` as one line; an ``OSError(errno, message)`` without a file name is its message
+    (clsplat's write errors name the file themselves), without the "[Errno N]" prefix."""
+    text = str(e)
+    if isinstance(e, OSError) and e.filename is None and e.strerror:
+        text = e.strerror
+    return " ".join(text.split()) or type(e).__name__
+
+
+def console(argv: list[str] | None = None) -> int:
+    """The console entry point: :func:`main`, with a user's mistake (ValueError, a missing input
+    file) as one line on stderr and exit status 2, and a failed write (a full disk, a file-size
+    limit, no permission) as one line naming the file and the cause and exit status 1, never a
+    traceback. (:func:`main` raises them, for callers that want the exception.)"""
+    argv = sys.argv[1:] if argv is None else argv
+    prog = f"clsplat {' '.join(argv[:2] if argv[:1] in (['train'], ['eval']) else argv[:1])}".strip()
+    try:
+        return main(argv)
+    except (ValueError, FileNotFoundError) as e:
+        print(f"{prog}: {_one_line(e)}", file=sys.stderr)
+        return 2
+    except OSError as e:  # after FileNotFoundError (a subclass)
+        print(f"{prog}: {_one_line(e)}", file=sys.stderr)
+        return 1
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     try:
@@ -87,4 +113,4 @@ def _main(argv: list[str]) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(console())

@@ -202,6 +202,11 @@ def check_screen_extent(means: torch.Tensor, scales: torch.Tensor, viewmats: tor
     bad = vis & (sigma > limit)
     if bool(bad.any()):
         n = int(bad.any(dim=1).sum())
+        if float(f.max()) > limit:  # no real camera: the culprit is the intrinsics, not the Gaussians
+            c = int(f.argmax())
+            raise ValueError(f"Ks: camera {c} has focal length {float(f[c]):.3g} px, over the {limit:g} px that "
+                             f"{precision} can project with ({n} Gaussian(s) overflow the 2D covariance); check "
+                             "the intrinsics' units")
         raise ValueError(f"scales: {n} Gaussian(s) project to a screen-space size over {limit:g} px "
                          f"(largest scale {float(s.max()):.3g}), which overflows {precision} in the "
                          f"2D covariance; use smaller scales" + (" or precision='float64'" if precision == "float32" else ""))

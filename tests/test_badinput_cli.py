@@ -96,3 +96,20 @@ def test_missing_optional_package_names_the_extra(tmp_path, monkeypatch):
     monkeypatch.delitem(sys.modules, "clsplat.io", raising=False)
     with pytest.raises(SystemExit, match=r"needs the optional package 'OpenImageIO'.*clsplat\[io\]"):
         main(["fit", str(tmp_path / "o"), *TINY])
+
+
+def test_the_console_entry_point_prints_one_line_and_an_exit_status(tmp_path, target, monkeypatch, capsys):
+    from clsplat.cli import console
+
+    assert console(["fit", str(tmp_path / "o"), "--target", str(target), *TINY, "--lr", "nan"]) == 2
+    assert capsys.readouterr().err.splitlines() == ["clsplat fit: lr must be a finite number > 0, got nan"]
+    assert console(["fit", str(tmp_path / "o"), "--target", str(tmp_path / "nope.png"), *TINY]) == 2
+    assert "nope.png" in capsys.readouterr().err
+
+    def full(path, losses):
+        raise OSError(errno.ENOSPC, "No space left on device")
+    monkeypatch.setattr(fit_image, "_save_loss_curve", full)
+    assert console(["fit", str(tmp_path / "o"), "--target", str(target), *TINY]) == 1
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith("clsplat fit: writing ") and "loss_curve.png" in err[0]
+    assert "No space left on device" in err[0] and "[Errno" not in err[0]

@@ -106,3 +106,69 @@ def test_full_disk_found_before_a_jpeg_is_written(tmp_path, monkeypatch):
         write_image(p, IMG)
     assert e.value.errno == errno.ENOSPC
     assert p.read_bytes() == before
+
+
+# --- decompression bombs: the declared size is checked before anything is decoded -----------
+def _huffman(code, n):  # a fixed-Huffman code, most significant bit first
+    return [(code >> (n - 1 - i)) & 1 for i in range(n)]
+
+
+def _pack_bits(bits):
+    out = bytearray((len(bits) + 7) // 8)
+    for i, b in enumerate(bits):
+        out[i >> 3] |= b << (i & 7)
+    return bytes(out)
+
+
+def _zeros_zlib(n):
+    """A zlib stream of ``n`` (> 259) zero bytes built directly, in milliseconds: fixed-Huffman
+    DEFLATE, one literal 0, then <length 258, distance 1> copies (13 bits per 258 bytes)."""
+    lit0, copy, eob = _huffman(0x30, 8), _huffman(0b11000101, 8) + _huffman(0, 5), _huffman(0, 7)
+    head = [1, 1, 0] + lit0 + copy  # BFINAL, BTYPE=01, 1 + 258 bytes: 24 bits, byte aligned
+    k, rest = divmod(n - 259, 8 * 258)
+    tail = copy * (rest // 258) + lit0 * (rest % 258) + eob
+    body = _pack_bits(head) + _pack_bits(copy * 8) * k + _pack_bits(tail)
+    return b"\x78\x01" + body + struct.pack(">I", ((n % 65521) << 16) | 1)  # adler32 of zeros
+
+
+def _black_png(path, width, height):
+    """A valid 8-bit grey PNG of ``width x height`` black pixels (any size: 5.7 MB for 30000^2)."""
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", _zeros_zlib(height * (1 + width)))
+                     + chunk(b"IEND", b""))
+    return path
+
+
+def test_the_bomb_builder_makes_a_real_png(tmp_path):
+    img = read_image(_black_png(tmp_path / "b.png", 300, 200))
+    assert img.shape == (200, 300, 3) and not img.any()
+
+
+def test_a_30000_by_30000_png_is_refused_before_decoding(tmp_path, monkeypatch):
+    monkeypatch.delenv("CLSPLAT_MAX_IMAGE_PIXELS", raising=False)
+    p = _black_png(tmp_path / "bomb.png", 30000, 30000)  # decodes to 10.8 GB as float32 RGB
+    assert p.stat().st_size < 6 << 20
+    with pytest.raises(ValueError, match=r"bomb\.png' declares 30000x30000 pixels \(900 Mpx\), over the "
+                                         r"134217728-pixel limit"):
+        read_image(p)
+
+
+def test_the_pixel_limit_is_overridable_per_call_and_by_environment(tmp_path, monkeypatch):
+    from clsplat.io.images import write_image
+
+    monkeypatch.delenv("CLSPLAT_MAX_IMAGE_PIXELS", raising=False)
+    p = write_image(tmp_path / "small.png", np.zeros((10, 20, 3), np.float32))
+    with pytest.raises(ValueError, match=r"small\.png' declares 20x10 pixels.*over the 199-pixel limit"):
+        read_image(p, max_pixels=199)
+    assert read_image(p, max_pixels=200).shape == (10, 20, 3)
+    monkeypatch.setenv("CLSPLAT_MAX_IMAGE_PIXELS", "100")
+    with pytest.raises(ValueError, match="over the 100-pixel limit"):
+        read_image(p)
+    assert read_image(p, max_pixels=1000).shape == (10, 20, 3)  # the argument wins
+    monkeypatch.setenv("CLSPLAT_MAX_IMAGE_PIXELS", "lots")
+    with pytest.raises(ValueError, match="^CLSPLAT_MAX_IMAGE_PIXELS: expected a positive integer, got 'lots'"):
+        read_image(p)
+    with pytest.raises(ValueError, match="^max_pixels: expected a positive int"):
+        read_image(p, max_pixels=0)

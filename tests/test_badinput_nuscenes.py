@@ -136,3 +136,24 @@ def test_sample_with_prev_loop_still_bounded(root):
     tok = json.loads((root / VERSION / "sample.json").read_text())[1]["token"]
     seq = load_nuscenes_sample(root, VERSION, tok, cameras=CAMS, neighbors=1)
     assert len(seq.frames) == 3
+
+
+@pytest.mark.parametrize("field,value,what", [
+    ("size", [1.0, 2.0], r"field 'size' must be a list of 3 numbers, got \[1.0, 2.0\]"),
+    ("size", [1.0, 0.0, 2.0], r"field 'size' must be positive"),
+    ("size", ["a", 1, 1], r"field 'size' must hold numbers"),
+    ("rotation", [0, 0, 0, 0], r"field 'rotation' is a zero quaternion"),
+    ("rotation", [1, 0, 0], r"field 'rotation' must be a list of 4 numbers"),
+    ("translation", [1.0, float("nan"), 0.0], r"field 'translation' must be finite, got \[1.0, nan, 0.0\]"),
+    ("translation", None, r"field 'translation' must be a list of 3 numbers, got None"),
+])
+def test_a_bad_annotation_names_the_table_the_token_and_the_field(root, field, value, what):
+    token = []
+
+    def bad(recs):
+        recs[0][field] = value
+        token.append(recs[0]["token"])
+    edit(root, "sample_annotation", bad)
+    # json.dumps writes NaN as a bare NaN token, which Python's JSON reader accepts, as nuScenes files might hold
+    with pytest.raises(ValueError, match=rf"^sample_annotation '{token[0]}': {what}"):
+        load(root)

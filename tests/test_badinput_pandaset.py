@@ -56,13 +56,63 @@ def test_safe_mode_refuses_a_pickle_that_runs_code(root, tmp_path, where):
     assert not marker.exists()
 
 
-def test_safe_mode_from_the_environment(root, tmp_path, monkeypatch):
+@pytest.mark.parametrize("env", [None, "0", "1"])
+def test_safe_by_default_whatever_the_environment_says(root, tmp_path, monkeypatch, env):
     marker = tmp_path / "ran"
     with gzip.open(root / "lidar/00.pkl.gz", "wb") as fh:
         pickle.dump(Payload(marker), fh)
-    monkeypatch.setenv("CLSPLAT_SAFE_PICKLE", "1")
-    with pytest.raises(ValueError, match="safe mode refuses"):
+    if env is None:
+        monkeypatch.delenv("CLSPLAT_SAFE_PICKLE", raising=False)
+    else:  # the old opt-in variable no longer switches anything: only an explicit argument opts out
+        monkeypatch.setenv("CLSPLAT_SAFE_PICKLE", env)
+    with pytest.raises(ValueError, match=r"lidar/00\.pkl\.gz.*safe mode refuses.*system"):
         load_pandaset(root)
+    assert not marker.exists()
+
+
+def test_the_opt_out_is_explicit_and_trusts_the_file(root, tmp_path):
+    marker = tmp_path / "ran"
+    with gzip.open(root / "lidar/00.pkl.gz", "wb") as fh:
+        pickle.dump(Payload(marker), fh)
+    with pytest.raises(ValueError):  # os.system returns an int, not a DataFrame: but it has run
+        load_pandaset(root, safe_pickle=False)
+    assert marker.exists()
+
+
+@pytest.mark.parametrize("safe", ["yes", None, 1])
+def test_safe_pickle_must_be_a_bool(root, safe):
+    with pytest.raises(ValueError, match="^safe_pickle: expected True"):
+        load_pandaset(root, safe_pickle=safe)
+
+
+def test_a_gzip_bomb_is_refused_before_it_is_decompressed_whole(tmp_path):
+    p = tmp_path / "bomb.pkl.gz"
+    with gzip.open(p, "wb") as fh:  # a pickled 4 MiB byte string of zeros: a few KiB compressed
+        pickle.dump(bytes(4 << 20), fh, protocol=5)
+    assert p.stat().st_size < 64 << 10
+    for safe in (True, False):
+        with pytest.raises(ValueError, match=r"bomb\.pkl\.gz.*decompresses to more than 1048576 bytes"):
+            read_pickled_dataframe(p, safe=safe, max_bytes=1 << 20)
+
+
+def test_old_pandas_layout_goes_through_the_compat_unpickler_with_the_same_allow_list(tmp_path, monkeypatch):
+    """A pickle the C unpickler cannot rebuild falls back to pandas' compat unpickler, which
+    must refuse the same globals."""
+    import clsplat.data.files as files
+
+    def broken_load(self):
+        raise AttributeError("old layout")
+    monkeypatch.setattr(files._SafeUnpickler, "load", broken_load)
+    df = pd.DataFrame({"x": np.arange(5.0), "s": list("abcde")})
+    good = tmp_path / "good.pkl.gz"
+    df.to_pickle(good, compression="gzip")
+    assert read_pickled_dataframe(good).equals(df)
+    marker = tmp_path / "ran"
+    bad = tmp_path / "bad.pkl.gz"
+    with gzip.open(bad, "wb") as fh:
+        pickle.dump(Payload(marker), fh)
+    with pytest.raises(ValueError, match="safe mode refuses"):
+        read_pickled_dataframe(bad)
     assert not marker.exists()
 
 
@@ -127,8 +177,13 @@ def test_malformed_lidar_frame(root, fn, what):
 
 
 @pytest.mark.parametrize("fn,what", [
-    (lambda df: df.assign(yaw="north"), "must be numbers"),
-    (lambda df: df.assign(**{"dimensions.x": np.inf}), "must be finite"),
+    (lambda df: df.assign(yaw="north"), r"row 0, column 'yaw': expected a number, got 'north'"),
+    (lambda df: df.assign(yaw=[[1.0, 2.0]] * len(df)), r"row 0, column 'yaw': expected a number"),
+    (lambda df: df.assign(yaw=None), r"row 0, column 'yaw': expected a number, got None"),
+    (lambda df: df.assign(yaw=True), r"row 0, column 'yaw': expected a number, got True"),
+    (lambda df: df.assign(**{"position.y": "x"}), r"row 0, column 'position.y': expected a number"),
+    (lambda df: df.assign(**{"dimensions.x": np.inf}), r"column 'dimensions.x': expected a finite number"),
+    (lambda df: df.assign(**{"dimensions.z": -1.0}), r"dimensions.* must be >= 0"),
     (lambda df: df.drop(columns=["uuid"]), "lacks columns"),
 ])
 def test_malformed_cuboids(root, fn, what):

@@ -74,6 +74,16 @@ def test_huge_scales_refused_in_float32_and_right_in_float64(factor):
     assert got.abs().max() > 0.1  # the image is covered, not empty
 
 
+@pytest.mark.parametrize("dtype,focal", [(torch.float32, 1e30), (torch.float64, 1e80)])
+def test_an_absurd_focal_length_is_named_as_Ks_not_scales(dtype, focal):
+    s = scene(dtype=dtype)
+    s["Ks"] = s["Ks"].clone()
+    s["Ks"][0, 0, 0] = focal
+    with pytest.raises(ValueError, match=r"^Ks: camera 0 has focal length 1e\+\d+ px, over the .* px that "
+                                         r"float(32|64) can project with"):
+        clsplat.rasterization(**s)
+
+
 def test_large_but_representable_scales_match_float64():
     s = scene(dtype=F64)
     s["scales"] = s["scales"] * 1e6

@@ -64,3 +64,25 @@ def test_bad_arguments(tmp_path):
         src.sequence(0, num_frames=0, height=8, width=8)
     with pytest.raises(ValueError, match="split"):
         src.sequence(0, num_frames=1, height=8, width=8, split="val")
+
+
+def test_pandaset_pickles_are_allow_listed_unless_the_caller_trusts_them(tmp_path):
+    """What --data pandaset:PATH does for drivingforward and pgt (their --trust-pickle sets safe_pickle=False)."""
+    import gzip
+    import os
+    import pickle
+
+    from clsplat.data.synthetic import generate_sequence
+
+    class Payload:
+        def __reduce__(self):
+            return os.system, (f"touch {tmp_path / 'ran'}",)
+    root = write_pandaset(generate_sequence(height=16, width=24, num_frames=2, seed=1), tmp_path / "001")
+    with gzip.open(root / "lidar" / "01.pkl.gz", "wb") as fh:
+        pickle.dump(Payload(), fh)
+    with pytest.raises(ValueError, match=r"lidar/01\.pkl\.gz.*safe mode refuses"):
+        parse_data(f"pandaset:{root}").full_sequence()
+    assert not (tmp_path / "ran").exists()
+    with pytest.raises(ValueError, match="not a pandas DataFrame"):
+        parse_data(f"pandaset:{root}", safe_pickle=False).full_sequence()
+    assert (tmp_path / "ran").exists()

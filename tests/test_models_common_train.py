@@ -168,7 +168,7 @@ def test_atomic_write_keeps_the_old_file_when_writing_fails(tmp_path):
         tmp.write_text("partial")
         raise OSError(28, "No space left on device")
 
-    with pytest.raises(OSError, match="metrics.json failed.*previous file is unchanged"):
+    with pytest.raises(OSError, match="metrics.json.* failed .No space left on device.; the previous metrics.json is unchanged"):
         atomic_write(p, full_disk)
     assert p.read_text() == "old" and sorted(x.name for x in tmp_path.iterdir()) == ["metrics.json"]
 
@@ -228,3 +228,59 @@ def test_gradient_norm_is_measured_without_touching_unclipped_gradients():
     q.grad = torch.tensor([3.0, 4.0])
     assert clip_and_measure([q], 1.0) == 5.0 and torch.allclose(q.grad.norm(), torch.tensor(1.0))
     assert clip_and_measure([torch.nn.Parameter(torch.zeros(1))], None) == 0.0
+
+
+def test_a_log_line_that_cannot_be_written_names_the_log(tmp_path, monkeypatch):
+    import builtins
+    import errno
+
+    log = JsonlLog(tmp_path / "log.jsonl")
+    log.write({"step": 1})
+    real_open = builtins.open
+
+    class Full:
+        def __init__(self, *a, **k):
+            self.fh = real_open(*a, **k)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.fh.close()
+
+        def write(self, text):
+            raise OSError(errno.ENOSPC, "No space left on device")
+    monkeypatch.setattr(builtins, "open", Full)
+    with pytest.raises(OSError, match=r"writing '.*log\.jsonl' failed \(No space left on device\)"):
+        log.write({"step": 2})
+    monkeypatch.undo()
+    assert [json.loads(x) for x in (tmp_path / "log.jsonl").read_text().splitlines()] == [{"step": 1}]
+
+
+class _RunsCode:
+    """Unpickling this runs ``os.system``."""
+
+    def __init__(self, marker):
+        self.marker = marker
+
+    def __reduce__(self):
+        return os.system, (f"touch {self.marker}",)
+
+
+def test_checkpoints_and_weight_files_never_run_code(tmp_path):
+    """Checkpoints (--resume, --init, eval --checkpoint), backbone weights (--weights) and LPIPS
+    weights are read with torch.load(weights_only=True): a file carrying a pickle payload is
+    refused, naming the file, and the payload does not run."""
+    from clsplat.models.common.backbones import ResNet18, load_backbone_weights
+    from clsplat.models.common.metrics import LPIPS
+
+    marker = tmp_path / "ran"
+    bad = tmp_path / "bad.pt"
+    torch.save({"format": 1, "family": "toy", "model": {"w": torch.zeros(1)}, "x": _RunsCode(marker)}, bad)
+    with pytest.raises(ValueError, match=r"checkpoint: '.*bad\.pt' cannot be read"):
+        load_checkpoint(bad)
+    with pytest.raises(ValueError, match=r"bad\.pt"):
+        load_backbone_weights(ResNet18(), str(bad))
+    with pytest.raises(ValueError, match=r"bad\.pt"):
+        LPIPS(str(bad), str(bad))
+    assert not marker.exists()

@@ -55,7 +55,9 @@ def test_base_stage_resumes_bitwise(runs, tmp_path, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         train(["--preset", "tiny", "--steps", "2", "--checkpoint-every", "1", "--out", str(out)])
     monkeypatch.setattr(training, "make_sample_loss", real)
-    assert torch.load(out / "checkpoint.pt", weights_only=True)["step"] == 1
+    # the unfinished run stays staged; the folder gets its outputs only when a run completes
+    assert torch.load(out / ".staging" / "checkpoint.pt", weights_only=True)["step"] == 1
+    assert not (out / "checkpoint.pt").exists()
     assert train(["--preset", "tiny", "--steps", "2", "--out", str(out), "--resume"]) == 0
     a = torch.load(out / "checkpoint.pt", weights_only=True)["model"]
     b = torch.load(runs / "base" / "checkpoint.pt", weights_only=True)["model"]

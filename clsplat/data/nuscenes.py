@@ -36,6 +36,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
+import math
 from pathlib import Path
 from typing import Sequence
 
@@ -136,6 +137,19 @@ def _pose(rec: dict, where: str) -> np.ndarray:
         raise ValueError(f"{where}: needs finite 'rotation' (wxyz) [4] and 'translation' [3]: {exc}") from None
 
 
+def _annotation_field(rec: dict, field: str, n: int) -> list[float]:
+    """``rec[field]`` as ``n`` finite floats; ValueError naming the table, the token and the field."""
+    v = rec.get(field)
+    where = f"sample_annotation {rec.get('token')!r}: field {field!r}"
+    if not isinstance(v, (list, tuple)) or len(v) != n:
+        raise ValueError(f"{where} must be a list of {n} numbers, got {v!r:.120}")
+    if not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v):
+        raise ValueError(f"{where} must hold numbers, got {v!r:.120}")
+    if not all(math.isfinite(x) for x in v):
+        raise ValueError(f"{where} must be finite, got {v!r}")
+    return [float(x) for x in v]
+
+
 class _Reader:
     def __init__(self, t: _Tables):
         self.t = t
@@ -196,9 +210,16 @@ class _Reader:
             inst = self.t.get("instance", a["instance_token"])
             cat = self.t.get("category", inst["category_token"])["name"]
             label = _CATEGORY_TO_LABEL.get(cat, cat) if short_labels else cat
-            w, l, h = a["size"]
-            out.append(Box3D(self.track_id[a["instance_token"]], label, [l, w, h], a["translation"], a["rotation"],
-                             uuid=a["instance_token"]))
+            w, l, h = _annotation_field(a, "size", 3)
+            t = _annotation_field(a, "translation", 3)
+            q = _annotation_field(a, "rotation", 4)
+            if min(w, l, h) <= 0:
+                raise ValueError(f"sample_annotation {a.get('token')!r}: field 'size' must be positive "
+                                 f"[width, length, height], got {a['size']!r}")
+            if math.sqrt(sum(v * v for v in q)) < 1e-12:
+                raise ValueError(f"sample_annotation {a.get('token')!r}: field 'rotation' is a zero quaternion, "
+                                 f"got {a['rotation']!r}")
+            out.append(Box3D(self.track_id[a["instance_token"]], label, [l, w, h], t, q, uuid=a["instance_token"]))
         return out
 
     def frame(self, sds: dict[str, dict], cams: list[str], lidar_sd: dict | None, sample_token: str | None,

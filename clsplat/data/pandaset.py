@@ -40,10 +40,10 @@ Mapping to :class:`~clsplat.data.scene.DrivingSequence`:
   without labels).  The writer writes them back (road -> Road, sidewalk -> Sidewalk, building
   -> Building, vehicle -> Car, other -> Other Static Object).
 
-Pickled DataFrames execute code on load: read sequences from sources you trust, or pass
-``safe_pickle=True`` (or set ``CLSPLAT_SAFE_PICKLE=1``), which unpickles with an allow-list of the
-numpy/pandas constructors a DataFrame needs and refuses any file that names anything else
-(:func:`clsplat.data.files.read_pickled_dataframe`).
+Pickled DataFrames can execute code on load, so they are read safely by default: an allow-list
+of the numpy/pandas constructors a DataFrame needs, refusing any file that names anything else
+(:func:`clsplat.data.files.read_pickled_dataframe`). ``safe_pickle=False`` is the explicit
+opt-out for sequences from a source you trust.
 """
 from __future__ import annotations
 
@@ -143,8 +143,21 @@ def _pose_to_json(T: np.ndarray) -> dict:
             "heading": {"w": float(q[0]), "x": float(q[1]), "y": float(q[2]), "z": float(q[3])}}
 
 
-def _read_pickle(path: Path, safe: bool | None):
+def _read_pickle(path: Path, safe: bool):
     return read_pickled_dataframe(path, safe)
+
+
+def _cuboid_number(path: Path, row: int, column: str, value) -> float:
+    """``value`` as a finite float; ValueError naming the file, row and column otherwise."""
+    try:
+        if isinstance(value, (bool, np.bool_)) or isinstance(value, (str, bytes)):
+            raise TypeError
+        v = float(value)
+    except (TypeError, ValueError, OverflowError):
+        raise ValueError(f"{str(path)!r} row {row}, column {column!r}: expected a number, got {value!r:.80}") from None
+    if not math.isfinite(v):
+        raise ValueError(f"{str(path)!r} row {row}, column {column!r}: expected a finite number, got {v}")
+    return v
 
 
 def _list_len(obj, where: str, n: int | None) -> list:
@@ -163,7 +176,7 @@ def load_pandaset(
     load_cuboids: bool = True,
     lidar_device: int = 0,
     load_semseg: bool = True,
-    safe_pickle: bool | None = None,
+    safe_pickle: bool = True,
 ) -> DrivingSequence:
     """Load one PandaSet sequence folder.
 
@@ -177,9 +190,9 @@ def load_pandaset(
         load_semseg: read ``annotations/semseg/NN.pkl.gz`` (with ``classes.json``) into
             ``metadata["lidar_semantics"]`` when present (needs ``load_lidar``).
         lidar_device: keep LiDAR points with this ``d`` value.
-        safe_pickle: unpickle the ``.pkl.gz`` files with an allow-list of the numpy/pandas
-            constructors a DataFrame needs, refusing any other (a pickle can run arbitrary code
-            when loaded). Default: on when ``CLSPLAT_SAFE_PICKLE=1``, else off (trusted data).
+        safe_pickle: True (the default): unpickle the ``.pkl.gz`` files with an allow-list of the
+            numpy/pandas constructors a DataFrame needs, refusing any other (a pickle can run
+            arbitrary code when loaded). False: trust the files (pandas' own reader).
     Returns:
         a :class:`DrivingSequence`.
     """
@@ -315,16 +328,11 @@ def load_pandaset(
             for j, row in enumerate(df.itertuples(index=False)):
                 r = dict(zip(df.columns, row))
                 u = str(r["uuid"])
-                try:
-                    yaw = float(r["yaw"])
-                    size = [float(r[f"dimensions.{a}"]) for a in "xyz"]
-                    pos = [float(r[f"position.{a}"]) for a in "xyz"]
-                except (TypeError, ValueError) as exc:
-                    raise ValueError(f"{str(cub)!r} row {j}: yaw, position.* and dimensions.* must be numbers "
-                                     f"({exc})") from None
-                if not all(math.isfinite(v) for v in [yaw, *size, *pos]) or min(size) < 0:
-                    raise ValueError(f"{str(cub)!r} row {j}: yaw, position.* and dimensions.* must be finite, "
-                                     "dimensions >= 0")
+                yaw, *size = (_cuboid_number(cub, j, c, r[c]) for c in ("yaw", "dimensions.x", "dimensions.y",
+                                                                        "dimensions.z"))
+                pos = [_cuboid_number(cub, j, f"position.{a}", r[f"position.{a}"]) for a in "xyz"]
+                if min(size) < 0:
+                    raise ValueError(f"{str(cub)!r} row {j}: dimensions.* must be >= 0, got {size}")
                 tid = uuids.setdefault(u, len(uuids) + 1)
                 q = [math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)]
                 boxes.append(Box3D(tid, str(r["label"]), size, pos, q, uuid=u))

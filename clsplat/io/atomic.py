@@ -43,8 +43,8 @@ def write_atomically(items: Iterable[tuple[str | Path, Callable[[Path], object]]
                 fn(tmp)
             except (OSError, ValueError) as e:  # ValueError: a library's "cannot write" report
                 kept = " and the group's other files are" if len(pairs) > 1 else " is"
-                msg = (f"writing {str(p)!r} failed ({getattr(e, 'strerror', None) or e}); "
-                       f"the previous {p.name}{kept} unchanged")
+                prev = f"the previous {p.name}{kept} unchanged" if p.exists() else "no partial file is left"
+                msg = f"writing {str(p)!r} failed ({getattr(e, 'strerror', None) or e}); {prev}"
                 raise (OSError(e.errno, msg) if isinstance(e, OSError) else ValueError(msg)) from e
             if not tmp.is_file():
                 raise OSError(f"writing {str(p)!r} failed: the writer produced no file")

@@ -7,10 +7,16 @@
 
 Every failure raises ``FileNotFoundError`` (missing file or folder) or ``ValueError`` (bad
 argument, unsupported extension, corrupt or truncated file), naming the path.
+
+Decompression bombs: a few kilobytes of PNG can declare 30000 x 30000 pixels. Readers check the
+size the header declares against ``max_pixels`` (default :data:`MAX_IMAGE_PIXELS`, or the
+``CLSPLAT_MAX_IMAGE_PIXELS`` environment variable) before decoding anything, and refuse a larger
+image with a ValueError naming the file and its size.
 """
 from __future__ import annotations
 
 import errno
+import os
 import shutil
 from pathlib import Path
 
@@ -20,9 +26,27 @@ import OpenImageIO as oiio
 from ..memory import check_host_memory
 from .atomic import atomic_write
 
-__all__ = ["read_image", "write_image", "read_depth", "write_depth", "SUPPORTED_EXTENSIONS"]
+__all__ = ["read_image", "write_image", "read_depth", "write_depth", "SUPPORTED_EXTENSIONS", "MAX_IMAGE_PIXELS",
+           "max_image_pixels"]
 
 SUPPORTED_EXTENSIONS = (".png", ".jpg", ".jpeg", ".exr")
+#: Default limit on width x height of an image file to be decoded: 2**27 (134 million) pixels,
+#: e.g. 16384 x 8192, about 1.6 GB as float32 RGB. Driving datasets' cameras are 2-3 Mpx.
+MAX_IMAGE_PIXELS = 1 << 27
+
+
+def max_image_pixels() -> int:
+    """The pixel limit in force: ``CLSPLAT_MAX_IMAGE_PIXELS`` if set, else :data:`MAX_IMAGE_PIXELS`."""
+    text = os.environ.get("CLSPLAT_MAX_IMAGE_PIXELS", "").strip()
+    if not text:
+        return MAX_IMAGE_PIXELS
+    try:
+        v = int(text)
+    except ValueError:
+        v = 0
+    if v < 1:
+        raise ValueError(f"CLSPLAT_MAX_IMAGE_PIXELS: expected a positive integer, got {text!r}")
+    return v
 
 
 def _ext(path: Path, arg: str = "path") -> str:
@@ -38,7 +62,16 @@ def _path(path: object, arg: str = "path") -> Path:
     return Path(path)
 
 
-def _read(path: str | Path) -> np.ndarray:
+def _check_max_pixels(max_pixels: int | None) -> int | None:
+    if max_pixels is None:
+        return max_image_pixels()
+    if isinstance(max_pixels, bool) or not isinstance(max_pixels, int) or max_pixels < 1:
+        raise ValueError(f"max_pixels: expected a positive int or None (the default limit), got {max_pixels!r}")
+    return max_pixels
+
+
+def _read(path: str | Path, max_pixels: int | None) -> np.ndarray:
+    """Decode ``path`` as float32 [H, W, C], refusing more than ``max_pixels`` (0: no limit)."""
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"image file not found: {str(p)!r}")
@@ -47,6 +80,10 @@ def _read(path: str | Path) -> np.ndarray:
         raise ValueError(f"cannot read image {str(p)!r}: {oiio.geterror() or 'unknown format or corrupt file'}")
     try:
         spec = inp.spec()
+        if max_pixels and spec.width * spec.height > max_pixels:
+            raise ValueError(f"image {str(p)!r} declares {spec.width}x{spec.height} pixels "
+                             f"({spec.width * spec.height / 1e6:.0f} Mpx), over the {max_pixels}-pixel limit "
+                             "(a decompression bomb?); raise it with max_pixels= or CLSPLAT_MAX_IMAGE_PIXELS")
         # decoded as float32, then up to two more copies (channel selection, clipping)
         check_host_memory(3 * 4 * spec.width * spec.height * spec.nchannels,
                           f"image {str(p)!r} ({spec.width}x{spec.height}x{spec.nchannels})")
@@ -62,20 +99,23 @@ def _read(path: str | Path) -> np.ndarray:
     return px
 
 
-def read_image(path: str | Path, channels: int | None = 3) -> np.ndarray:
+def read_image(path: str | Path, channels: int | None = 3, max_pixels: int | None = None) -> np.ndarray:
     """Read an image as float32 ``[H, W, C]``.
 
     Args:
         path: PNG/JPEG/EXR file.
         channels: keep the first ``channels`` channels (grey is replicated to 3); None keeps all.
+        max_pixels: refuse a file that declares more than this many pixels (width x height),
+            before decoding; default :func:`max_image_pixels`.
     Returns:
         float32 ``[H, W, C]``; PNG/JPEG values in ``[0, 1]``, EXR values as stored.
     """
     if channels is not None and channels not in (1, 3, 4):
         raise ValueError(f"channels must be 1, 3, 4 or None, got {channels!r}")
+    limit = _check_max_pixels(max_pixels)
     p = _path(path)
     _ext(p)
-    px = _read(p)
+    px = _read(p, limit)
     if channels is None or px.shape[2] == channels:
         return px
     if px.shape[2] == 1:
@@ -161,7 +201,7 @@ def _write_oiio(p: Path, spec, data: np.ndarray) -> None:
     # OpenImageIO's PNG and JPEG writers do not report a failed fwrite (a full disk, a file
     # size limit): read the file back, so that a truncated file is never renamed into place.
     try:
-        back = _read(p)
+        back = _read(p, 0)  # our own file: no limit
     except ValueError as e:
         raise OSError(errno.EIO, f"the written file is incomplete (disk full?): {e}") from None
     if back.shape != (spec.height, spec.width, spec.nchannels):
@@ -169,12 +209,14 @@ def _write_oiio(p: Path, spec, data: np.ndarray) -> None:
                                  f"{[spec.height, spec.width, spec.nchannels]} (disk full?)")
 
 
-def read_depth(path: str | Path) -> np.ndarray:
-    """Read a float32 ``[H, W]`` depth map from a single-channel EXR written by :func:`write_depth`."""
+def read_depth(path: str | Path, max_pixels: int | None = None) -> np.ndarray:
+    """Read a float32 ``[H, W]`` depth map from a single-channel EXR written by :func:`write_depth`
+    (``max_pixels`` as in :func:`read_image`)."""
+    limit = _check_max_pixels(max_pixels)
     p = _path(path)
     if p.suffix.lower() != ".exr":
         raise ValueError(f"depth path {str(p)!r} must end in .exr")
-    px = _read(p)
+    px = _read(p, limit)
     if px.shape[2] != 1:
         raise ValueError(f"depth file {str(p)!r} must have 1 channel, has {px.shape[2]}")
     d = px[..., 0]

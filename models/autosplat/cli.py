@@ -24,6 +24,8 @@ import numpy as np
 
 from clsplat.data.scene import DrivingSequence
 
+from ..common.metrics import SSIM_WINDOW
+
 __all__ = ["train", "reconstruct", "load_sequence", "parse_frames", "SYNTHETIC_DT"]
 
 #: frame interval of the built-in street (seconds): 16 frames cover 3 s of driving.
@@ -45,8 +47,9 @@ def parse_frames(text: str | None) -> tuple[int, int] | None:
 
 
 def load_sequence(spec: str, cameras: list[str] | None, frames: tuple[int, int] | None, scale: float,
-                  seed: int = 0) -> DrivingSequence:
-    """The sequence named by ``--data``, cut to ``frames`` and scaled by ``scale``."""
+                  seed: int = 0, safe_pickle: bool = True) -> DrivingSequence:
+    """The sequence named by ``--data``, cut to ``frames`` and scaled by ``scale`` (PandaSet's
+    pickles allow-listed unless ``safe_pickle=False``, ``--trust-pickle``)."""
     if not (isinstance(scale, (int, float)) and 0 < scale <= 4):
         raise ValueError(f"--scale: expected a number in (0, 4], got {scale!r}")
     if spec == "synthetic":
@@ -60,7 +63,7 @@ def load_sequence(spec: str, cameras: list[str] | None, frames: tuple[int, int] 
     elif spec.startswith("pandaset:"):
         from clsplat.data.pandaset import load_pandaset
         idx = None if frames is None else list(range(*frames))
-        seq = load_pandaset(spec.split(":", 1)[1], cameras=cameras, frames=idx)
+        seq = load_pandaset(spec.split(":", 1)[1], cameras=cameras, frames=idx, safe_pickle=safe_pickle)
     elif spec.startswith("nuscenes:"):
         from clsplat.data.nuscenes import load_nuscenes_scene
         seq = load_nuscenes_scene(spec.split(":", 1)[1])
@@ -76,6 +79,10 @@ def load_sequence(spec: str, cameras: list[str] | None, frames: tuple[int, int] 
         from ..common.data import resize_sequence
         c0 = seq.cameras[0]
         seq = resize_sequence(seq, max(8, round(c0.height * scale)), max(8, round(c0.width * scale)))
+    small = [c for c in seq.cameras if min(c.height, c.width) < SSIM_WINDOW]
+    if small:
+        raise ValueError(f"--scale: {scale:g} makes camera {small[0].name} {small[0].height}x{small[0].width} "
+                         f"pixels, smaller than SSIM's {SSIM_WINDOW}-pixel window; use a larger --scale")
     return seq
 
 
@@ -102,6 +109,8 @@ def reconstruct(data, preset, switches, out: Path, *, device=None, progress: boo
                 lpips=(None, "LPIPS off: no weights given"), extra: dict | None = None) -> dict | None:
     """Train (or resume) and evaluate one run; writes metrics.json and scene.ply into ``out``.
 
+    ``out`` is written in place; the commands (``clsplat train autosplat``, ``clsplat demo``) pass
+    the staging folder of a :class:`~..common.runfolder.RunFolder`, which publishes it as a group.
     Returns the metrics, or None when ``stop_after`` stopped the schedule early.
     """
     from ..common.train import atomic_write
@@ -112,7 +121,8 @@ def reconstruct(data, preset, switches, out: Path, *, device=None, progress: boo
                       checkpoint_every=checkpoint_every)
     trainer.fit(resume=resume, stop_at=stop_after)
     if trainer.step < trainer.total:
-        print(f"stopped after {trainer.step} of {trainer.total} iterations; continue with --resume")
+        print(f"stopped after {trainer.step} of {trainer.total} iterations (the unfinished run is in {out}); "
+              "continue with --resume")
         return None
     steps = [json.loads(x) for x in (out / "log.jsonl").read_text().splitlines() if x.strip()]
     it = [r["time_s"] for r in steps]
@@ -162,7 +172,7 @@ def train(argv: list[str]) -> int:
                         densify=not a.no_densify)
     frames = parse_frames(a.frames)
     t0 = time.perf_counter()
-    seq = load_sequence(a.data, a.cameras, frames, scale, seed=a.seed)
+    seq = load_sequence(a.data, a.cameras, frames, scale, seed=a.seed, safe_pickle=not a.trust_pickle)
     if a.masks:
         from .init import load_mask_folder
         load_mask_folder(seq, a.masks, list(range(*(frames or (0, len(seq.frames))))))
@@ -173,11 +183,14 @@ def train(argv: list[str]) -> int:
     if a.stop_after is not None and a.stop_after < 1:
         raise ValueError(f"--stop-after: expected a positive number of iterations, got {a.stop_after}")
     lp, msg = lpips_or_none(a.lpips_vgg, a.lpips_lin)
-    metrics = reconstruct(data, preset, switches, Path(a.out), device=a.device, progress=not a.no_progress,
-                          checkpoint_every=a.checkpoint_every, resume=a.resume, stop_after=a.stop_after,
-                          lpips=(lp, msg), extra={"data": a.data, "scale": scale, "load_seconds": load_s})
-    if metrics is None:
-        return 0
+    from ..common.runfolder import RunFolder
+    with RunFolder(a.out, resume=a.resume) as rf:  # the lock; outputs staged, then published as a group
+        metrics = reconstruct(data, preset, switches, rf.stage, device=a.device, progress=not a.no_progress,
+                              checkpoint_every=a.checkpoint_every, resume=a.resume, stop_after=a.stop_after,
+                              lpips=(lp, msg), extra={"data": a.data, "scale": scale, "load_seconds": load_s})
+        if metrics is None:
+            return 0
+        rf.publish()
     print(f"held-out PSNR {metrics.get('test_psnr', float('nan')):.2f} dB  SSIM {metrics.get('test_ssim', float('nan')):.3f}"
           f"  (train PSNR {metrics.get('train_psnr', float('nan')):.2f} dB); {metrics['gaussians']['total']} Gaussians; "
           f"outputs in {a.out}")

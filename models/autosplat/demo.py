@@ -52,6 +52,7 @@ def oracle_baseline(data, device=None) -> dict:
 def run_demo(out_dir: str | Path, seed: int = 0, device=None, progress: bool = True) -> dict:
     """Run the main job into ``out_dir``; returns the metrics (also in ``out_dir/metrics.json``)."""
     from ..common.presets import get_preset
+    from ..common.runfolder import RunFolder
     from ..common.train import atomic_write
     from .cli import load_sequence, reconstruct
     from .model import Switches
@@ -68,10 +69,12 @@ def run_demo(out_dir: str | Path, seed: int = 0, device=None, progress: bool = T
     seq = load_sequence("synthetic", None, None, preset.scale, seed=seed)
     data = prepare_data(seq, None, preset.holdout)
     load_s = time.perf_counter() - t0
-    m = reconstruct(data, preset, Switches(), out, device=device, progress=progress,
-                    extra={"data": "synthetic", "scale": preset.scale, "load_seconds": load_s})
-    m["baseline"] = oracle_baseline(data, device)
-    atomic_write(out / "metrics.json", lambda p: p.write_text(json.dumps(m, indent=2)))
+    with RunFolder(out, arg="--out") as rf:  # the lock; outputs staged, then published as a group
+        m = reconstruct(data, preset, Switches(), rf.stage, device=device, progress=progress,
+                        extra={"data": "synthetic", "scale": preset.scale, "load_seconds": load_s})
+        m["baseline"] = oracle_baseline(data, device)
+        atomic_write(rf.stage / "metrics.json", lambda p: p.write_text(json.dumps(m, indent=2)))
+        rf.publish()
     return m
 
 

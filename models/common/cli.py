@@ -13,7 +13,8 @@ import argparse
 import importlib
 import sys
 
-__all__ = ["dispatch", "train_command", "eval_command", "add_common_args", "add_eval_args", "add_lpips_args", "lpips_from_args", "positive_int"]
+__all__ = ["dispatch", "train_command", "eval_command", "add_common_args", "add_eval_args", "add_lpips_args",
+           "lpips_from_args", "positive_int", "add_trust_pickle_arg"]
 
 
 def positive_int(text: str) -> int:
@@ -27,9 +28,16 @@ def positive_int(text: str) -> int:
     return v
 
 
+def add_trust_pickle_arg(p: argparse.ArgumentParser) -> None:
+    """--trust-pickle: the explicit opt-out of allow-listed unpickling (PandaSet data)."""
+    p.add_argument("--trust-pickle", action="store_true",
+                   help="unpickle PandaSet's .pkl.gz files with pandas' own reader, which runs any code a file "
+                        "names; only for data from a source you trust (default: allow-listed, safe)")
+
+
 def add_common_args(p: argparse.ArgumentParser, default_preset: str = "small") -> None:
     """--data, --preset, --steps, --out, --resume, --seed, --device, --threads,
-    --checkpoint-every, --batch-size."""
+    --checkpoint-every, --batch-size, --trust-pickle."""
     p.add_argument("--data", default="synthetic",
                    help="synthetic | pandaset:PATH | nuscenes:PATH (default: synthetic)")
     p.add_argument("--preset", default=default_preset, help=f"preset name (default: {default_preset})")
@@ -42,10 +50,11 @@ def add_common_args(p: argparse.ArgumentParser, default_preset: str = "small") -
                    help="torch threads (default: 1 on a CPU OpenCL device, where PoCL needs the cores)")
     p.add_argument("--checkpoint-every", type=positive_int, default=100, help="steps between checkpoints")
     p.add_argument("--batch-size", type=positive_int, default=None, help="global batch (default: the preset's)")
+    add_trust_pickle_arg(p)
 
 
 def add_eval_args(p: argparse.ArgumentParser) -> None:
-    """--checkpoint, --data, --out, --device, --threads, --seed, --num-scenes."""
+    """--checkpoint, --data, --out, --device, --threads, --seed, --num-scenes, --trust-pickle."""
     p.add_argument("--checkpoint", required=True, help="checkpoint.pt written by clsplat train")
     p.add_argument("--data", default="synthetic", help="synthetic | pandaset:PATH | nuscenes:PATH")
     p.add_argument("--out", required=True, help="output folder (metrics.json, contact sheets)")
@@ -53,6 +62,7 @@ def add_eval_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threads", type=positive_int, default=None, help="torch threads")
     p.add_argument("--seed", type=int, default=0, help="seed of the held-out scenes")
     p.add_argument("--num-scenes", type=positive_int, default=4, help="held-out scenes to evaluate")
+    add_trust_pickle_arg(p)
 
 
 def add_lpips_args(p: argparse.ArgumentParser) -> None:

@@ -59,10 +59,13 @@ class DataSource:
         seed: base seed; synthetic street ``index`` of the train split has seed ``seed + index``.
         synthetic: extra :class:`SyntheticConfig` fields for synthetic streets (e.g. num_parked).
         version, scene: nuScenes version folder and scene (index, name or token).
+        safe_pickle: PandaSet's pickled DataFrames are read with the allow-listed unpickler
+            (True, the default); False trusts the files (``--trust-pickle``).
     """
 
     def __init__(self, kind: str, path: str | Path | None = None, seed: int = 0,
-                 synthetic: dict | None = None, version: str = "v1.0-mini", scene: int | str = 0) -> None:
+                 synthetic: dict | None = None, version: str = "v1.0-mini", scene: int | str = 0,
+                 safe_pickle: bool = True) -> None:
         if kind not in ("synthetic", "pandaset", "nuscenes"):
             raise ValueError(f"kind: expected 'synthetic', 'pandaset' or 'nuscenes', got {kind!r}")
         if kind != "synthetic":
@@ -76,6 +79,7 @@ class DataSource:
         if bad:
             raise ValueError(f"synthetic: unknown SyntheticConfig fields {bad}")
         self.version, self.scene = version, scene
+        self.safe_pickle = safe_pickle
         self._full: DrivingSequence | None = None  # the loaded real sequence (native resolution)
 
     @property
@@ -93,7 +97,8 @@ class DataSource:
         if self._full is None:
             if self.kind == "pandaset":
                 from clsplat.data import load_pandaset
-                self._full = load_pandaset(self.path, load_lidar=any((self.path / "lidar").glob("*.pkl.gz")))
+                self._full = load_pandaset(self.path, load_lidar=any((self.path / "lidar").glob("*.pkl.gz")),
+                                           safe_pickle=self.safe_pickle)
             else:
                 from clsplat.data import load_nuscenes_scene
                 self._full = load_nuscenes_scene(self.path, self.version, self.scene)

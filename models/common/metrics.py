@@ -55,6 +55,10 @@ def psnr(pred: Tensor, target: Tensor, mask: Optional[Tensor] = None) -> Tensor:
     return -10.0 * torch.log10(mse)
 
 
+#: side of SSIM's Gaussian window: images must be at least this high and wide.
+SSIM_WINDOW = 11
+
+
 def ssim(pred: Tensor, target: Tensor) -> Tensor:
     """Mean SSIM per image: ``kornia.metrics.ssim`` with an 11x11 Gaussian window (sigma 1.5),
     data range 1, C1 = 0.01², C2 = 0.03², no epsilon, averaged over the "valid" region (the
@@ -64,9 +68,9 @@ def ssim(pred: Tensor, target: Tensor) -> Tensor:
     pred, target: [B, C, H, W] with H, W >= 11 -> [B].
     """
     check_image_pair(pred, target, "pred", "target")
-    if min(pred.shape[-2:]) < 11:
+    if min(pred.shape[-2:]) < SSIM_WINDOW:
         raise ValueError(f"pred: SSIM's 11x11 window needs H, W >= 11, got {list(pred.shape[-2:])}")
-    smap = _kornia_ssim(pred.clamp(0, 1), target.clamp(0, 1), 11, max_val=1.0, eps=0.0, padding="valid")
+    smap = _kornia_ssim(pred.clamp(0, 1), target.clamp(0, 1), SSIM_WINDOW, max_val=1.0, eps=0.0, padding="valid")
     return smap.mean(dim=(1, 2, 3))
 
 

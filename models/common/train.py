@@ -17,14 +17,17 @@ through the wrapper's ``forward``, and the models here call several methods per 
 (reconstruct, render, warp). One flat all-reduce per step does the same job.
 
 Rank 0 writes ``out_dir/log.jsonl`` (one line per step: every loss term averaged over the batch,
-the learning rate, seconds), ``out_dir/loss.png`` and ``out_dir/checkpoint.pt`` (atomically:
-written to a temporary file in the same folder, then renamed, so an interrupted or failed write
-never destroys the previous checkpoint). A step whose loss or gradients are not finite is
+the learning rate, seconds), ``out_dir/loss.png`` and ``out_dir/checkpoint.pt`` (atomically, with
+:func:`clsplat.io.atomic.atomic_write`: written to a temporary file in the same folder, then
+renamed, so an interrupted or failed write never destroys the previous checkpoint; a write
+failure is an ``OSError`` naming the file and the cause). The commands run the loop inside a
+:class:`~.runfolder.RunFolder`, whose staging folder is ``out_dir``. A step whose loss or gradients are not finite is
 skipped (no update) and logged; :data:`MAX_CONSECUTIVE_SKIPS` in a row stop the run with an
 error that names the terms.
 """
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
@@ -39,6 +42,8 @@ from typing import Callable, Iterator
 import numpy as np
 import torch
 import torch.distributed as dist
+
+from clsplat.io.atomic import atomic_write
 
 from .presets import Preset, check_preset_matches
 
@@ -115,32 +120,25 @@ def restore_rng(state: dict) -> None:
 # ---------------------------------------------------------------------------------------
 # files: atomic writes, checkpoints, the JSONL log, the loss plot
 # ---------------------------------------------------------------------------------------
-def atomic_write(path: str | Path, write_fn: Callable[[Path], object]) -> Path:
-    """Call ``write_fn(tmp)`` on a temporary path beside ``path``, then rename it into place.
-
-    If ``write_fn`` fails (a full disk, an interrupt), the temporary file is removed, ``path``
-    keeps its previous content, and the error is re-raised naming ``path``.
-    """
-    path = Path(path)
-    if not path.parent.is_dir():
-        raise ValueError(f"path: output folder {str(path.parent)!r} does not exist")
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}{path.suffix}")
-    try:
-        write_fn(tmp)
-        os.replace(tmp, path)
-    except BaseException as e:
-        tmp.unlink(missing_ok=True)
-        if isinstance(e, OSError):
-            raise OSError(e.errno, f"writing {path} failed ({e.strerror}); the previous file is unchanged") from e
-        raise
-    return path
+def _write_bytes(path: Path, data) -> None:
+    """Write ``data`` to ``path`` with Python's file I/O and flush it to disk, so that a full disk
+    or a file-size limit is an ``OSError`` (ENOSPC, EFBIG) here, not an error inside a library."""
+    with open(path, "wb") as fh:
+        fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())
 
 
 def save_checkpoint(path: str | Path, state: dict, family: str, preset: Preset) -> Path:
     """Write ``state`` plus the family, preset and format atomically to ``path``."""
     full = {**state, "format": CHECKPOINT_FORMAT, "family": family, "preset": preset.to_dict(),
             "preset_class": type(preset).__name__}
-    return atomic_write(path, lambda p: torch.save(full, p))
+    # Serialised in memory first: torch's own file writer reports a full disk as "RuntimeError:
+    # [enforce fail at inline_container.cc] unexpected pos" and aborts the process under
+    # RLIMIT_FSIZE; Python's write names the cause, and atomic_write names the file.
+    buf = io.BytesIO()
+    torch.save(full, buf)
+    return atomic_write(path, lambda p: _write_bytes(p, buf.getbuffer()))
 
 
 def load_checkpoint(path: str | Path, family: str | None = None, preset: Preset | None = None) -> dict:
@@ -189,8 +187,13 @@ class JsonlLog:
         atomic_write(self.path, lambda p: p.write_text("".join(k + "\n" for k in keep)))
 
     def write(self, record: dict) -> None:
-        with open(self.path, "a") as fh:
-            fh.write(json.dumps(record, allow_nan=True) + "\n")
+        """Append one line; a failed write (full disk) is an OSError naming the log file."""
+        try:
+            with open(self.path, "a") as fh:
+                fh.write(json.dumps(record, allow_nan=True) + "\n")
+        except OSError as e:
+            raise OSError(e.errno, f"writing {str(self.path)!r} failed ({e.strerror or e}); the lines "
+                                   "before this step are kept") from e
 
 
 def read_log(path: str | Path) -> list[dict]:

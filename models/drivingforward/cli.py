@@ -82,21 +82,26 @@ def train(argv: list[str]) -> int:
     args = p.parse_args(argv)
     try:
         preset = get_preset(FAMILY, args.preset)
-        source = parse_data(args.data, seed=args.seed)
+        source = parse_data(args.data, seed=args.seed, safe_pickle=not args.trust_pickle)
         threads = set_threads(args.threads, args.device)
         seed_everything(args.seed)
         model = build_model(preset, args.weights, args.device)
         lpips = lpips_from_args(args)
         opt = make_optimizer(model, preset)
-        spec = TrainSpec(out_dir=args.out, steps=args.steps or preset.steps,
-                         batch_size=args.batch_size or preset.batch_size, checkpoint_every=args.checkpoint_every,
-                         grad_clip=preset.grad_clip, seed=args.seed, resume=args.resume, progress=not args.no_progress)
-        print(f"data {source.name}, torch threads {threads}", flush=True)
-        run(model, opt, spec, preset, FAMILY, make_sample_loss(source, preset, args.seed, args.cameras, lpips))
+        from ..common.runfolder import RunFolder
         from ..common.train import distributed_info
-        if args.eval_scenes > 0 and distributed_info()[0] == 0:
-            m = evaluate_model(model, source, args.eval_scenes, args.cameras, lpips=lpips, out_dir=args.out)
-            print(_summary(m), flush=True)
+        distributed_info()
+        with RunFolder(args.out, resume=args.resume) as rf:  # the lock; outputs staged, then published as a group
+            spec = TrainSpec(out_dir=rf.stage, steps=args.steps or preset.steps,
+                             batch_size=args.batch_size or preset.batch_size, checkpoint_every=args.checkpoint_every,
+                             grad_clip=preset.grad_clip, seed=args.seed, resume=args.resume,
+                             progress=not args.no_progress)
+            print(f"data {source.name}, torch threads {threads}", flush=True)
+            run(model, opt, spec, preset, FAMILY, make_sample_loss(source, preset, args.seed, args.cameras, lpips))
+            if args.eval_scenes > 0 and distributed_info()[0] == 0:
+                m = evaluate_model(model, source, args.eval_scenes, args.cameras, lpips=lpips, out_dir=rf.stage)
+                print(_summary(m), flush=True)
+            rf.publish()
     except ValueError as e:
         print(f"clsplat train drivingforward: {e}", file=sys.stderr)
         return 2
@@ -138,7 +143,7 @@ def evaluate(argv: list[str]) -> int:
     try:
         set_threads(args.threads, args.device)
         model, preset = load_model(args.checkpoint, args.device, args.preset)
-        source = parse_data(args.data, seed=args.seed)
+        source = parse_data(args.data, seed=args.seed, safe_pickle=not args.trust_pickle)
         lpips = lpips_from_args(args)
         m = evaluate_model(model, source, args.num_scenes, args.cameras, args.frames, args.target, lpips,
                            out_dir=args.out, oracle=not args.no_oracle, progress=True)

@@ -61,7 +61,7 @@ def train(argv: list[str]) -> int:
         preset = get_preset(FAMILY, args.preset)
         if args.stage == "budget" and args.init is None and not args.resume:
             raise ValueError("--init: the budget stage starts from a base checkpoint; give --init FILE")
-        source = parse_data(args.data, seed=args.seed)
+        source = parse_data(args.data, seed=args.seed, safe_pickle=not args.trust_pickle)
         set_threads(args.threads, args.device)
         seed_everything(args.seed)
         model = PGT(preset)
@@ -74,12 +74,18 @@ def train(argv: list[str]) -> int:
         steps = args.steps or (preset.steps if args.stage == "base" else preset.budget_steps)
         from .training import make_optimizer, make_sample_loss
         opt, sched = make_optimizer(model, preset, steps, args.stage)
-        spec = TrainSpec(out_dir=args.out, steps=steps, batch_size=args.batch_size or preset.batch_size,
-                         checkpoint_every=args.checkpoint_every, seed=args.seed, grad_clip=preset.grad_clip,
-                         resume=args.resume)
         lpips = lpips_from_args(args) if preset.w_lpips else None
-        run_train(model, opt, spec, preset, FAMILY, make_sample_loss(source, preset, args.stage, args.seed, lpips),
-                  scheduler=sched, extra_state={"stage": args.stage})
+        from ..common.runfolder import RunFolder
+        from ..common.train import distributed_info
+        distributed_info()
+        with RunFolder(args.out, resume=args.resume) as rf:  # the lock; outputs staged, then published as a group
+            spec = TrainSpec(out_dir=rf.stage, steps=steps, batch_size=args.batch_size or preset.batch_size,
+                             checkpoint_every=args.checkpoint_every, seed=args.seed, grad_clip=preset.grad_clip,
+                             resume=args.resume)
+            run_train(model, opt, spec, preset, FAMILY,
+                      make_sample_loss(source, preset, args.stage, args.seed, lpips),
+                      scheduler=sched, extra_state={"stage": args.stage})
+            rf.publish()
     except ValueError as e:
         print(f"clsplat train pgt: {e}", file=sys.stderr)
         return 2
@@ -98,7 +104,7 @@ def evaluate(argv: list[str]) -> int:
         ck = load_checkpoint(args.checkpoint, FAMILY)
         preset = get_preset(FAMILY, ck["preset"]["name"])
         check_preset_matches(ck["preset"], preset, str(args.checkpoint))
-        source = parse_data(args.data, seed=args.seed)
+        source = parse_data(args.data, seed=args.seed, safe_pickle=not args.trust_pickle)
         set_threads(args.threads, args.device)
         model = PGT(preset)
         if any(k.startswith("budget.") for k in ck["model"]):
