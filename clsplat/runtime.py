@@ -35,7 +35,7 @@ from .memory import available_host_memory
 
 __all__ = [
     "BuildError", "DeviceError", "Runtime", "DeviceArray", "get_runtime", "list_devices",
-    "describe_devices", "LOCAL_MEM_BUDGET", "INT32_MAX", "available_host_memory",
+    "describe_devices", "read_back", "LOCAL_MEM_BUDGET", "INT32_MAX", "available_host_memory",
 ]
 
 _BASE_OPTIONS = ("-cl-std=CL1.2", "-cl-denorms-are-zero")
@@ -43,6 +43,7 @@ _DEVICE_ENV = "CLSPLAT_DEVICE"
 _HOST_MEMORY_ENV = "CLSPLAT_HOST_MEMORY"
 LOCAL_MEM_BUDGET = 48 * 1024  # bytes of local memory a kernel may use: a GPU's, not PoCL's
 INT32_MAX = 2**31 - 1
+HOST_CHECK_BYTES = 16 << 20  # allocations from this size on are checked against free host memory
 
 
 class DeviceError(ValueError):
@@ -117,6 +118,15 @@ class Runtime:
     _kernels: dict = field(default_factory=dict, init=False, repr=False)
     _scans: dict = field(default_factory=dict, init=False, repr=False)
     _group_limits: dict = field(default_factory=dict, init=False, repr=False)
+    # (stage, kernel name, sorted defines, fast_math) -> kernel: the per-launch look-up, which
+    # neither reads nor hashes the sources (they are package data, fixed for the process).
+    _kernel_index: dict = field(default_factory=dict, init=False, repr=False)
+    _sources: dict = field(default_factory=dict, init=False, repr=False)
+    _limits: tuple = field(default=(), init=False, repr=False)  # (max alloc, global mem) bytes
+    _maps_on_create: bool | None = field(default=None, init=False, repr=False)
+    # Commands that may write device memory, counted: an array read back (or created) after
+    # the last of them needs no wait on the queue to be read again.
+    launches: int = field(default=0, init=False, repr=False)
     # Buffers that queued commands may still touch. A released pyopencl Buffer drops its host
     # memory at once, even while a kernel is queued on it, so every buffer a command uses is
     # held here from its enqueue until the next finish().
@@ -151,6 +161,19 @@ class Runtime:
             return bool(self.device.type & cl.device_type.CPU)
 
     @property
+    def maps_on_create(self) -> bool:
+        """Whether a zero-copy array is handed to the device by a map and unmap when created.
+
+        The spec defines a ``USE_HOST_PTR`` buffer's contents at creation, so the map only
+        serves checkers that track host writes (Oclgrind). PoCL's CPU device computes on the
+        host pointer itself, and there the map cost ~0.2 ms per array (half the fixed cost
+        of a small render), so it is skipped there."""
+        if self._maps_on_create is None:
+            pocl = "portable computing language" in self.device.platform.name.lower()
+            self._maps_on_create = not (pocl and self.is_cpu)
+        return self._maps_on_create
+
+    @property
     def is_cpu(self) -> bool:
         return bool(self.device.type & cl.device_type.CPU)
 
@@ -182,7 +205,10 @@ class Runtime:
     # -- programs -----------------------------------------------------------------------
     def program(self, stage: str, defines: Mapping[str, object], fast_math: bool = False) -> cl.Program:
         """Build (or fetch) ``kernels/<stage>.cl`` specialised by ``defines``."""
-        source = _kernel_source("common.h") + f'\n#line 1 "{stage}.cl"\n' + _kernel_source(f"{stage}.cl")
+        source = self._sources.get(stage)
+        if source is None:
+            source = self._sources[stage] = (_kernel_source("common.h") + f'\n#line 1 "{stage}.cl"\n'
+                                             + _kernel_source(f"{stage}.cl"))
         options = list(_BASE_OPTIONS) + [f"-D{k}={_define(v)}" for k, v in sorted(defines.items())]
         if fast_math:
             options.append("-cl-fast-relaxed-math")
@@ -200,6 +226,10 @@ class Runtime:
     def kernel(self, stage: str, name: str, defines: Mapping[str, object],
                fast_math: bool = False) -> cl.Kernel:
         """A kernel object of a specialised program, created once."""
+        index = (stage, name, tuple(sorted(defines.items())), fast_math)
+        k = self._kernel_index.get(index)
+        if k is not None:
+            return k
         prog = self.program(stage, defines, fast_math)
         key = (id(prog), name)
         k = self._kernels.get(key)
@@ -209,6 +239,7 @@ class Runtime:
             except (AttributeError, cl.Error) as exc:  # built, yet the device made no kernel
                 raise BuildError(stage, [f"-D{d}={_define(v)}" for d, v in sorted(defines.items())],
                                  f"no kernel {name!r} in the built program: {exc}", self.name) from None
+        self._kernel_index[index] = k
         return k
 
     def exclusive_scan_int32(self):
@@ -226,6 +257,7 @@ class Runtime:
     def enqueue(self, kernel: cl.Kernel, global_size: int, local_size: int, *args) -> cl.Event:
         """Enqueue ``kernel`` and hold its buffer arguments until the next :meth:`finish`."""
         self.hold(*args)
+        self.launches += 1
         return kernel(self.queue, (global_size,), (local_size,), *args)
 
     def launch(self, kernel: cl.Kernel, n_items: int, local: int, *args) -> cl.Event:
@@ -253,16 +285,22 @@ class Runtime:
         """Refuse an allocation of ``nbytes`` for ``what`` (a message naming the argument to
         blame) that exceeds the device's allocation limit, its global memory or the host
         memory available now."""
+        if not self._limits:
+            self._limits = (int(self.device.max_mem_alloc_size), int(self.device.global_mem_size))
+        if nbytes < HOST_CHECK_BYTES and nbytes <= min(self._limits):
+            return  # small: reading /proc/meminfo per allocation cost more than the render
         host = available_host_memory()
-        limit = min(int(self.device.max_mem_alloc_size), int(self.device.global_mem_size), host)
+        limit = min(*self._limits, host)
         if nbytes > limit:
             raise ValueError(f"{what} needs {nbytes >> 20} MiB, over the {limit >> 20} MiB that can "
                              f"be allocated (device allocation limit "
                              f"{self.device.max_mem_alloc_size >> 20} MiB, host memory available "
                              f"{host >> 20} MiB)")
 
-    def array(self, tensor: torch.Tensor) -> "DeviceArray":
-        return DeviceArray(self, tensor)
+    def array(self, tensor: torch.Tensor, read_only: bool = False) -> "DeviceArray":
+        """``tensor`` on the device; ``read_only``: no command will write it, so reading it
+        back never waits (the tensor is the data)."""
+        return DeviceArray(self, tensor, read_only)
 
     def empty(self, shape, dtype: torch.dtype, zero: bool = True) -> "DeviceArray":
         n = 1
@@ -292,12 +330,14 @@ class DeviceArray:
     The tensor must not be read for device results other than through :meth:`host`.
     """
 
-    def __init__(self, rt: Runtime, tensor: torch.Tensor) -> None:
+    def __init__(self, rt: Runtime, tensor: torch.Tensor, read_only: bool = False) -> None:
         if tensor.device.type != "cpu":
             raise ValueError(f"DeviceArray: tensor must live on the CPU, got {tensor.device}")
         self.rt = rt
         self.tensor = tensor.contiguous()
         self.zero_copy = rt.shares_host_memory and self.tensor.numel() > 0
+        self.synced_at = rt.launches  # the tensor holds the data as of this many launches
+        self.read_only = read_only  # no command writes it: the tensor stays the data
         mf = cl.mem_flags
         nbytes = self.tensor.numel() * self.tensor.element_size()
         if nbytes > rt.device.max_mem_alloc_size:
@@ -309,6 +349,8 @@ class DeviceArray:
         elif self.zero_copy:
             host = self.tensor.numpy()
             self.buffer = cl.Buffer(rt.context, mf.READ_WRITE | mf.USE_HOST_PTR, hostbuf=host)
+            if not rt.maps_on_create:
+                return
             # Hand the tensor's contents to the device through a map for writing and its
             # unmap: free where the memory is shared, and correct where the runtime keeps a
             # copy of its own (or, like Oclgrind's checker, tracks what the host wrote).
@@ -326,21 +368,46 @@ class DeviceArray:
     def host(self) -> torch.Tensor:
         """The tensor, with every queued command finished and the device's data read back
         (a map and unmap on the zero-copy path, a copy otherwise)."""
-        if self.tensor.numel() == 0:
-            return self.tensor
-        dst = self.tensor.numpy()
-        if self.zero_copy:
-            mapped, _ = cl.enqueue_map_buffer(self.rt.queue, self.buffer, cl.map_flags.READ, 0,
-                                              dst.shape, dst.dtype, is_blocking=True)
-            try:
-                if mapped.ctypes.data != dst.ctypes.data:  # the runtime kept its own copy
-                    np.copyto(dst, mapped)
-            finally:
-                mapped.base.release(self.rt.queue)
+        return read_back(self)[0]
+
+
+def read_back(*arrays: DeviceArray) -> list[torch.Tensor]:
+    """The tensors of ``arrays`` (one runtime) with every queued command finished and the
+    device's data read back, waiting on the queue once for all of them.
+
+    Arrays that no command launched since their creation or last read back can have written
+    are returned as they are. Zero-copy arrays are mapped for reading without blocking, the queue is finished once, and
+    the maps are released (their unmaps stay queued, the buffers held until the next finish);
+    on that path nothing is copied unless the runtime kept its own copy. Other arrays are
+    read with non-blocking copies before the same single wait.
+    """
+    live = [a for a in arrays
+            if a.tensor.numel() > 0 and not a.read_only and a.synced_at != a.rt.launches]
+    if not live:  # nothing launched since these were created or last read back
+        return [a.tensor for a in arrays]
+    rt = live[0].rt
+    maps = []
+    for a in live:
+        dst = a.tensor.numpy()
+        if a.zero_copy:
+            mapped, _ = cl.enqueue_map_buffer(rt.queue, a.buffer, cl.map_flags.READ, 0,
+                                              dst.shape, dst.dtype, is_blocking=False)
+            maps.append((a, dst, mapped))
         else:
-            cl.enqueue_copy(self.rt.queue, dst, self.buffer)
-        self.rt.finish()
-        return self.tensor
+            cl.enqueue_copy(rt.queue, dst, a.buffer, is_blocking=False)
+            rt.hold(a.buffer)
+    try:
+        rt.finish()
+        for a, dst, mapped in maps:
+            if mapped.ctypes.data != dst.ctypes.data:  # the runtime kept its own copy
+                np.copyto(dst, mapped)
+    finally:
+        for a, _, mapped in maps:
+            mapped.base.release(rt.queue)
+            rt.hold(a.buffer)
+    for a in live:
+        a.synced_at = rt.launches
+    return [a.tensor for a in arrays]
 
 
 _RUNTIMES: dict[str, Runtime] = {}
