@@ -20,7 +20,8 @@ from __future__ import annotations
 import os
 import sys
 
-__all__ = ["THREAD_DEFAULTS", "OPT_OUT_ENV", "apply_thread_defaults", "thread_defaults_active"]
+__all__ = ["THREAD_DEFAULTS", "OPT_OUT_ENV", "apply_thread_defaults", "thread_defaults_active",
+           "default_torch_threads"]
 
 #: what :func:`apply_thread_defaults` sets where unset
 THREAD_DEFAULTS = {"OMP_WAIT_POLICY": "PASSIVE", "KMP_BLOCKTIME": "0"}
@@ -47,6 +48,30 @@ def thread_defaults_active() -> bool:
     passive now and was either set before clsplat was imported or set by that import before
     torch loaded."""
     return _ACTIVE_AT_IMPORT and os.environ.get("OMP_WAIT_POLICY", "").upper() == "PASSIVE"
+
+
+def default_torch_threads(cores: int | None = None, load: float | None = None,
+                          active: bool | None = None) -> int:
+    """torch's intra-op threads for training on a CPU OpenCL device: when idle OpenMP
+    workers sleep (``active``, default :func:`thread_defaults_active`), the cores other
+    processes leave idle now (``cores`` minus the 1-minute ``load`` average, rounded, at
+    least 1; both default to this machine's); else 1.
+
+    Measured (bench/RESULTS.md, "issue 21"): with spinning OpenMP workers two torch threads
+    made a loaded DrivingForward step 4-5x slower than one; with sleeping workers that
+    collapse is gone, yet on a loaded machine one thread stays the faster (every parallel
+    region waits for a descheduled worker), so extra threads go only to idle cores.
+    """
+    if not (thread_defaults_active() if active is None else active):
+        return 1
+    if cores is None:
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    if load is None:
+        try:
+            load = os.getloadavg()[0]
+        except (OSError, AttributeError):
+            load = 0.0
+    return max(1, min(cores, cores - int(round(load))))
 
 
 # torch's libgomp reads the environment when it loads: if torch was imported before

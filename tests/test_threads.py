@@ -54,3 +54,11 @@ def test_apply_sets_only_what_is_unset():
     assert apply_thread_defaults(env) == {"OMP_WAIT_POLICY": "PASSIVE"}
     assert env == {"KMP_BLOCKTIME": "200", "OMP_WAIT_POLICY": "PASSIVE"}
     assert apply_thread_defaults({OPT_OUT_ENV: "off"}) == {}
+
+
+def test_default_torch_threads_uses_idle_cores_only():
+    from clsplat.threads import default_torch_threads
+    assert default_torch_threads(cores=8, load=0.2, active=True) == 8
+    assert default_torch_threads(cores=8, load=3.4, active=True) == 5
+    assert default_torch_threads(cores=2, load=4.0, active=True) == 1
+    assert default_torch_threads(cores=8, load=0.0, active=False) == 1  # spinning workers
