@@ -13,7 +13,9 @@ queue per device) and, inside each runtime, the program and kernel caches.
   created over the tensor's memory (``USE_HOST_PTR``) and read back by mapping it, which
   copies nothing there; elsewhere data are written at creation and read back with
   ``enqueue_copy``. The host never touches a buffer's memory outside map/unmap or
-  read/write commands, as the OpenCL spec requires. ``CLSPLAT_HOST_MEMORY=copy`` forces the
+  read/write commands, as the OpenCL spec requires, except on PoCL's CPU device, which
+  computes in the host memory itself (:attr:`Runtime.computes_in_host_memory`): there a
+  finished queue is all a read-back needs. ``CLSPLAT_HOST_MEMORY=copy`` forces the
   copy path (what discrete GPUs take) on any device, ``=share`` forces zero-copy.
 * Device limits: launches respect the kernel's own ``CL_KERNEL_WORK_GROUP_SIZE`` and every
   kernel is sized for :data:`LOCAL_MEM_BUDGET` (48 KiB, what GPUs offer) of local memory,
@@ -123,7 +125,8 @@ class Runtime:
     _kernel_index: dict = field(default_factory=dict, init=False, repr=False)
     _sources: dict = field(default_factory=dict, init=False, repr=False)
     _limits: tuple = field(default=(), init=False, repr=False)  # (max alloc, global mem) bytes
-    _maps_on_create: bool | None = field(default=None, init=False, repr=False)
+    _in_host_memory: bool | None = field(default=None, init=False, repr=False)
+    _unified: bool | None = field(default=None, init=False, repr=False)  # device query, cached
     # Commands that may write device memory, counted: an array read back (or created) after
     # the last of them needs no wait on the queue to be read again.
     launches: int = field(default=0, init=False, repr=False)
@@ -155,23 +158,33 @@ class Runtime:
             raise DeviceError(f"{_HOST_MEMORY_ENV}: expected 'auto', 'copy' or 'share', got {mode!r}")
         if mode != "auto":
             return mode == "share"
-        try:
-            return bool(self.device.host_unified_memory)
-        except cl.Error:  # the query is deprecated in OpenCL 2.0: fall back to the type
-            return bool(self.device.type & cl.device_type.CPU)
+        if self._unified is None:
+            try:
+                self._unified = bool(self.device.host_unified_memory)
+            except cl.Error:  # the query is deprecated in OpenCL 2.0: fall back to the type
+                self._unified = bool(self.device.type & cl.device_type.CPU)
+        return self._unified
 
     @property
-    def maps_on_create(self) -> bool:
-        """Whether a zero-copy array is handed to the device by a map and unmap when created.
+    def computes_in_host_memory(self) -> bool:
+        """Whether zero-copy buffers are used in place, with no map needed to hand data over.
 
-        The spec defines a ``USE_HOST_PTR`` buffer's contents at creation, so the map only
-        serves checkers that track host writes (Oclgrind). PoCL's CPU device computes on the
-        host pointer itself, and there the map cost ~0.2 ms per array (half the fixed cost
-        of a small render), so it is skipped there."""
-        if self._maps_on_create is None:
+        PoCL's CPU device computes on a ``USE_HOST_PTR`` buffer's host memory itself, so there
+        a zero-copy array skips the map and unmap at creation (whose contents the spec defines
+        then anyway) and on read-back (the finished queue suffices). Each map cost ~0.2 ms of
+        the calling thread on PoCL, most of the fixed cost of a small render. Elsewhere
+        (Oclgrind's checker tracks host writes, GPUs keep copies) arrays are mapped."""
+        if self._in_host_memory is None:
             pocl = "portable computing language" in self.device.platform.name.lower()
-            self._maps_on_create = not (pocl and self.is_cpu)
-        return self._maps_on_create
+            self._in_host_memory = pocl and self.is_cpu
+        return self._in_host_memory
+
+    @property
+    def max_alloc(self) -> int:
+        """``CL_DEVICE_MAX_MEM_ALLOC_SIZE`` in bytes (queried once)."""
+        if not self._limits:
+            self._limits = (int(self.device.max_mem_alloc_size), int(self.device.global_mem_size))
+        return self._limits[0]
 
     @property
     def is_cpu(self) -> bool:
@@ -285,9 +298,7 @@ class Runtime:
         """Refuse an allocation of ``nbytes`` for ``what`` (a message naming the argument to
         blame) that exceeds the device's allocation limit, its global memory or the host
         memory available now."""
-        if not self._limits:
-            self._limits = (int(self.device.max_mem_alloc_size), int(self.device.global_mem_size))
-        if nbytes < HOST_CHECK_BYTES and nbytes <= min(self._limits):
+        if nbytes < HOST_CHECK_BYTES and nbytes <= self.max_alloc and nbytes <= self._limits[1]:
             return  # small: reading /proc/meminfo per allocation cost more than the render
         host = available_host_memory()
         limit = min(*self._limits, host)
@@ -340,7 +351,7 @@ class DeviceArray:
         self.read_only = read_only  # no command writes it: the tensor stays the data
         mf = cl.mem_flags
         nbytes = self.tensor.numel() * self.tensor.element_size()
-        if nbytes > rt.device.max_mem_alloc_size:
+        if nbytes > rt.max_alloc:
             raise ValueError(f"DeviceArray: {list(self.tensor.shape)} {self.tensor.dtype} needs "
                              f"{nbytes >> 20} MiB, over the device's "
                              f"{rt.device.max_mem_alloc_size >> 20} MiB allocation limit")
@@ -349,7 +360,7 @@ class DeviceArray:
         elif self.zero_copy:
             host = self.tensor.numpy()
             self.buffer = cl.Buffer(rt.context, mf.READ_WRITE | mf.USE_HOST_PTR, hostbuf=host)
-            if not rt.maps_on_create:
+            if rt.computes_in_host_memory:
                 return
             # Hand the tensor's contents to the device through a map for writing and its
             # unmap: free where the memory is shared, and correct where the runtime keeps a
@@ -376,7 +387,9 @@ def read_back(*arrays: DeviceArray) -> list[torch.Tensor]:
     device's data read back, waiting on the queue once for all of them.
 
     Arrays that no command launched since their creation or last read back can have written
-    are returned as they are. Zero-copy arrays are mapped for reading without blocking, the queue is finished once, and
+    are returned as they are; on devices that compute in host memory
+    (:attr:`Runtime.computes_in_host_memory`) zero-copy arrays need only the finished queue.
+    Other zero-copy arrays are mapped for reading without blocking, the queue is finished once, and
     the maps are released (their unmaps stay queued, the buffers held until the next finish);
     on that path nothing is copied unless the runtime kept its own copy. Other arrays are
     read with non-blocking copies before the same single wait.
@@ -387,8 +400,11 @@ def read_back(*arrays: DeviceArray) -> list[torch.Tensor]:
         return [a.tensor for a in arrays]
     rt = live[0].rt
     maps = []
+    in_place = rt.computes_in_host_memory
     for a in live:
         dst = a.tensor.numpy()
+        if a.zero_copy and in_place:  # the device wrote the tensor's own memory
+            continue
         if a.zero_copy:
             mapped, _ = cl.enqueue_map_buffer(rt.queue, a.buffer, cl.map_flags.READ, 0,
                                               dst.shape, dst.dtype, is_blocking=False)
