@@ -4,6 +4,7 @@ The front door is :func:`rasterization` (gsplat's interface). :mod:`clsplat.refe
 float64 PyTorch implementation of gsplat's semantics, used as the accuracy baseline;
 :mod:`clsplat.strategy` holds torch ports of gsplat's densification strategies.
 """
+from . import threads as _threads  # noqa: F401  first: sets the OpenMP wait policy before torch loads
 from .config import RenderConfig
 from .rendering import RollingShutterType, rasterization
 from .runtime import BuildError, DeviceError, describe_devices, get_runtime

@@ -20,7 +20,7 @@ import torch
 
 from . import stages
 from .config import RenderConfig
-from .runtime import Runtime
+from .runtime import Runtime, read_back
 
 __all__ = ["Settings", "ProjectFn", "ShFn", "RasterizeFn"]
 
@@ -65,8 +65,7 @@ class ProjectFn(torch.autograd.Function):
                            arr(viewmats), arr(Ks), s.width, s.height, s.tile_size,
                            near_plane=s.near_plane, far_plane=s.far_plane, eps2d=s.eps2d,
                            radius_clip=s.radius_clip, antialiased=s.antialiased, events=s.events)
-        outs = [a.host() for a in (p.means2d, p.conics, p.depths, p.opacities, p.radii, p.rects,
-                                   p.extents)]
+        outs = read_back(p.means2d, p.conics, p.depths, p.opacities, p.radii, p.rects, p.extents)
         ctx.mark_non_differentiable(*outs[4:])
         ctx.save_for_backward(means, quats, scales, opacities, viewmats, Ks, outs[4])
         ctx.s = s
@@ -92,8 +91,9 @@ class ProjectFn(torch.autograd.Function):
                                  eps2d=s.eps2d, antialiased=s.antialiased,
                                  viewmat_grad=ctx.needs_input_grad[4], events=s.events)
         need = ctx.needs_input_grad
-        res = [out[k].host() if need[i] else None
-               for i, k in enumerate(("v_means", "v_quats", "v_scales", "v_opacities"))]
+        names = [k for i, k in enumerate(("v_means", "v_quats", "v_scales", "v_opacities")) if need[i]]
+        back = dict(zip(names, read_back(*(out[k] for k in names))))
+        res = [back.get(k) for k in ("v_means", "v_quats", "v_scales", "v_opacities")]
         res.append(out["v_viewmats"] if need[4] else None)
         return (*res, None, None)
 
@@ -147,15 +147,16 @@ class RasterizeFn(torch.autograd.Function):
         rt, cfg, arr = s.rt, s.cfg, s.rt.array
         a = {"means2d": arr(means2d.detach()), "conics": arr(conics.detach()),
              "opacities": arr(opacities.detach()), "feats": arr(feats.detach()),
-             "rects": arr(rects), "extents": arr(extents)}
+             "rects": arr(rects, read_only=True), "extents": arr(extents)}
         offsets, keys = stages.bin_tiles(rt, cfg, a["rects"], arr(depths.detach()), s.width,
                                          s.height, s.tile_size, events=s.events)
-        stages.sort_segments(rt, cfg, keys, offsets, events=s.events)
+        # bin_tiles has read the offsets back and nothing writes them after the scan
+        stages.sort_segments(rt, cfg, keys, offsets, events=s.events, host_offsets=offsets.tensor)
         want_grad = any(ctx.needs_input_grad[:4])  # False under no_grad or for constants
         out, T, last = stages.composite(rt, cfg, a["means2d"], a["conics"], a["opacities"],
                                         a["extents"], a["feats"], offsets, keys, s.width, s.height,
                                         s.tile_size, save_last=want_grad, events=s.events)
-        out_t, T_t = out.host(), T.host()
+        out_t, T_t, off_t, keys_t = read_back(out, T, offsets, keys)
         ctx.s = s
         # The outputs are saved tensors, never held in ctx.fwd: out.tensor is out_t, and
         # output -> grad_fn -> ctx -> array -> output would be a cycle the GC cannot free.
@@ -163,7 +164,7 @@ class RasterizeFn(torch.autograd.Function):
         if want_grad:
             ctx.save_for_backward(out_t, T_t)
         ctx.means2d = means2d  # receives .absgrad, as gsplat's densification expects
-        s.isect = (offsets.host(), keys.host())  # read back: not shared memory on GPUs
+        s.isect = (off_t, keys_t)  # read back: not shared memory on GPUs
         return out_t, T_t
 
     @staticmethod
@@ -189,7 +190,7 @@ class RasterizeFn(torch.autograd.Function):
                                            events=s.events)
         r = stages.reduce_slots(rt, cfg, fwd["rects"], offs, slots, CH, geom=geom, color=color,
                                 absgrad=absgrad, events=s.events)
-        g = {k: v.host() for k, v in r.items()}
+        g = dict(zip(r, read_back(*r.values())))
         if absgrad:
             if s.absgrad_sink is not None:
                 s.absgrad_sink(g["absgrad"])

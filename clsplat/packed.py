@@ -9,32 +9,51 @@ those into what gsplat exposes in ``meta``:
   ``isect_offsets`` and ``tiles_per_gauss`` from the sorted tile segments of each render;
 * :class:`AbsgradSink`: routes the absolute screen-space gradients of each batch element's
   backward to ``meta["means2d"].absgrad`` in the layout the user sees;
+* :class:`LazyMeta`: the ``meta`` dict whose costly entries are built when first read;
 * :class:`SparseRowsGrad`: ``sparse_grad=True`` — an identity whose backward hands the leaf
   a sparse COO gradient over the Gaussians visible in some camera.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from functools import cached_property
+from typing import Callable
 
 import torch
 
-__all__ = ["PackedPairs", "pack_pairs", "intersection_meta", "AbsgradSink", "SparseRowsGrad"]
+__all__ = ["PackedPairs", "pack_pairs", "LazyMeta", "intersection_meta", "AbsgradSink", "SparseRowsGrad"]
 
 
-@dataclass
 class PackedPairs:
     """The visible pairs of a [B, C, N] projection.
 
-    flat [nnz] int64: index of each pair in the flattened [B*C*N]; batch_ids, camera_ids,
+    flat [nnz] int64: index of each pair in the flattened [B*C*N]. Built on first read (each
+    an [nnz] or [B*C*N] pass that most training steps never need): batch_ids, camera_ids,
     gaussian_ids [nnz] int64; lookup [B*C*N] int64: packed index of each pair, -1 if culled.
     """
 
-    flat: torch.Tensor
-    batch_ids: torch.Tensor
-    camera_ids: torch.Tensor
-    gaussian_ids: torch.Tensor
-    lookup: torch.Tensor
+    def __init__(self, flat: torch.Tensor, B: int, C: int, N: int) -> None:
+        self.flat, self.B, self.C, self.N = flat, B, C, N
+
+    @cached_property
+    def batch_ids(self) -> torch.Tensor:
+        return self.flat // (self.C * self.N) if self.B > 1 else torch.zeros_like(self.flat)
+
+    @cached_property
+    def camera_ids(self) -> torch.Tensor:
+        if self.C == 1:
+            return torch.zeros_like(self.flat)
+        return (self.flat // self.N) % self.C
+
+    @cached_property
+    def gaussian_ids(self) -> torch.Tensor:
+        return self.flat % self.N if self.B * self.C > 1 else self.flat.clone()
+
+    @cached_property
+    def lookup(self) -> torch.Tensor:
+        lookup = torch.full((self.B * self.C * self.N,), -1, dtype=torch.int64)
+        lookup[self.flat] = torch.arange(len(self.flat))
+        return lookup
 
     def scatter(self, values: torch.Tensor, shape: tuple) -> torch.Tensor:
         """[nnz, k] per-pair values -> [B, C, N, k] with zeros at culled pairs (differentiable)."""
@@ -46,11 +65,107 @@ def pack_pairs(radii: torch.Tensor) -> PackedPairs:
     """radii [B, C, N, 2] int32 -> the packed ids of the pairs with both radii > 0."""
     B, C, N = radii.shape[:3]
     vis = (radii > 0).all(-1).reshape(-1)
-    flat = vis.nonzero()[:, 0]
-    lookup = torch.full((B * C * N,), -1, dtype=torch.int64)
-    lookup[flat] = torch.arange(len(flat))
-    return PackedPairs(flat=flat, batch_ids=flat // (C * N), camera_ids=(flat // N) % C,
-                       gaussian_ids=flat % N, lookup=lookup)
+    return PackedPairs(vis.nonzero()[:, 0], B, C, N)
+
+
+class LazyMeta(dict):
+    """gsplat's ``meta`` dict, with the entries that cost a pass over every pair or
+    intersection built on first read (most training steps read only a few of them).
+
+    ``pending`` maps each deferred key to a thunk returning a dict of entries; keys that share
+    a thunk are built together, once. Every dict operation sees the deferred keys: reading,
+    ``in``, ``get``, iteration, ``len``, ``items``, copies and pickling build what they need.
+    """
+
+    def __init__(self, entries: dict, pending: dict[str, Callable[[], dict]]) -> None:
+        super().__init__(entries)
+        self._pending = dict(pending)
+
+    def _build(self, key: str) -> None:
+        values = self._pending[key]()
+        for k, v in values.items():
+            if k in self._pending:
+                del self._pending[k]
+                dict.__setitem__(self, k, v)
+
+    def _build_all(self) -> None:
+        while self._pending:
+            self._build(next(iter(self._pending)))
+
+    def __missing__(self, key):
+        if key in self._pending:
+            self._build(key)
+            return dict.__getitem__(self, key)
+        raise KeyError(key)
+
+    def __contains__(self, key) -> bool:
+        return dict.__contains__(self, key) or key in self._pending
+
+    def __setitem__(self, key, value) -> None:
+        self._pending.pop(key, None)
+        dict.__setitem__(self, key, value)
+
+    def __delitem__(self, key) -> None:
+        if self._pending.pop(key, None) is None:
+            dict.__delitem__(self, key)
+
+    def __len__(self) -> int:
+        return dict.__len__(self) + len(self._pending)
+
+    def __iter__(self):
+        self._build_all()
+        return dict.__iter__(self)
+
+    def __eq__(self, other) -> bool:
+        self._build_all()
+        return dict.__eq__(self, other)
+
+    __hash__ = None
+
+    def __repr__(self) -> str:
+        self._build_all()
+        return dict.__repr__(self)
+
+    def __reduce__(self):
+        self._build_all()
+        return (dict, (dict(self),))
+
+    def get(self, key, default=None):
+        return self[key] if key in self else default
+
+    def pop(self, key, *default):
+        if key in self._pending:
+            self._build(key)
+        return dict.pop(self, key, *default)
+
+    def setdefault(self, key, default=None):
+        if key not in self:
+            self[key] = default
+        return self[key]
+
+    def update(self, *args, **kwargs) -> None:
+        for k, v in dict(*args, **kwargs).items():
+            self[k] = v
+
+    def keys(self):
+        self._build_all()
+        return dict.keys(self)
+
+    def values(self):
+        self._build_all()
+        return dict.values(self)
+
+    def items(self):
+        self._build_all()
+        return dict.items(self)
+
+    def copy(self) -> dict:
+        self._build_all()
+        return dict(dict.items(self))
+
+    def popitem(self):
+        self._build_all()
+        return dict.popitem(self)
 
 
 def _bits(n: int) -> int:

@@ -18,7 +18,7 @@ import torch
 
 from .autograd import ProjectFn, RasterizeFn, Settings, ShFn
 from .config import RenderConfig
-from .packed import AbsgradSink, SparseRowsGrad, intersection_meta, pack_pairs
+from .packed import AbsgradSink, LazyMeta, SparseRowsGrad, intersection_meta, pack_pairs
 from .runtime import Runtime, get_runtime
 from .validate import check_options, check_rasterization_inputs, check_screen_extent, rescale_large_quats
 
@@ -299,29 +299,45 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
     if render_mode in ("ED", "RGB+ED"):
         render = torch.cat([render[..., :-1], render[..., -1:] / alphas.clamp_min(1e-10)], -1)
 
-    meta = intersection_meta(isects, rects, depths, C, N, width, height, tile_size, pairs)
+    # gsplat's meta. Entries that cost a pass over every pair or intersection are built when
+    # first read (LazyMeta), in the grad mode of this call: most training steps read few.
+    grad_mode = torch.is_grad_enabled()
+    tw, th = -(-width // tile_size), -(-height // tile_size)
     opac_pairs = opac.reshape(B, C, N)
+
+    def isect_entries() -> dict:
+        with torch.set_grad_enabled(grad_mode):
+            m = intersection_meta(isects, rects, depths, C, N, width, height, tile_size, pairs)
+        tpg = m["tiles_per_gauss"] if packed else m["tiles_per_gauss"].reshape(batch + (C, N))
+        return {"tiles_per_gauss": tpg.to(out_device), "isect_ids": m["isect_ids"].to(out_device),
+                "flatten_ids": m["flatten_ids"].to(out_device),
+                "isect_offsets": m["isect_offsets"].reshape(batch + (C, th, tw)).to(out_device)}
+
+    pending = dict.fromkeys(("tiles_per_gauss", "isect_ids", "flatten_ids", "isect_offsets"),
+                            isect_entries)
+    meta = {"tile_width": tw, "tile_height": th, "tile_size": tile_size, "width": width,
+            "height": height, "n_cameras": C, "means2d": m2d_user, "n_batches": B}
     if packed:
-        sel = pairs.flat
-        meta.update(batch_ids=pairs.batch_ids, camera_ids=pairs.camera_ids,
-                    gaussian_ids=pairs.gaussian_ids, radii=radii.reshape(-1, 2)[sel],
-                    depths=depths.reshape(-1)[sel], conics=conics.reshape(-1, 3)[sel],
-                    opacities=opac_pairs.reshape(-1)[sel])
+        def pair_entries() -> dict:
+            sel = pairs.flat
+            with torch.set_grad_enabled(grad_mode):
+                vals = {"radii": radii.reshape(-1, 2)[sel], "depths": depths.reshape(-1)[sel],
+                        "conics": conics.reshape(-1, 3)[sel], "opacities": opac_pairs.reshape(-1)[sel]}
+                return {k: _to_user(v, out_device, out_dtype) for k, v in vals.items()}
+
+        def id_entries() -> dict:
+            return {k: getattr(pairs, k).to(out_device)
+                    for k in ("batch_ids", "camera_ids", "gaussian_ids")}
+
+        pending.update(dict.fromkeys(("radii", "depths", "conics", "opacities"), pair_entries))
+        pending.update(dict.fromkeys(("batch_ids", "camera_ids", "gaussian_ids"), id_entries))
     else:
-        meta.update(batch_ids=None, camera_ids=None, gaussian_ids=None, radii=radii,
-                    depths=depths, conics=conics, opacities=opac_pairs)
-    unbatch = (lambda x: x.reshape(batch + tuple(x.shape[1:]))) if not packed else (lambda x: x)
-    for k in ("radii", "depths", "conics", "opacities"):
-        meta[k] = _to_user(unbatch(meta[k]), out_device, out_dtype)
-    meta["means2d"] = m2d_user
-    for k in ("batch_ids", "camera_ids", "gaussian_ids", "tiles_per_gauss", "isect_ids",
-              "flatten_ids"):
-        if meta[k] is not None:
-            meta[k] = meta[k].to(out_device)
-    tpg = meta["tiles_per_gauss"]
-    meta["tiles_per_gauss"] = tpg if packed else tpg.reshape(batch + (C, N))
-    meta["isect_offsets"] = meta["isect_offsets"].reshape(batch + tuple(meta["isect_offsets"].shape[1:])).to(out_device)
-    meta["n_batches"] = B
+        unbatch = lambda x: x.reshape(batch + tuple(x.shape[1:]))  # noqa: E731
+        meta.update(batch_ids=None, camera_ids=None, gaussian_ids=None)
+        meta.update({k: _to_user(unbatch(v), out_device, out_dtype) for k, v in
+                     (("radii", radii), ("depths", depths), ("conics", conics),
+                      ("opacities", opac_pairs))})
+    meta = LazyMeta(meta, pending)
     shape = batch + (C, height, width)
     return (_to_user(render.reshape(shape + (render.shape[-1],)), out_device, out_dtype),
             _to_user(alphas.reshape(shape + (1,)), out_device, out_dtype), meta)

@@ -13,7 +13,9 @@ queue per device) and, inside each runtime, the program and kernel caches.
   created over the tensor's memory (``USE_HOST_PTR``) and read back by mapping it, which
   copies nothing there; elsewhere data are written at creation and read back with
   ``enqueue_copy``. The host never touches a buffer's memory outside map/unmap or
-  read/write commands, as the OpenCL spec requires. ``CLSPLAT_HOST_MEMORY=copy`` forces the
+  read/write commands, as the OpenCL spec requires, except on PoCL's CPU device, which
+  computes in the host memory itself (:attr:`Runtime.computes_in_host_memory`): there a
+  finished queue is all a read-back needs. ``CLSPLAT_HOST_MEMORY=copy`` forces the
   copy path (what discrete GPUs take) on any device, ``=share`` forces zero-copy.
 * Device limits: launches respect the kernel's own ``CL_KERNEL_WORK_GROUP_SIZE`` and every
   kernel is sized for :data:`LOCAL_MEM_BUDGET` (48 KiB, what GPUs offer) of local memory,
@@ -35,7 +37,7 @@ from .memory import available_host_memory
 
 __all__ = [
     "BuildError", "DeviceError", "Runtime", "DeviceArray", "get_runtime", "list_devices",
-    "describe_devices", "LOCAL_MEM_BUDGET", "INT32_MAX", "available_host_memory",
+    "describe_devices", "read_back", "LOCAL_MEM_BUDGET", "INT32_MAX", "available_host_memory",
 ]
 
 _BASE_OPTIONS = ("-cl-std=CL1.2", "-cl-denorms-are-zero")
@@ -43,6 +45,7 @@ _DEVICE_ENV = "CLSPLAT_DEVICE"
 _HOST_MEMORY_ENV = "CLSPLAT_HOST_MEMORY"
 LOCAL_MEM_BUDGET = 48 * 1024  # bytes of local memory a kernel may use: a GPU's, not PoCL's
 INT32_MAX = 2**31 - 1
+HOST_CHECK_BYTES = 16 << 20  # allocations from this size on are checked against free host memory
 
 
 class DeviceError(ValueError):
@@ -117,6 +120,16 @@ class Runtime:
     _kernels: dict = field(default_factory=dict, init=False, repr=False)
     _scans: dict = field(default_factory=dict, init=False, repr=False)
     _group_limits: dict = field(default_factory=dict, init=False, repr=False)
+    # (stage, kernel name, sorted defines, fast_math) -> kernel: the per-launch look-up, which
+    # neither reads nor hashes the sources (they are package data, fixed for the process).
+    _kernel_index: dict = field(default_factory=dict, init=False, repr=False)
+    _sources: dict = field(default_factory=dict, init=False, repr=False)
+    _limits: tuple = field(default=(), init=False, repr=False)  # (max alloc, global mem) bytes
+    _in_host_memory: bool | None = field(default=None, init=False, repr=False)
+    _unified: bool | None = field(default=None, init=False, repr=False)  # device query, cached
+    # Commands that may write device memory, counted: an array read back (or created) after
+    # the last of them needs no wait on the queue to be read again.
+    launches: int = field(default=0, init=False, repr=False)
     # Buffers that queued commands may still touch. A released pyopencl Buffer drops its host
     # memory at once, even while a kernel is queued on it, so every buffer a command uses is
     # held here from its enqueue until the next finish().
@@ -145,10 +158,33 @@ class Runtime:
             raise DeviceError(f"{_HOST_MEMORY_ENV}: expected 'auto', 'copy' or 'share', got {mode!r}")
         if mode != "auto":
             return mode == "share"
-        try:
-            return bool(self.device.host_unified_memory)
-        except cl.Error:  # the query is deprecated in OpenCL 2.0: fall back to the type
-            return bool(self.device.type & cl.device_type.CPU)
+        if self._unified is None:
+            try:
+                self._unified = bool(self.device.host_unified_memory)
+            except cl.Error:  # the query is deprecated in OpenCL 2.0: fall back to the type
+                self._unified = bool(self.device.type & cl.device_type.CPU)
+        return self._unified
+
+    @property
+    def computes_in_host_memory(self) -> bool:
+        """Whether zero-copy buffers are used in place, with no map needed to hand data over.
+
+        PoCL's CPU device computes on a ``USE_HOST_PTR`` buffer's host memory itself, so there
+        a zero-copy array skips the map and unmap at creation (whose contents the spec defines
+        then anyway) and on read-back (the finished queue suffices). Each map cost ~0.2 ms of
+        the calling thread on PoCL, most of the fixed cost of a small render. Elsewhere
+        (Oclgrind's checker tracks host writes, GPUs keep copies) arrays are mapped."""
+        if self._in_host_memory is None:
+            pocl = "portable computing language" in self.device.platform.name.lower()
+            self._in_host_memory = pocl and self.is_cpu
+        return self._in_host_memory
+
+    @property
+    def max_alloc(self) -> int:
+        """``CL_DEVICE_MAX_MEM_ALLOC_SIZE`` in bytes (queried once)."""
+        if not self._limits:
+            self._limits = (int(self.device.max_mem_alloc_size), int(self.device.global_mem_size))
+        return self._limits[0]
 
     @property
     def is_cpu(self) -> bool:
@@ -182,7 +218,10 @@ class Runtime:
     # -- programs -----------------------------------------------------------------------
     def program(self, stage: str, defines: Mapping[str, object], fast_math: bool = False) -> cl.Program:
         """Build (or fetch) ``kernels/<stage>.cl`` specialised by ``defines``."""
-        source = _kernel_source("common.h") + f'\n#line 1 "{stage}.cl"\n' + _kernel_source(f"{stage}.cl")
+        source = self._sources.get(stage)
+        if source is None:
+            source = self._sources[stage] = (_kernel_source("common.h") + f'\n#line 1 "{stage}.cl"\n'
+                                             + _kernel_source(f"{stage}.cl"))
         options = list(_BASE_OPTIONS) + [f"-D{k}={_define(v)}" for k, v in sorted(defines.items())]
         if fast_math:
             options.append("-cl-fast-relaxed-math")
@@ -200,6 +239,10 @@ class Runtime:
     def kernel(self, stage: str, name: str, defines: Mapping[str, object],
                fast_math: bool = False) -> cl.Kernel:
         """A kernel object of a specialised program, created once."""
+        index = (stage, name, tuple(sorted(defines.items())), fast_math)
+        k = self._kernel_index.get(index)
+        if k is not None:
+            return k
         prog = self.program(stage, defines, fast_math)
         key = (id(prog), name)
         k = self._kernels.get(key)
@@ -209,6 +252,7 @@ class Runtime:
             except (AttributeError, cl.Error) as exc:  # built, yet the device made no kernel
                 raise BuildError(stage, [f"-D{d}={_define(v)}" for d, v in sorted(defines.items())],
                                  f"no kernel {name!r} in the built program: {exc}", self.name) from None
+        self._kernel_index[index] = k
         return k
 
     def exclusive_scan_int32(self):
@@ -226,6 +270,7 @@ class Runtime:
     def enqueue(self, kernel: cl.Kernel, global_size: int, local_size: int, *args) -> cl.Event:
         """Enqueue ``kernel`` and hold its buffer arguments until the next :meth:`finish`."""
         self.hold(*args)
+        self.launches += 1
         return kernel(self.queue, (global_size,), (local_size,), *args)
 
     def launch(self, kernel: cl.Kernel, n_items: int, local: int, *args) -> cl.Event:
@@ -253,16 +298,20 @@ class Runtime:
         """Refuse an allocation of ``nbytes`` for ``what`` (a message naming the argument to
         blame) that exceeds the device's allocation limit, its global memory or the host
         memory available now."""
+        if nbytes < HOST_CHECK_BYTES and nbytes <= self.max_alloc and nbytes <= self._limits[1]:
+            return  # small: reading /proc/meminfo per allocation cost more than the render
         host = available_host_memory()
-        limit = min(int(self.device.max_mem_alloc_size), int(self.device.global_mem_size), host)
+        limit = min(*self._limits, host)
         if nbytes > limit:
             raise ValueError(f"{what} needs {nbytes >> 20} MiB, over the {limit >> 20} MiB that can "
                              f"be allocated (device allocation limit "
                              f"{self.device.max_mem_alloc_size >> 20} MiB, host memory available "
                              f"{host >> 20} MiB)")
 
-    def array(self, tensor: torch.Tensor) -> "DeviceArray":
-        return DeviceArray(self, tensor)
+    def array(self, tensor: torch.Tensor, read_only: bool = False) -> "DeviceArray":
+        """``tensor`` on the device; ``read_only``: no command will write it, so reading it
+        back never waits (the tensor is the data)."""
+        return DeviceArray(self, tensor, read_only)
 
     def empty(self, shape, dtype: torch.dtype, zero: bool = True) -> "DeviceArray":
         n = 1
@@ -292,15 +341,17 @@ class DeviceArray:
     The tensor must not be read for device results other than through :meth:`host`.
     """
 
-    def __init__(self, rt: Runtime, tensor: torch.Tensor) -> None:
+    def __init__(self, rt: Runtime, tensor: torch.Tensor, read_only: bool = False) -> None:
         if tensor.device.type != "cpu":
             raise ValueError(f"DeviceArray: tensor must live on the CPU, got {tensor.device}")
         self.rt = rt
         self.tensor = tensor.contiguous()
         self.zero_copy = rt.shares_host_memory and self.tensor.numel() > 0
+        self.synced_at = rt.launches  # the tensor holds the data as of this many launches
+        self.read_only = read_only  # no command writes it: the tensor stays the data
         mf = cl.mem_flags
         nbytes = self.tensor.numel() * self.tensor.element_size()
-        if nbytes > rt.device.max_mem_alloc_size:
+        if nbytes > rt.max_alloc:
             raise ValueError(f"DeviceArray: {list(self.tensor.shape)} {self.tensor.dtype} needs "
                              f"{nbytes >> 20} MiB, over the device's "
                              f"{rt.device.max_mem_alloc_size >> 20} MiB allocation limit")
@@ -309,6 +360,8 @@ class DeviceArray:
         elif self.zero_copy:
             host = self.tensor.numpy()
             self.buffer = cl.Buffer(rt.context, mf.READ_WRITE | mf.USE_HOST_PTR, hostbuf=host)
+            if rt.computes_in_host_memory:
+                return
             # Hand the tensor's contents to the device through a map for writing and its
             # unmap: free where the memory is shared, and correct where the runtime keeps a
             # copy of its own (or, like Oclgrind's checker, tracks what the host wrote).
@@ -326,21 +379,51 @@ class DeviceArray:
     def host(self) -> torch.Tensor:
         """The tensor, with every queued command finished and the device's data read back
         (a map and unmap on the zero-copy path, a copy otherwise)."""
-        if self.tensor.numel() == 0:
-            return self.tensor
-        dst = self.tensor.numpy()
-        if self.zero_copy:
-            mapped, _ = cl.enqueue_map_buffer(self.rt.queue, self.buffer, cl.map_flags.READ, 0,
-                                              dst.shape, dst.dtype, is_blocking=True)
-            try:
-                if mapped.ctypes.data != dst.ctypes.data:  # the runtime kept its own copy
-                    np.copyto(dst, mapped)
-            finally:
-                mapped.base.release(self.rt.queue)
+        return read_back(self)[0]
+
+
+def read_back(*arrays: DeviceArray) -> list[torch.Tensor]:
+    """The tensors of ``arrays`` (one runtime) with every queued command finished and the
+    device's data read back, waiting on the queue once for all of them.
+
+    Arrays that no command launched since their creation or last read back can have written
+    are returned as they are; on devices that compute in host memory
+    (:attr:`Runtime.computes_in_host_memory`) zero-copy arrays need only the finished queue.
+    Other zero-copy arrays are mapped for reading without blocking, the queue is finished once, and
+    the maps are released (their unmaps stay queued, the buffers held until the next finish);
+    on that path nothing is copied unless the runtime kept its own copy. Other arrays are
+    read with non-blocking copies before the same single wait.
+    """
+    live = [a for a in arrays
+            if a.tensor.numel() > 0 and not a.read_only and a.synced_at != a.rt.launches]
+    if not live:  # nothing launched since these were created or last read back
+        return [a.tensor for a in arrays]
+    rt = live[0].rt
+    maps = []
+    in_place = rt.computes_in_host_memory
+    for a in live:
+        dst = a.tensor.numpy()
+        if a.zero_copy and in_place:  # the device wrote the tensor's own memory
+            continue
+        if a.zero_copy:
+            mapped, _ = cl.enqueue_map_buffer(rt.queue, a.buffer, cl.map_flags.READ, 0,
+                                              dst.shape, dst.dtype, is_blocking=False)
+            maps.append((a, dst, mapped))
         else:
-            cl.enqueue_copy(self.rt.queue, dst, self.buffer)
-        self.rt.finish()
-        return self.tensor
+            cl.enqueue_copy(rt.queue, dst, a.buffer, is_blocking=False)
+            rt.hold(a.buffer)
+    try:
+        rt.finish()
+        for a, dst, mapped in maps:
+            if mapped.ctypes.data != dst.ctypes.data:  # the runtime kept its own copy
+                np.copyto(dst, mapped)
+    finally:
+        for a, _, mapped in maps:
+            mapped.base.release(rt.queue)
+            rt.hold(a.buffer)
+    for a in live:
+        a.synced_at = rt.launches
+    return [a.tensor for a in arrays]
 
 
 _RUNTIMES: dict[str, Runtime] = {}

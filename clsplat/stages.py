@@ -102,6 +102,7 @@ def _scan_exclusive(rt: Runtime, src: DeviceArray, dst: DeviceArray, events) -> 
     host where ``CLSPLAT_HOST_SCAN=1`` (for tools that cannot run pyopencl's scan, such as
     Oclgrind's uninitialised-memory checker)."""
     n = src.tensor.numel()
+    rt.launches += 1  # writes dst (see Runtime.launches)
     if os.environ.get("CLSPLAT_HOST_SCAN", "0") == "1":
         c = src.host().to(torch.int64)
         ex = (torch.cumsum(c, 0) - c).to(torch.int32).contiguous()
@@ -122,7 +123,7 @@ def bin_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Device
 
     Returns ``tile_offsets`` [C*T+1] int32 (segment of tile t is offsets[t]:offsets[t+1]) and
     ``keys`` [M] int64 holding ulong keys (float32 depth bits << 32 | c*N+g), unsorted within
-    each segment.
+    each segment. The offsets have been read back: their tensor holds them.
     """
     C, N = depths.tensor.shape
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
@@ -175,18 +176,19 @@ def _sort_local_size(rt: Runtime, cfg: RenderConfig) -> tuple[int, int]:
 
 
 def sort_segments(rt: Runtime, cfg: RenderConfig, keys: DeviceArray, offsets: DeviceArray,
-                  events: list | None = None) -> None:
+                  events: list | None = None, host_offsets: torch.Tensor | None = None) -> None:
     """Sort each tile segment of ``keys`` [M] ascending, in place.
 
     Serial layout (CPUs by default): one work-item merge-sorts a whole segment.
     Bitonic layout (GPUs): segments up to SORT_LOCAL keys are sorted by one work-group in
     local memory; longer ones are cut into SORT_LOCAL chunks, sorted likewise, then merged by
-    ``merge_runs`` passes until one run remains.
+    ``merge_runs`` passes until one run remains. ``host_offsets``: the offsets as already
+    read back (saves a wait on the queue), else they are read here.
     """
     M = keys.tensor.numel()
     if M < 2:
         return
-    off = offsets.host().numpy().astype(np.int64)
+    off = (offsets.host() if host_offsets is None else host_offsets).numpy().astype(np.int64)
     starts, lens = off[:-1], np.diff(off)
     seg = lens >= 2
     starts, lens = starts[seg], lens[seg]

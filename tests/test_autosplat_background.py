@@ -76,3 +76,48 @@ def test_masked_photometric_ignores_masked_pixels():
     full, l1_full, _ = masked_photometric(a, b, None, 0.2)
     assert float(l1) == 0.0 and float(l1_full) > 0.05
     assert float(loss) < 0.02 < float(full)
+
+
+def _box_mask_brute(seq, frame, cam_name):
+    """Every pixel's centre ray against every box over the whole image (the reference)."""
+    import numpy as np
+    f, cam = seq.frames[frame], seq.camera(cam_name)
+    T = seq.cam_to_world(frame, cam_name)
+    u, v = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
+    d = np.stack([(u - cam.K[0, 2]) / cam.K[0, 0], (v - cam.K[1, 2]) / cam.K[1, 1], np.ones_like(u)], -1)
+    d = d @ T[:3, :3].T
+    m = np.zeros((cam.height, cam.width), bool)
+    for b in f.boxes:
+        B = np.linalg.inv(b.box_to_world)
+        ol = B[:3, :3] @ T[:3, 3] + B[:3, 3]
+        dl = d @ B[:3, :3].T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1, t2 = (-b.size / 2 - ol) / dl, (b.size / 2 - ol) / dl
+        m |= (np.nanmax(np.minimum(t1, t2), -1) <= np.nanmin(np.maximum(t1, t2), -1)) & (
+            np.nanmin(np.maximum(t1, t2), -1) > 0)
+    return m
+
+
+def test_foreground_mask_from_boxes_equals_whole_image_ray_test():
+    """The box mask tests only each box's projected rectangle: the same pixels as testing
+    every ray against every box, including boxes beside, behind and around the camera."""
+    import dataclasses
+
+    import numpy as np
+
+    from clsplat.data.synthetic import SyntheticConfig, generate_sequence
+    from clsplat.models.autosplat.background import foreground_mask
+    seq = generate_sequence(SyntheticConfig(height=40, width=72, num_frames=3, seed=1, lidar=False))
+    for f in seq.frames:
+        f.instances.clear()  # force the ray-box path
+    f0 = seq.frames[0]
+    around = dataclasses.replace(f0.boxes[0], center=f0.ego_to_world[:3, 3].copy(),
+                                 size=np.array([10.0, 10.0, 10.0]))  # holds the cameras
+    f0.boxes.append(around)
+    cams = seq.camera_names
+    for i in range(len(seq.frames)):
+        got = foreground_mask(seq, i, cams)
+        want = np.stack([_box_mask_brute(seq, i, c) for c in cams])
+        assert np.array_equal(got, want), i
+        assert want.any()
+    assert foreground_mask(seq, 0, cams).all()  # inside a box: every ray hits it

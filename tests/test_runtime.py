@@ -168,3 +168,36 @@ def test_copying_path_of_discrete_devices_matches_zero_copy(make_scene, monkeypa
     copied = run()
     for x, y in zip(shared, copied):
         assert torch.equal(x, y)
+
+
+def test_small_render_waits_on_the_queue_few_times(make_scene, monkeypatch):
+    """The fixed cost of a call is mostly waits on the queue (each wakes PoCL's workers): a
+    forward + backward of one camera waits once per stage that reads results back, and
+    arrays nothing launched into since their creation or last read are never waited for."""
+    from clsplat.runtime import read_back
+    rt = clsplat.get_runtime()
+    scene = make_scene(0, N=40, C=1, width=32, height=24, dtype=torch.float32)
+    for k in ("means", "quats", "scales", "opacities", "colors"):
+        scene[k] = scene[k].clone().requires_grad_()
+    clsplat.rasterization(**scene)[0].sum().backward()  # builds the programs
+    waits = []
+    real = rt.finish
+    monkeypatch.setattr(rt, "finish", lambda: (waits.append(1), real())[1])
+    img, alpha, _ = clsplat.rasterization(**scene)
+    (img.sum() + alpha.sum()).backward()
+    # project, bin (offsets), composite, reduce, project_bwd
+    assert len(waits) <= 5, len(waits)
+    waits.clear()
+    a = rt.array(torch.arange(10, dtype=torch.float32))
+    assert torch.equal(read_back(a)[0], torch.arange(10, dtype=torch.float32)) and not waits
+    out = rt.empty((10,), torch.float32)  # written by a launch: read back with one wait
+    k = rt.kernel("reduce", "reduce_slots", {"REAL_DOUBLE": False, "CHANNELS": 1, "GEOM_GRAD": False,
+                                              "COLOR_GRAD": False, "ABSGRAD": False})
+    assert k is rt.kernel("reduce", "reduce_slots", {"ABSGRAD": False, "COLOR_GRAD": False,
+                                                     "GEOM_GRAD": False, "CHANNELS": 1,
+                                                     "REAL_DOUBLE": False})
+    rt.launches += 1  # as a launch writing ``out`` would
+    read_back(out)
+    assert len(waits) == 1
+    read_back(out)  # nothing launched since
+    assert len(waits) == 1

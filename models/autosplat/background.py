@@ -64,6 +64,30 @@ def flatness(quats: torch.Tensor, scales: torch.Tensor, frames: torch.Tensor) ->
     return (roll.abs() + pitch.abs() + scales[:, 2].abs()).mean()
 
 
+def _box_pixel_rect(box, w2c: np.ndarray, K: np.ndarray, width: int, height: int):
+    """(y0, y1, x0, x1), half-open, holding every pixel whose centre ray can hit ``box``;
+    None when the box lies wholly behind the camera or outside the image.
+
+    With every corner in front of the camera the box projects inside its corners' 2D
+    bounding rectangle (widened by a pixel against rounding); otherwise the whole image."""
+    half = box.size / 2
+    corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * half
+    world = corners @ box.box_to_world[:3, :3].T + box.box_to_world[:3, 3]
+    pc = world @ w2c[:3, :3].T + w2c[:3, 3]
+    z = pc[:, 2]
+    if (z <= 0).all():
+        return None  # points along a pixel ray have z > 0
+    if (z <= 1e-6).any():
+        return 0, height, 0, width
+    u = K[0, 0] * pc[:, 0] / z + K[0, 2]
+    v = K[1, 1] * pc[:, 1] / z + K[1, 2]
+    x0, x1 = max(0, int(np.floor(u.min() - 0.5)) - 1), min(width, int(np.ceil(u.max() - 0.5)) + 2)
+    y0, y1 = max(0, int(np.floor(v.min() - 0.5)) - 1), min(height, int(np.ceil(v.max() - 0.5)) + 2)
+    if x0 >= x1 or y0 >= y1:
+        return None
+    return y0, y1, x0, x1
+
+
 def foreground_mask(seq: DrivingSequence, frame: int, cameras: list[str]) -> np.ndarray:
     """``[C, H, W]`` bool: pixels of tracked objects at ``frame`` (instance masks when the data has
     them, else pixels whose ray hits a tracked box)."""
@@ -81,16 +105,21 @@ def foreground_mask(seq: DrivingSequence, frame: int, cameras: list[str]) -> np.
             d = np.stack([(u - cam.K[0, 2]) / cam.K[0, 0], (v - cam.K[1, 2]) / cam.K[1, 1], np.ones_like(u)], -1)
             d = d @ T[:3, :3].T
             o = T[:3, 3]
+            w2c = np.linalg.inv(T)
             for b in f.boxes:
+                rect = _box_pixel_rect(b, w2c, cam.K, cam.width, cam.height)
+                if rect is None:
+                    continue
+                y0, y1, x0, x1 = rect
                 B = np.linalg.inv(b.box_to_world)
                 ol = B[:3, :3] @ o + B[:3, 3]
-                dl = d @ B[:3, :3].T
+                dl = np.ascontiguousarray(d[y0:y1, x0:x1]) @ B[:3, :3].T
                 half = b.size / 2
                 with np.errstate(divide="ignore", invalid="ignore"):
                     t1 = (-half - ol) / dl
                     t2 = (half - ol) / dl
                 tn = np.nanmax(np.minimum(t1, t2), -1)
                 tf = np.nanmin(np.maximum(t1, t2), -1)
-                m |= (tn <= tf) & (tf > 0)
+                m[y0:y1, x0:x1] |= (tn <= tf) & (tf > 0)
         out.append(m)
     return np.stack(out)

@@ -73,14 +73,16 @@ def seed_everything(seed: int) -> None:
 def set_threads(n: int | None = None, device=None) -> int:
     """Set torch's intra-op threads once, at an entry point; returns the number set.
 
-    With ``n`` None: 1 when the OpenCL device is a CPU (PoCL's workers need the cores: torch's
-    threads and PoCL's otherwise fight over them), else torch's default.
+    With ``n`` None on a CPU OpenCL device: :func:`clsplat.threads.default_torch_threads`
+    (the cores other processes leave idle, when idle OpenMP workers sleep; else 1, as PoCL's
+    workers and spinning OpenMP workers fight over the cores); elsewhere torch's default.
     """
     if n is None:
         from clsplat.runtime import get_runtime
+        from clsplat.threads import default_torch_threads
         import pyopencl as cl
         rt = get_runtime(device)
-        n = 1 if rt.device.type & cl.device_type.CPU else torch.get_num_threads()
+        n = default_torch_threads() if rt.device.type & cl.device_type.CPU else torch.get_num_threads()
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise ValueError(f"threads: expected a positive int, got {n!r}")
     torch.set_num_threads(n)
