@@ -7,6 +7,8 @@
     clsplat bench REPORT [...]        benchmark reports (stages, precision, stability, all)
     clsplat train FAMILY [...]        train a model (drivingforward, pgt, autosplat)
     clsplat eval FAMILY [...]         evaluate a trained model
+    clsplat view PATH [...]           look at a .ply, checkpoint or run folder in the browser
+    clsplat render PATH --cameras FILE --out DIR   render a list of cameras to images
 """
 from __future__ import annotations
 
@@ -44,7 +46,8 @@ def _demo(a: argparse.Namespace) -> int:
 
 
 #: optional packages and the setup.cfg extra that installs each
-_EXTRAS = {"OpenImageIO": "io", "matplotlib": "io", "pandas": "data", "kornia": "models", "tqdm": "models"}
+_EXTRAS = {"OpenImageIO": "io", "matplotlib": "io", "pandas": "data", "kornia": "models", "tqdm": "models",
+           "viser": "view"}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -66,6 +69,9 @@ def _main(argv: list[str]) -> int:
     if argv[:1] in (["train"], ["eval"]):
         from .models.common.cli import dispatch
         return dispatch(argv[0], argv[1:])
+    if argv[:1] in (["view"], ["render"]):
+        from .viewer.cli import render_main, view_main
+        return (view_main if argv[0] == "view" else render_main)(argv[1:])
     if argv[:1] == ["fit"]:
         from .fit_image import _cli
         _cli(argv[1:])
@@ -82,6 +88,8 @@ def _main(argv: list[str]) -> int:
     sub.add_parser("bench", help="benchmark reports (see clsplat bench --help)")
     sub.add_parser("train", help="train a model: clsplat train {drivingforward,pgt,autosplat} --help")
     sub.add_parser("eval", help="evaluate a model: clsplat eval {drivingforward,pgt,autosplat} --help")
+    sub.add_parser("view", help="look at a .ply, checkpoint or run folder in the browser (see clsplat view --help)")
+    sub.add_parser("render", help="render a list of cameras to images (see clsplat render --help)")
     a = p.parse_args(argv)
     return a.fn(a)
 
