@@ -16,6 +16,8 @@ It serves nothing but the scene: viser's client page and its websocket, bound to
 """
 from __future__ import annotations
 
+import contextlib
+import io
 import logging
 import math
 import socket
@@ -41,8 +43,12 @@ def check_port_free(host: str, port: int) -> None:
         raise ValueError(f"--host {host!r}: cannot be resolved ({e.strerror})") from None
     fam, _, _, _, addr = infos[0]
     s = socket.socket(fam, socket.SOCK_STREAM)
+    # as the server will (asyncio's default on POSIX): connections of a stopped viewer in TIME_WAIT do
+    # not block a restart, a listening socket does
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     try:
         s.bind(addr)
+        s.listen(1)
     except OSError as e:
         what = "in use" if e.errno in (98, 48) else e.strerror
         raise ValueError(f"--port {port}: cannot listen on {host}:{port} ({what})") from None
@@ -91,7 +97,8 @@ class Viewer:
         self._moved: dict[int, float] = {}     # client id -> time of the last camera message not yet rendered
         self._clients: dict[int, dict[str, Any]] = {}
         self._stop = threading.Event()
-        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        with contextlib.redirect_stdout(io.StringIO()):  # viser's own banner: the CLI prints the address
+            self.server = viser.ViserServer(host=host, port=port, verbose=False)
         if port and self.server.get_port() != port:  # viser moves to the next port when one is taken
             self.server.stop()
             raise ValueError(f"--port {port}: cannot listen on {host}:{port} (in use)")
@@ -187,7 +194,8 @@ class Viewer:
     def stop(self) -> None:
         if not self._stop.is_set():
             self._stop.set()
-            self.server.stop()
+            with contextlib.redirect_stdout(io.StringIO()):  # viser's "Server stopped"
+                self.server.stop()
             self._worker.join(timeout=10)
 
     # ------------------------------------------------------------------ scene
@@ -217,7 +225,7 @@ class Viewer:
                 img = (np.clip(cam.image[::step, ::step], 0, 1) * 255).astype(np.uint8)
             s.add_camera_frustum(f"/cameras/{i:03d}_{cam.name}", fov=cam.fov_y, aspect=cam.width / cam.height,
                                  scale=0.05 * r, image=img, wxyz=_wxyz(c2w[:3, :3]), position=c2w[:3, 3],
-                                 color=(40, 90, 200))
+                                 color=(40, 90, 200), thickness=2.0, thickness_units="screen")
         if scene.trajectory is not None and len(scene.trajectory) >= 2:
             t = np.asarray(scene.trajectory, dtype=np.float32)
             seg = np.stack([t[:-1], t[1:]], axis=1)
@@ -293,6 +301,7 @@ class Viewer:
                 go.on_click(lambda _: self.set_client_camera(client, views[dd.value]))
         with self._lock:
             self._clients[client.client_id] = {"image": image, "text": text, "background": bg}
+            self._moved[client.client_id] = time.time()  # its first camera message may have come already
         client.camera.on_update(lambda cam: self._camera_moved(client.client_id))
 
     def _views(self) -> dict[str, ViewCamera]:
@@ -341,6 +350,9 @@ class Viewer:
                     del self._moved[cid]
             for cid in due:
                 try:
+                    if self.server.get_clients()[cid].camera.update_timestamp == 0.0:
+                        self._camera_moved(cid)   # no camera message from the browser yet
+                        continue
                     self.render_client(cid)
                 except KeyError:   # the client left meanwhile
                     pass
