@@ -7,13 +7,7 @@ left of blue as the first camera sees them), then moves the browser's camera thr
 to the far side and checks that clsplat's server-side render follows (the clusters swap sides).
 It skips where chromium is absent, and fails instead when CLSPLAT_REQUIRE_BROWSER=1 (.ci/run).
 """
-import base64
-import json
 import os
-import shutil
-import socket
-import subprocess
-import tempfile
 import time
 import urllib.request
 
@@ -22,21 +16,14 @@ import pytest
 
 pytest.importorskip("viser", reason="the view extra (pip install 'clsplat[view]') is not installed")
 
+from clsplat.viewer.browser import HeadlessChromium, find_chromium  # noqa: E402
 from clsplat.viewer.scene import ViewCamera, look_at_viewmat, scene_from_ply  # noqa: E402
 from clsplat.viewer.server import Viewer  # noqa: E402
 
-_CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+_CHROMIUM = find_chromium()
 _REQUIRED = os.environ.get("CLSPLAT_REQUIRE_BROWSER") == "1"
 needs_browser = pytest.mark.skipif(_CHROMIUM is None and not _REQUIRED,
                                    reason="chromium is not installed (apt-get install chromium)")
-
-
-def _free_port() -> int:
-    s = socket.socket()
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
 
 
 def _wait(pred, timeout: float, what: str):
@@ -47,25 +34,6 @@ def _wait(pred, timeout: float, what: str):
             return v
         time.sleep(0.2)
     raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
-
-
-def _screenshot(debug_port: int) -> np.ndarray:
-    """[H, W, 3] uint8 screenshot of the page, through the DevTools protocol."""
-    from websockets.sync.client import connect
-
-    from clsplat.io.images import read_image
-    pages = json.load(urllib.request.urlopen(f"http://127.0.0.1:{debug_port}/json/list", timeout=10))
-    ws = [p for p in pages if p["type"] == "page"][0]["webSocketDebuggerUrl"]
-    with connect(ws, max_size=None, open_timeout=30) as c:
-        c.send(json.dumps({"id": 1, "method": "Page.captureScreenshot", "params": {"format": "png"}}))
-        while True:
-            m = json.loads(c.recv(timeout=60))
-            if m.get("id") == 1:
-                break
-    with tempfile.NamedTemporaryFile(suffix=".png") as f:
-        f.write(base64.b64decode(m["result"]["data"]))
-        f.flush()
-        return (read_image(f.name) * 255).round().astype(np.uint8)
 
 
 def _red_blue(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -82,12 +50,7 @@ def test_chromium_shows_the_scene_and_the_server_render_follows_the_camera(two_c
     K = np.diag([10.0, 10.0, 1.0]) @ cam.K   # the fixture's camera at 640x480
     scene.cameras = [ViewCamera("front", K, cam.viewmat, 640, 480)]
     viewer = Viewer(scene, port=0, render_width=160, rest_s=0.3)
-    port = _free_port()
-    browser = subprocess.Popen(
-        [_CHROMIUM, "--headless=new", "--no-sandbox", "--use-gl=angle", "--use-angle=swiftshader",
-         "--enable-unsafe-swiftshader", "--window-size=1000,640", f"--remote-debugging-port={port}",
-         f"--user-data-dir={tmp_path / 'profile'}", "--no-first-run", "--disable-gpu-sandbox", viewer.url],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    browser = HeadlessChromium(viewer.url, 1000, 640)
     try:
         _wait(lambda: len(viewer.clients()) > 0, 120, "the browser to connect")
         cid = next(iter(viewer.clients()))
@@ -96,7 +59,7 @@ def test_chromium_shows_the_scene_and_the_server_render_follows_the_camera(two_c
         shots: list = []
 
         def splats_drawn() -> bool:   # WebGL in software takes a few frames to draw the splats
-            shots.append(_screenshot(port))
+            shots.append(browser.screenshot())
             return int(_red_blue(shots[-1])[0].sum()) > 200
         _wait(splats_drawn, 60, "the splats in the screenshot")
         shot = shots[-1]
@@ -121,11 +84,7 @@ def test_chromium_shows_the_scene_and_the_server_render_follows_the_camera(two_c
         assert sr.sum() > 20 and sb.sum() > 20
         assert np.nonzero(sr)[1].mean() > np.nonzero(sb)[1].mean()   # from behind, red is on the right
     finally:
-        browser.terminate()
-        try:
-            browser.wait(15)
-        except subprocess.TimeoutExpired:
-            browser.kill()
+        browser.close()
         viewer.stop()
 
 
@@ -138,7 +97,7 @@ def test_viewer_without_a_browser(two_colour_ply):
         assert v.url.startswith("http://127.0.0.1:") and v.port > 0
         page = urllib.request.urlopen(v.url, timeout=30).read()
         assert b"html" in page.lower()
-        views = v._views()
+        views = v.views()
         # lane change m metres: the first camera's centre moved m to its left (-x of the camera), same orientation
         c0 = cam.cam_to_world
         for m in (1, 2, 3):

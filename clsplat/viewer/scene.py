@@ -139,12 +139,13 @@ class ViewScene:
         return sh_to_rgb(self.sh).clamp(0, 1).numpy()
 
     def bounds(self) -> tuple[np.ndarray, float]:
-        """(centre [3], radius) of the central 98% of the Gaussians (outliers such as a sky dome excluded)."""
+        """(centre [3], radius): the median of the Gaussians' centres and their median distance from
+        it, robust to what surrounds a scene (a driving scene's sky dome, far background)."""
         if len(self) == 0:
             return np.zeros(3), 1.0
         m = self.means.numpy().astype(np.float64)
-        lo, hi = np.percentile(m, 1, axis=0), np.percentile(m, 99, axis=0)
-        return (lo + hi) / 2, float(max(np.linalg.norm(hi - lo) / 2, 1e-3))
+        c = np.median(m, axis=0)
+        return c, float(max(np.median(np.linalg.norm(m - c, axis=1)), 1e-3))
 
 
 def covariances(quats: torch.Tensor, scales: torch.Tensor) -> np.ndarray:
@@ -179,13 +180,18 @@ def look_at_viewmat(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
 
 
 def default_camera(scene: ViewScene, width: int = 640, height: int = 480, fov_y_deg: float = 60.0) -> ViewCamera:
-    """The scene's first recorded camera, or one outside its bounds looking at its centre."""
+    """The scene's first recorded camera, else one looking at the scene's centre along its longest
+    horizontal extent (z up) from 1.5 times its median radius."""
     if scene.cameras:
         return scene.cameras[0]
     c, r = scene.bounds()
     f = height / (2 * math.tan(math.radians(fov_y_deg) / 2))
     K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]])
-    eye = c + r * np.array([0.0, -2.0, 1.0])
+    # look along the scene's longest horizontal extent (down a street), from a little above it
+    m = scene.means.numpy().astype(np.float64)
+    near = m[np.linalg.norm(m - c, axis=1) < 2 * r][:, :2] - c[:2]
+    axis = np.linalg.svd(near, full_matrices=False)[2][0] if len(near) >= 2 else np.array([1.0, 0.0])
+    eye = c + r * np.array([-1.5 * axis[0], -1.5 * axis[1], 0.3])
     return ViewCamera("default", K, look_at_viewmat(eye, c), width, height)
 
 

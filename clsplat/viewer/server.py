@@ -21,6 +21,7 @@ import io
 import logging
 import math
 import socket
+import sys
 import threading
 import time
 from typing import Any
@@ -293,7 +294,7 @@ class Viewer:
             elif client.client_id in self.last:
                 client.scene.set_background_image(self.last[client.client_id]["image"])
         bg.on_update(_bg)
-        views = self._views()
+        views = self.views()
         if views:
             with g.add_folder("Views"):
                 dd = g.add_dropdown("Camera", options=tuple(views))
@@ -304,7 +305,7 @@ class Viewer:
             self._moved[client.client_id] = time.time()  # its first camera message may have come already
         client.camera.on_update(lambda cam: self._camera_moved(client.client_id))
 
-    def _views(self) -> dict[str, ViewCamera]:
+    def views(self) -> dict[str, ViewCamera]:
         """Recorded cameras and the benchmark views: lane change 1-3 m (the first camera moved
         left along its own x axis) and the far side of the first tracked box."""
         sc = self.scene
@@ -356,7 +357,8 @@ class Viewer:
                     self.render_client(cid)
                 except KeyError:   # the client left meanwhile
                     pass
-                except Exception as e:  # keep serving; show the failure where the image would be
+                except Exception as e:  # keep serving; show the failure where the image would be, and on the console
+                    print(f"clsplat view: exact render failed: {type(e).__name__}: {e}", file=sys.stderr, flush=True)
                     gui = self._clients.get(cid)
                     if gui is not None:
                         gui["text"].content = f"clsplat exact render failed: {type(e).__name__}: {e}"
