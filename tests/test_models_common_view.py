@@ -75,3 +75,41 @@ def test_not_a_checkpoint_and_unknown_family(tmp_path):
     torch.save({"format": CHECKPOINT_FORMAT, "family": "nerf"}, ck)
     with pytest.raises(ValueError, match="y.pt.*unknown model family 'nerf'"):
         scene_from_checkpoint(ck)
+
+
+def test_train_view_costs_nothing_without_a_browser_and_refreshes_with_one(two_colour_ply):
+    """TrainView: no browser, no refresh (the <10% overhead); a headless Chromium connected: the
+    Gaussians and the loss plot are refreshed every N steps and the exact render runs in the
+    calling (training) thread."""
+    pytest.importorskip("viser", reason="the view extra is not installed")
+    from clsplat.models.common.view import TrainView
+    from clsplat.viewer.browser import HeadlessChromium, find_chromium
+    from clsplat.viewer.scene import scene_from_ply
+
+    calls = []
+
+    def scene_fn():
+        calls.append(1)
+        return scene_from_ply(two_colour_ply[0])
+
+    tv = TrainView(scene_fn, port=0, every=2)
+    try:
+        for step in range(1, 6):
+            tv.on_step(step, {"loss": 1.0 / step})
+        assert len(calls) == 1 and tv.refreshes == 0 and tv.viewer.renders == 0   # only the initial scene
+        assert tv.losses == [1.0, 0.5, 1 / 3, 0.25, 0.2]
+        import os
+        if find_chromium() is None and os.environ.get("CLSPLAT_REQUIRE_BROWSER") != "1":
+            return
+        import time
+        with HeadlessChromium(tv.viewer.url, 800, 500):
+            t0 = time.time()
+            step = 5
+            while (tv.refreshes < 2 or tv.viewer.renders < 1) and time.time() - t0 < 120:
+                step += 1
+                tv.on_step(step, {"loss": 1.0 / step})
+                time.sleep(0.1)
+            assert tv.refreshes >= 2 and tv.viewer.renders >= 1
+            assert len(tv.plot.data[0]) == len(tv.plot.data[1]) > 5
+    finally:
+        tv.close()

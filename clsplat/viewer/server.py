@@ -72,12 +72,14 @@ class Viewer:
         device: OpenCL device of the exact renders (None: CLSPLAT_DEVICE, else GPU, else PoCL).
         render_width: width in pixels of the exact render (the height follows the view's aspect).
         rest_s: seconds the camera must rest before the exact render runs.
+        render_thread: run the exact renders on a thread of the viewer's own; False: the caller
+            calls :meth:`render_due` (a training loop, so that one thread uses the OpenCL device).
         up: the world's up axis as viser names it ("+z" for driving scenes, "-y" for COLMAP ones).
     """
 
     def __init__(self, scene: ViewScene, host: str = "127.0.0.1", port: int = 8080, device=None,
                  render_width: int = 480, rest_s: float = 0.4, up: str = "+z", auto_render: bool = True,
-                 background: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> None:
+                 background: tuple[float, float, float] = (1.0, 1.0, 1.0), render_thread: bool = True) -> None:
         check_port_free(host, port)
         import viser  # the view extra; a ModuleNotFoundError is named by the CLI
 
@@ -112,7 +114,8 @@ class Viewer:
         self.server.on_client_connect(self._on_connect)
         self.server.on_client_disconnect(lambda c: self._forget(c.client_id))
         self._worker = threading.Thread(target=self._render_loop, name="clsplat-exact-render", daemon=True)
-        self._worker.start()
+        if render_thread:
+            self._worker.start()
 
     # ------------------------------------------------------------------ public
     @property
@@ -197,7 +200,8 @@ class Viewer:
             self._stop.set()
             with contextlib.redirect_stdout(io.StringIO()):  # viser's "Server stopped"
                 self.server.stop()
-            self._worker.join(timeout=10)
+            if self._worker.is_alive():
+                self._worker.join(timeout=10)
 
     # ------------------------------------------------------------------ scene
     def _add_splats(self, scene: ViewScene) -> None:
@@ -286,7 +290,7 @@ class Viewer:
             image = g.add_image(np.zeros((8, 8, 3), np.uint8), label="server side, clsplat.rasterization")
             btn = g.add_button("Render now")
             bg = g.add_checkbox("Show as the view's background", initial_value=False)
-        btn.on_click(lambda _: self.render_client(client.client_id))
+        btn.on_click(lambda _: self._request_render(client.client_id))
 
         def _bg(_) -> None:
             if not bg.value:
@@ -329,6 +333,10 @@ class Viewer:
                                                         c0.height)
         return views
 
+    def _request_render(self, client_id: int) -> None:
+        with self._lock:
+            self._moved[client_id] = 0.0   # due at once, rendered by whoever renders (one thread)
+
     def _camera_moved(self, client_id: int) -> None:
         with self._lock:
             self._moved[client_id] = time.time()
@@ -339,26 +347,33 @@ class Viewer:
             self._moved.pop(client_id, None)
             self.last.pop(client_id, None)
 
-    def _render_loop(self) -> None:
-        """Render each client whose camera has rested ``rest_s`` since its last move."""
-        while not self._stop.wait(0.05):
-            if not self.auto_render:
-                continue
-            now = time.time()
-            with self._lock:
-                due = [cid for cid, t in self._moved.items() if now - t >= self.rest_s]
-                for cid in due:
-                    del self._moved[cid]
+    def render_due(self) -> int:
+        """Render every client whose camera has rested ``rest_s`` since its last move (or that asked
+        with "Render now"); returns how many were rendered. The worker thread calls this; with
+        ``render_thread=False`` (a training loop that owns the OpenCL device) the owner does."""
+        now = time.time()
+        with self._lock:
+            due = [cid for cid, t in self._moved.items() if now - t >= self.rest_s]
             for cid in due:
-                try:
-                    if self.server.get_clients()[cid].camera.update_timestamp == 0.0:
-                        self._camera_moved(cid)   # no camera message from the browser yet
-                        continue
-                    self.render_client(cid)
-                except KeyError:   # the client left meanwhile
-                    pass
-                except Exception as e:  # keep serving; show the failure where the image would be, and on the console
-                    print(f"clsplat view: exact render failed: {type(e).__name__}: {e}", file=sys.stderr, flush=True)
-                    gui = self._clients.get(cid)
-                    if gui is not None:
-                        gui["text"].content = f"clsplat exact render failed: {type(e).__name__}: {e}"
+                del self._moved[cid]
+        done = 0
+        for cid in due:
+            try:
+                if self.server.get_clients()[cid].camera.update_timestamp == 0.0:
+                    self._camera_moved(cid)   # no camera message from the browser yet
+                    continue
+                self.render_client(cid)
+                done += 1
+            except KeyError:   # the client left meanwhile
+                pass
+            except Exception as e:  # keep serving; show the failure where the image would be, and on the console
+                print(f"clsplat view: exact render failed: {type(e).__name__}: {e}", file=sys.stderr, flush=True)
+                gui = self._clients.get(cid)
+                if gui is not None:
+                    gui["text"].content = f"clsplat exact render failed: {type(e).__name__}: {e}"
+        return done
+
+    def _render_loop(self) -> None:
+        while not self._stop.wait(0.05):
+            if self.auto_render:
+                self.render_due()

@@ -23,7 +23,7 @@ import torch
 
 from clsplat.viewer.scene import ViewBox, ViewCamera, ViewScene, scene_from_ply
 
-__all__ = ["scene_from_checkpoint"]
+__all__ = ["scene_from_checkpoint", "autosplat_scene", "TrainView"]
 
 
 def _preset_from_saved(family: str, saved: dict):
@@ -86,14 +86,24 @@ def _autosplat(ck: dict, ck_path: Path, run: Path, data: str | None) -> ViewScen
         raise ValueError(f"PATH {str(ck_path)!r}: its tracked objects differ from those of --data {spec!r}")
     tr.model.resize_(ck["sizes"])
     tr.model.load_state_dict(ck["model"])
-    model = tr.model.eval()
+    return autosplat_scene(tr.model.eval(), seq, d, f"AutoSplat {preset.name} ({run.name})")
+
+
+def autosplat_scene(model, seq, d, title: str, frame: int | None = None) -> ViewScene:
+    """The scene of an AutoSplat model at ``frame`` (default the first training frame) with the
+    recording's cameras and images, ego trajectory, LiDAR, boxes, and ``at_time`` placing the
+    moving objects (and their residual SH) at the frame nearest a time.
+
+    Args:
+        model: an ``AutoSplatModel``; seq: its ``DrivingSequence``; d: its ``RunData``.
+    """
     frames = list(range(len(seq.frames)))
     times = [float(seq.frames[f].timestamp) for f in frames]
 
     def at(frame: int, with_extras: bool) -> ViewScene:
         with torch.no_grad():
             g = model.scene_at(frame)[0].detach()
-        sc = _gaussians_scene(g, f"AutoSplat {preset.name} ({run.name}, frame {frame})")
+        sc = _gaussians_scene(g, f"{title}, frame {frame}")
         sc.boxes = [ViewBox(f"{b.label} {b.track_id}", b.center, b.size, b.quat, times[frame])
                     for b in seq.frames[frame].boxes]
         if with_extras:
@@ -115,7 +125,7 @@ def _autosplat(ck: dict, ck_path: Path, run: Path, data: str | None) -> ViewScen
             sc.at_time = lambda t: at(int(np.argmin(np.abs(np.asarray(times) - t))), False)
         return sc
 
-    return at(d.train_frames[0], True)
+    return at(d.train_frames[0] if frame is None else frame, True)
 
 
 def _drivingforward(ck_path: Path, data: str, sample: int, device) -> ViewScene:
@@ -198,3 +208,65 @@ def scene_from_checkpoint(path: str | Path, data: str | None = None, device=None
     if fam == "drivingforward":
         return _drivingforward(ck_path, data or "synthetic", sample, device)
     return _pgt(ck, ck_path, data or "synthetic", sample)
+
+
+class TrainView:
+    """``clsplat train ... --view``: serve a run's scene while it trains.
+
+    The viewer starts at the first step (once the model has Gaussians). While a browser is
+    connected, every ``every`` steps (and when a browser connects) the Gaussians shown are
+    replaced by the model's current ones and the loss plot is updated; the exact renders run in
+    the training thread between steps (one thread uses the OpenCL device). With no browser a step
+    costs a list append and a look at the client table.
+
+    Args:
+        scene_fn: ``() -> ViewScene`` of the model now.
+        host, port: where to listen; every: steps between refreshes; device: exact-render device.
+    """
+
+    def __init__(self, scene_fn, host: str = "127.0.0.1", port: int = 8080, every: int = 10, device=None) -> None:
+        from clsplat.viewer.server import check_port_free
+        import viser  # noqa: F401  (the view extra, named by clsplat.cli when missing)
+
+        if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+            raise ValueError(f"--view-every: expected a positive number of steps, got {every!r}")
+        check_port_free(host, port)
+        self.scene_fn, self.host, self.port, self.every, self.device = scene_fn, host, port, every, device
+        self.viewer = None
+        self.plot = None
+        self.steps: list[int] = []
+        self.losses: list[float] = []
+        self._seen: set[int] = set()
+        self.refreshes = 0
+
+    def start(self) -> None:
+        from clsplat.viewer.server import Viewer
+
+        self.viewer = Viewer(self.scene_fn(), host=self.host, port=self.port, device=self.device,
+                             render_thread=False)
+        self.plot = self.viewer.server.gui.add_uplot(
+            data=(np.zeros(1), np.zeros(1)), series=({"label": "step"}, {"label": "loss", "stroke": "red"}),
+            title="training loss", aspect=1.6)
+        print(f"clsplat train --view: watch the run at {self.viewer.url}", flush=True)
+
+    def on_step(self, step: int, record: dict) -> None:
+        """Called by the training loop after each step with its log record."""
+        if self.viewer is None:
+            self.start()
+        if "loss" in record:
+            self.steps.append(step)
+            self.losses.append(float(record["loss"]))
+        clients = self.viewer.clients()
+        if not clients:
+            self._seen = set()
+            return
+        if set(clients) - self._seen or step % self.every == 0:
+            self._seen = set(clients)
+            self.viewer.set_gaussians(self.scene_fn())
+            self.plot.data = (np.asarray(self.steps, np.float64), np.asarray(self.losses, np.float64))
+            self.refreshes += 1
+        self.viewer.render_due()
+
+    def close(self) -> None:
+        if self.viewer is not None:
+            self.viewer.stop()
