@@ -37,6 +37,9 @@ def test_drivingforward_checkpoint(tmp_path):
     _check_scene(sc, V)
     assert set(sc.depths) == {c.name for c in sc.cameras}
     assert all(d.shape == (preset.height, preset.width, 3) for d in sc.depths.values())
+    # another input, picked in the viewer: the front camera alone, three frames -> 3 x 1 x H x W Gaussians
+    other = sc.variant("sample 1, frames [-1, 0, 1], front camera")
+    assert len(other.cameras) == 1 and len(other) == 3 * preset.height * preset.width
 
 
 def test_pgt_checkpoint(tmp_path):
@@ -49,6 +52,7 @@ def test_pgt_checkpoint(tmp_path):
     assert n_in == preset.num_views and len(sc) <= n_in * preset.height * preset.width
     _check_scene(sc, len(sc.cameras))
     assert len(sc.depths) == n_in
+    assert "sample 1" in sc.variants and len(sc.variant("sample 1").cameras) == len(sc.cameras)
 
 
 def test_autosplat_run_folder(tmp_path):

@@ -71,6 +71,8 @@ def view_main(argv: list[str]) -> int:
         import viser  # noqa: F401  (named as the view extra by clsplat.cli when missing)
         from .server import Viewer, check_port_free
         check_port_free(a.host, a.port)   # before a possibly slow model load
+        from ..runtime import get_runtime
+        get_runtime(a.device)             # an unknown --device now, not at the first exact render
         scene = load_scene(a.path, a.data, a.device, a.sample)
         viewer = Viewer(scene, host=a.host, port=a.port, device=a.device, render_width=a.render_width, up=a.up)
     except ValueError as e:

@@ -94,7 +94,9 @@ class ViewScene:
         times: time stamps the time slider offers (seconds); empty for a static scene.
         at_time: optional ``t -> ViewScene`` giving the Gaussians (and boxes) at time t
             (AutoSplat's moving objects); None for a static scene.
-        depths: optional named [H, W] depth maps (metres) shown next to the cameras.
+        depths: optional named [H, W, 3] colour-coded depth maps shown in the side panel.
+        variants, variant: other inputs of a feed-forward model (names, and ``name -> ViewScene``
+            that runs the model on that input); the viewer offers them in a dropdown.
         title: shown in the viewer.
     """
 
@@ -110,6 +112,8 @@ class ViewScene:
     times: list[float] = field(default_factory=list)
     at_time: Callable[[float], "ViewScene"] | None = None
     depths: dict[str, np.ndarray] = field(default_factory=dict)
+    variants: list[str] = field(default_factory=list)
+    variant: Callable[[str], "ViewScene"] | None = None
     title: str = "clsplat"
 
     def __post_init__(self) -> None:

@@ -212,25 +212,53 @@ class Viewer:
             rgbs=scene.rgb(), opacities=scene.opacities.numpy()[:, None])
 
     def _add_boxes(self, scene: ViewScene) -> None:
-        for i, b in enumerate(scene.boxes):
+        for h in getattr(self, "_box_handles", []):
+            h.remove()
+        self._box_handles = [
             self.server.scene.add_box(f"/boxes/{i:03d}", color=(255, 140, 0), dimensions=tuple(np.asarray(b.size)),
                                       wireframe=True, wxyz=np.asarray(b.wxyz), position=np.asarray(b.center),
-                                      visible=self._boxes_visible)
+                                      visible=self._boxes_visible) for i, b in enumerate(scene.boxes)]
 
-    def _build_scene(self, scene: ViewScene) -> None:
-        s = self.server.scene
-        self._boxes_visible = True
-        self._add_splats(scene)
-        c, r = scene.bounds()
+    def _add_cameras(self, scene: ViewScene) -> None:
+        for h in getattr(self, "_camera_handles", []):
+            h.remove()
+        self._camera_handles = []
+        r = scene.bounds()[1]
         for i, cam in enumerate(scene.cameras):
             c2w = cam.cam_to_world
             img = None
             if cam.image is not None:
                 step = max(1, cam.image.shape[1] // 160)   # thumbnails keep the page light
                 img = (np.clip(cam.image[::step, ::step], 0, 1) * 255).astype(np.uint8)
-            s.add_camera_frustum(f"/cameras/{i:03d}_{cam.name}", fov=cam.fov_y, aspect=cam.width / cam.height,
-                                 scale=0.05 * r, image=img, wxyz=_wxyz(c2w[:3, :3]), position=c2w[:3, 3],
-                                 color=(40, 90, 200), thickness=2.0, thickness_units="screen")
+            self._camera_handles.append(self.server.scene.add_camera_frustum(
+                f"/cameras/{i:03d}_{cam.name}", fov=cam.fov_y, aspect=cam.width / cam.height, scale=0.05 * r,
+                image=img, wxyz=_wxyz(c2w[:3, :3]), position=c2w[:3, 3], color=(40, 90, 200), thickness=2.0,
+                thickness_units="screen"))
+
+    def _add_depths(self, scene: ViewScene) -> None:
+        for h in getattr(self, "_depth_handles", []):
+            h.remove()
+        self._depth_handles = []
+        if scene.depths and getattr(self, "_depth_folder", None) is None:
+            self._depth_folder = self.server.gui.add_folder("Predicted depth", expand_by_default=False)
+        for name, d in scene.depths.items():
+            with self._depth_folder:
+                self._depth_handles.append(self.server.gui.add_image((np.clip(d, 0, 1) * 255).astype(np.uint8),
+                                                                     label=name))
+
+    def set_scene(self, scene: ViewScene) -> None:
+        """Replace everything the scene shows: Gaussians, boxes, cameras and depth maps (another
+        input of a feed-forward model)."""
+        self.set_gaussians(scene)
+        self._add_cameras(scene)
+        self._add_depths(scene)
+
+    def _build_scene(self, scene: ViewScene) -> None:
+        s = self.server.scene
+        self._boxes_visible = True
+        self._add_splats(scene)
+        c, r = scene.bounds()
+        self._add_cameras(scene)
         if scene.trajectory is not None and len(scene.trajectory) >= 2:
             t = np.asarray(scene.trajectory, dtype=np.float32)
             seg = np.stack([t[:-1], t[1:]], axis=1)
@@ -268,10 +296,22 @@ class Viewer:
                 self._boxes_visible = bb.value
                 self._add_boxes(self.scene)
             bb.on_update(_boxes)
-        if sc.depths:
-            with g.add_folder("Predicted depth", expand_by_default=False):
-                for name, d in sc.depths.items():
-                    g.add_image((np.clip(d, 0, 1) * 255).astype(np.uint8), label=name)
+        if sc.variants and sc.variant is not None:
+            with g.add_folder("Model input"):
+                dd = g.add_dropdown("Input", options=tuple(sc.variants))
+                run = g.add_button("Run the model")
+                status = g.add_markdown("")
+
+            def _run(_) -> None:
+                status.content = f"running the model on {dd.value} ..."
+                t0 = time.perf_counter()
+                try:
+                    self.set_scene(sc.variant(dd.value))
+                    status.content = f"{dd.value}: {len(self.scene)} Gaussians in {time.perf_counter() - t0:.1f} s"
+                except ValueError as e:
+                    status.content = f"{dd.value}: {e}"
+            run.on_click(_run)
+        self._add_depths(sc)
         if sc.times and sc.at_time is not None:
             sl = g.add_slider("Time (s)", min=float(min(sc.times)), max=float(max(sc.times)),
                               step=float(np.min(np.diff(sorted(sc.times)))) if len(sc.times) > 1 else 1.0,

@@ -128,6 +128,10 @@ def autosplat_scene(model, seq, d, title: str, frame: int | None = None) -> View
     return at(d.train_frames[0] if frame is None else frame, True)
 
 
+#: samples of the held-out split a feed-forward checkpoint's viewer offers
+_VARIANT_SAMPLES = 4
+
+
 def _drivingforward(ck_path: Path, data: str, sample: int, device) -> ViewScene:
     from ..drivingforward.cli import load_model
     from ..drivingforward.data import gt_ego_motion, load_triplet
@@ -136,20 +140,36 @@ def _drivingforward(ck_path: Path, data: str, sample: int, device) -> ViewScene:
 
     model, preset = load_model(str(ck_path), device)
     model.eval()
-    s = load_triplet(parse_data(data), sample, preset, split="test")
-    fi = [OFFSETS[f] for f in ((0,) if preset.mode == "SF" else (-1, 1))]
-    M = gt_ego_motion(s)
-    to_ref = torch.stack([torch.linalg.inv(M[f].double()).float() for f in fi])
-    with torch.no_grad():
-        g = model.reconstruct(s["images"][fi], s["Ks"], s["cam_to_ego"], frame_to_ref=to_ref,
-                              ref=0 if 1 not in fi else fi.index(1))
-        depth = model.depth_net(s["images"][1], s["Ks"], s["cam_to_ego"])["depth"][:, 0].numpy()
-    sc = _gaussians_scene(g, f"DrivingForward {preset.name} on {data} sample {sample} (ego frame)")
-    V = (s["viewmats"][1] @ s["ego_to_world"][1]).double().numpy()   # ego(t) -> camera
-    imgs = s["images"][1].permute(0, 2, 3, 1).numpy()
-    sc.cameras = [ViewCamera(n, s["Ks"][i].numpy(), V[i], preset.width, preset.height, imgs[i])
-                  for i, n in enumerate(s["names"])]
-    sc.depths = {n: _depth_colour(depth[i]) for i, n in enumerate(s["names"])}
+    source = parse_data(data)
+    default_frames = (0,) if preset.mode == "SF" else (-1, 1)
+
+    def run(k: int, frames: tuple[int, ...], front_only: bool) -> ViewScene:
+        s = load_triplet(source, k, preset, split="test")
+        cams = slice(0, 1) if front_only else slice(None)
+        fi = [OFFSETS[f] for f in frames]
+        M = gt_ego_motion(s)
+        to_ref = torch.stack([torch.linalg.inv(M[f].double()).float() for f in fi])
+        Ks, E = s["Ks"][cams], s["cam_to_ego"][cams]
+        with torch.no_grad():
+            g = model.reconstruct(s["images"][fi][:, cams], Ks, E, frame_to_ref=to_ref,
+                                  ref=0 if 1 not in fi else fi.index(1))
+            depth = model.depth_net(s["images"][1][cams], Ks, E)["depth"][:, 0].numpy()
+        names = s["names"][cams]
+        sc = _gaussians_scene(g, f"DrivingForward {preset.name} on {data} sample {k}, frames {list(frames)} "
+                                 f"(ego frame)")
+        V = (s["viewmats"][1][cams] @ s["ego_to_world"][1]).double().numpy()   # ego(t) -> camera
+        imgs = s["images"][1][cams].permute(0, 2, 3, 1).numpy()
+        sc.cameras = [ViewCamera(n, Ks[i].numpy(), V[i], preset.width, preset.height, imgs[i])
+                      for i, n in enumerate(names)]
+        sc.depths = {n: _depth_colour(depth[i]) for i, n in enumerate(names)}
+        return sc
+
+    options = {f"sample {k}, frames {list(fr)}, {'front camera' if fo else 'all cameras'}": (k, fr, fo)
+               for k in range(max(_VARIANT_SAMPLES, sample + 1)) for fr in ((0,), (-1, 1), (-1, 0, 1))
+               for fo in (False, True)}
+    sc = run(sample, default_frames, False)
+    sc.variants = list(options)
+    sc.variant = lambda name: run(*options[name])
     return sc
 
 
@@ -166,19 +186,28 @@ def _pgt(ck: dict, ck_path: Path, data: str, sample: int) -> ViewScene:
         model.enable_budget()
     model.load_state_dict(ck["model"])
     model.eval()
-    s = make_sample(parse_data(data), preset, sample, "test", None)
-    with torch.no_grad():
-        base = model(s.images, s.Ks, s.cam_to_world)
-        g = base.gaussians()
-    sc = _gaussians_scene(g, f"PGT {preset.name} on {data} sample {sample}")
-    imgs = s.images.permute(0, 2, 3, 1).numpy()
-    H, W = imgs.shape[1:3]
-    sc.cameras = [ViewCamera(f"input {i}", s.Ks[i].numpy(), np.linalg.inv(s.cam_to_world[i].double().numpy()), W, H,
-                             imgs[i]) for i in range(len(imgs))]
-    sc.cameras += [ViewCamera(f"target {i}", s.target_Ks[i].numpy(), s.target_viewmats[i].double().numpy(), W, H,
-                              s.target_images[i].permute(1, 2, 0).numpy()) for i in range(len(s.target_images))]
-    dep = base.depth.reshape(len(imgs), H, W).numpy()
-    sc.depths = {f"input {i}": _depth_colour(dep[i], preset.far) for i in range(len(imgs))}
+    source = parse_data(data)
+
+    def run(k: int) -> ViewScene:
+        s = make_sample(source, preset, k, "test", None)
+        with torch.no_grad():
+            base = model(s.images, s.Ks, s.cam_to_world)
+            g = base.gaussians()
+        sc = _gaussians_scene(g, f"PGT {preset.name} on {data} sample {k}")
+        imgs = s.images.permute(0, 2, 3, 1).numpy()
+        H, W = imgs.shape[1:3]
+        sc.cameras = [ViewCamera(f"input {i}", s.Ks[i].numpy(), np.linalg.inv(s.cam_to_world[i].double().numpy()),
+                                 W, H, imgs[i]) for i in range(len(imgs))]
+        sc.cameras += [ViewCamera(f"target {i}", s.target_Ks[i].numpy(), s.target_viewmats[i].double().numpy(), W, H,
+                                  s.target_images[i].permute(1, 2, 0).numpy()) for i in range(len(s.target_images))]
+        dep = base.depth.reshape(len(imgs), H, W).numpy()
+        sc.depths = {f"input {i}": _depth_colour(dep[i], preset.far) for i in range(len(imgs))}
+        return sc
+
+    sc = run(sample)
+    options = {f"sample {k}": k for k in range(max(_VARIANT_SAMPLES, sample + 1))}
+    sc.variants = list(options)
+    sc.variant = lambda name: run(options[name])
     return sc
 
 
