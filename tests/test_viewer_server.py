@@ -105,6 +105,14 @@ def test_viewer_without_a_browser(two_colour_ply):
             np.testing.assert_allclose(c[:3, 3], c0[:3, 3] - m * c0[:3, 0], atol=1e-9)
             np.testing.assert_allclose(c[:3, :3], c0[:3, :3], atol=1e-12)
         v.set_gaussians(scene_from_ply(ply))
+        # another model input: cameras, boxes and depth maps are replaced, not added to
+        other = scene_from_ply(ply)
+        other.cameras = [cam, ViewCamera("back", cam.K, look_at_viewmat([0, 4, 0.5], [0, 0, 0]), 64, 48)]
+        other.depths = {"front": np.zeros((48, 64, 3), np.float32)}
+        v.set_scene(other)
+        assert len(v._camera_handles) == 2 and len(v._depth_handles) == 1 and v.scene is other
+        v.set_scene(scene_from_ply(ply))
+        assert v._camera_handles == [] and v._depth_handles == []
     finally:
         v.stop()
     # the port is free again once stopped (for a restart: connections in TIME_WAIT do not count)
