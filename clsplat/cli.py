@@ -2,9 +2,11 @@
 
     clsplat info                      OpenCL platforms, devices and the features clsplat uses
     clsplat fit OUT [...]             fit Gaussians to an image (the optimisation example)
+    clsplat view PATH [...]           look at a .ply, checkpoint or run folder in the browser
+    clsplat render PATH --cameras FILE --out DIR   render a list of cameras to images
     clsplat COMMAND [...]             a command another package registers (see below)
 
-The engine owns ``info`` and ``fit``. Every other command is registered by the package that
+The engine owns ``info``, ``fit``, ``view`` and ``render``. Every other command is registered by the package that
 implements it, through the ``clsplat.commands`` entry-point group (setup.cfg): an entry point
 ``NAME = module:function`` makes ``clsplat NAME ARGS...`` call ``function(ARGS)`` (a list of
 strings; it returns the exit status, and the first line of its docstring is its help). This
@@ -24,10 +26,13 @@ __all__ = ["main", "console", "COMMAND_GROUP", "registered_commands"]
 COMMAND_GROUP = "clsplat.commands"
 
 #: optional packages and the setup.cfg extra that installs each
-_EXTRAS = {"OpenImageIO": "io", "matplotlib": "io", "pandas": "data", "kornia": "models", "tqdm": "models"}
+_EXTRAS = {"OpenImageIO": "io", "matplotlib": "io", "pandas": "data", "kornia": "models", "tqdm": "models",
+           "viser": "view"}
 
 _BUILTIN = {"info": "list OpenCL devices and features",
-            "fit": "fit Gaussians to an image (see clsplat fit --help)"}
+            "fit": "fit Gaussians to an image (see clsplat fit --help)",
+            "view": "look at a .ply, checkpoint or run folder in the browser (see clsplat view --help)",
+            "render": "render a list of cameras to images (see clsplat render --help)"}
 
 
 def registered_commands() -> dict[str, EntryPoint]:
@@ -99,6 +104,9 @@ def _main(argv: list[str]) -> int:
         from .fit_image import _cli
         _cli(argv[1:])
         return 0
+    if argv[:1] in (["view"], ["render"]):
+        from .viewer.cli import render_main, view_main
+        return (view_main if argv[0] == "view" else render_main)(argv[1:])
     if argv and argv[0] in plugins:
         return int(plugins[argv[0]].load()(argv[1:]) or 0)
     p = argparse.ArgumentParser(prog="clsplat", description=__doc__.split("\n")[0])

@@ -178,3 +178,26 @@ def engine_forward(rt, cfg: RenderConfig, scene: dict, feats: torch.Tensor, tile
 @pytest.fixture(scope="session")
 def run_forward():
     return engine_forward
+
+
+@pytest.fixture
+def two_colour_ply(tmp_path):
+    """A small INRIA .ply: a red cluster at x = -0.8 and a blue one at x = +0.8 (z up), and a camera
+    (``look_at_viewmat([0, -4, 0.5], [0, 0, 0])``, 64x48) that sees red on its left, blue on its right.
+    Returns (ply path, ViewCamera)."""
+    from clsplat.io.ply import rgb_to_sh, write_ply
+    from clsplat.viewer.scene import ViewCamera, look_at_viewmat
+
+    g = torch.Generator().manual_seed(0)
+    n = 400
+    means = torch.randn(n, 3, generator=g) * 0.3
+    means[: n // 2, 0] -= 0.8
+    means[n // 2:, 0] += 0.8
+    rgb = torch.zeros(n, 3)
+    rgb[: n // 2, 0] = 0.9
+    rgb[n // 2:, 2] = 0.9
+    q = torch.zeros(n, 4)
+    q[:, 0] = 1
+    path = write_ply(tmp_path / "two.ply", means, q, torch.full((n, 3), 0.08), torch.full((n,), 0.9), rgb_to_sh(rgb))
+    cam = ViewCamera("front", [[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]], look_at_viewmat([0, -4, 0.5], [0, 0, 0]), 64, 48)
+    return path, cam

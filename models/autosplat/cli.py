@@ -3,7 +3,7 @@
     clsplat train autosplat --data synthetic|pandaset:PATH|nuscenes:PATH [--cameras CAM ...]
         [--frames A:B] [--scale S] [--preset NAME] [--holdout K] [--no-flatness] [--no-symmetry]
         [--no-residual-sh] [--no-pose-correction] [--no-densify] [--no-decompose] [--masks DIR]
-        --out DIR [--resume] [--stop-after N]
+        --out DIR [--resume] [--stop-after N] [--view [--view-port P] [--view-every N]]
 
 ``--no-decompose`` is plain 3DGS from LiDAR (one static set, no objects, no phase 1).
 
@@ -87,7 +87,7 @@ def load_sequence(spec: str, cameras: list[str] | None, frames: tuple[int, int] 
 
 
 def _parser() -> argparse.ArgumentParser:
-    from ..common.cli import add_common_args, add_lpips_args
+    from ..common.cli import add_common_args, add_lpips_args, add_view_args
     p = argparse.ArgumentParser(prog="clsplat train autosplat", description=__doc__.split("\n")[0])
     add_common_args(p, default_preset="demo")
     p.add_argument("--cameras", nargs="+", default=None, help="camera names (default: all)")
@@ -98,6 +98,7 @@ def _parser() -> argparse.ArgumentParser:
     for flag in ("decompose", "flatness", "symmetry", "residual-sh", "pose-correction", "densify"):
         p.add_argument(f"--no-{flag}", action="store_true", help=f"switch the {flag.replace('-', ' ')} constraint off")
     add_lpips_args(p)
+    add_view_args(p)
     p.add_argument("--stop-after", type=int, default=None,
                    help="stop after this many iterations in all (checkpointed; continue with --resume)")
     p.add_argument("--no-progress", action="store_true")
@@ -106,8 +107,10 @@ def _parser() -> argparse.ArgumentParser:
 
 def reconstruct(data, preset, switches, out: Path, *, device=None, progress: bool = True,
                 checkpoint_every: int = 100, resume: bool = False, stop_after: int | None = None,
-                lpips=(None, "LPIPS off: no weights given"), extra: dict | None = None) -> dict | None:
+                lpips=(None, "LPIPS off: no weights given"), extra: dict | None = None,
+                view: dict | None = None) -> dict | None:
     """Train (or resume) and evaluate one run; writes metrics.json and scene.ply into ``out``.
+    With ``view`` ({"host", "port", "every"}) the run is served to the browser as it trains.
 
     ``out`` is written in place; the commands (``clsplat train autosplat``, ``clsplat demo``) pass
     the staging folder of a :class:`~..common.runfolder.RunFolder`, which publishes it as a group.
@@ -119,7 +122,16 @@ def reconstruct(data, preset, switches, out: Path, *, device=None, progress: boo
     t_start = time.perf_counter()
     trainer = Trainer(data, preset, switches, out, device=device, progress=progress,
                       checkpoint_every=checkpoint_every)
-    trainer.fit(resume=resume, stop_at=stop_after)
+    watcher = None
+    if view is not None:
+        from ..common.view import TrainView, autosplat_scene
+        watcher = TrainView(lambda: autosplat_scene(trainer.model, data.seq, data, f"AutoSplat {preset.name} "
+                                                    f"(training, step {trainer.step})"), device=device, **view)
+    try:
+        trainer.fit(resume=resume, stop_at=stop_after, on_step=None if watcher is None else watcher.on_step)
+    finally:
+        if watcher is not None:
+            watcher.close()
     if trainer.step < trainer.total:
         print(f"stopped after {trainer.step} of {trainer.total} iterations (the unfinished run is in {out}); "
               "continue with --resume")
@@ -171,6 +183,9 @@ def train(argv: list[str]) -> int:
                         residual_sh=not a.no_residual_sh, pose_correction=not a.no_pose_correction,
                         densify=not a.no_densify)
     frames = parse_frames(a.frames)
+    if a.view:  # before the data loads: a taken port is a one-line error now, not after minutes
+        from clsplat.viewer.server import check_port_free
+        check_port_free(a.view_host, a.view_port)
     t0 = time.perf_counter()
     seq = load_sequence(a.data, a.cameras, frames, scale, seed=a.seed, safe_pickle=not a.trust_pickle)
     if a.masks:
@@ -187,7 +202,9 @@ def train(argv: list[str]) -> int:
     with RunFolder(a.out, resume=a.resume) as rf:  # the lock; outputs staged, then published as a group
         metrics = reconstruct(data, preset, switches, rf.stage, device=a.device, progress=not a.no_progress,
                               checkpoint_every=a.checkpoint_every, resume=a.resume, stop_after=a.stop_after,
-                              lpips=(lp, msg), extra={"data": a.data, "scale": scale, "load_seconds": load_s})
+                              lpips=(lp, msg), extra={"data": a.data, "scale": scale, "load_seconds": load_s},
+                              view={"host": a.view_host, "port": a.view_port, "every": a.view_every}
+                              if a.view else None)
         if metrics is None:
             return 0
         rf.publish()

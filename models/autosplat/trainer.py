@@ -415,8 +415,9 @@ class Trainer:
         restore_rng(ck["rng"])
 
     # ------------------------------------------------------------------ the loop
-    def fit(self, resume: bool = False, stop_at: int | None = None) -> None:
-        """Train to the end of the schedule (or to ``stop_at`` steps), checkpointing as it goes."""
+    def fit(self, resume: bool = False, stop_at: int | None = None, on_step=None) -> None:
+        """Train to the end of the schedule (or to ``stop_at`` steps), checkpointing as it goes;
+        ``on_step(step, record)`` (optional, e.g. the ``--view`` viewer) is called after each step."""
         from tqdm.auto import tqdm
 
         self.out.mkdir(parents=True, exist_ok=True)
@@ -434,6 +435,8 @@ class Trainer:
             rec = self.train_step(self.step)
             self.step += 1
             log.write(rec)
+            if on_step is not None:
+                on_step(self.step, rec)
             bar.set_postfix_str(f"{rec['stage']} loss {rec['loss']:.4f} N {rec['gaussians']}")
             bar.update(1)
             if self.step % self.checkpoint_every == 0 or self.step == end:

@@ -13,8 +13,8 @@ import argparse
 import importlib
 import sys
 
-__all__ = ["dispatch", "train_command", "eval_command", "add_common_args", "add_eval_args", "add_lpips_args",
-           "lpips_from_args", "positive_int", "add_trust_pickle_arg"]
+__all__ = ["dispatch", "train_command", "eval_command", "add_common_args", "add_view_args", "add_eval_args",
+           "add_lpips_args", "lpips_from_args", "positive_int", "add_trust_pickle_arg"]
 
 
 def positive_int(text: str) -> int:
@@ -51,6 +51,15 @@ def add_common_args(p: argparse.ArgumentParser, default_preset: str = "small") -
     p.add_argument("--checkpoint-every", type=positive_int, default=100, help="steps between checkpoints")
     p.add_argument("--batch-size", type=positive_int, default=None, help="global batch (default: the preset's)")
     add_trust_pickle_arg(p)
+
+
+def add_view_args(p: argparse.ArgumentParser) -> None:
+    """--view, --view-host, --view-port, --view-every: watch the run in the browser (clsplat view)."""
+    p.add_argument("--view", action="store_true", help="serve the scene as it trains (needs the view extra)")
+    p.add_argument("--view-host", default="127.0.0.1", help="address of the viewer (default 127.0.0.1)")
+    p.add_argument("--view-port", type=int, default=8080, help="port of the viewer (default 8080)")
+    p.add_argument("--view-every", type=positive_int, default=10,
+                   help="steps between refreshes of the Gaussians shown (default 10; only while a browser is open)")
 
 
 def add_eval_args(p: argparse.ArgumentParser) -> None:

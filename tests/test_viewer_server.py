@@ -1,0 +1,120 @@
+"""clsplat/viewer/server.py: the viewer in a real browser (Debian's chromium, headless, WebGL
+through SwiftShader) and without one.
+
+The browser test loads the page ``Viewer`` serves for a small two-colour ``.ply``, takes a
+screenshot over the DevTools protocol (not blank; the scene's red and blue where the scene is, red
+left of blue as the first camera sees them), then moves the browser's camera through viser's API
+to the far side and checks that clsplat's server-side render follows (the clusters swap sides).
+It skips where chromium is absent, and fails instead when CLSPLAT_REQUIRE_BROWSER=1 (.ci/run).
+"""
+import os
+import time
+import urllib.request
+
+import numpy as np
+import pytest
+
+pytest.importorskip("viser", reason="the view extra (pip install 'clsplat[view]') is not installed")
+
+from clsplat.viewer.browser import HeadlessChromium, find_chromium  # noqa: E402
+from clsplat.viewer.scene import ViewCamera, look_at_viewmat, scene_from_ply  # noqa: E402
+from clsplat.viewer.server import Viewer  # noqa: E402
+
+_CHROMIUM = find_chromium()
+_REQUIRED = os.environ.get("CLSPLAT_REQUIRE_BROWSER") == "1"
+needs_browser = pytest.mark.skipif(_CHROMIUM is None and not _REQUIRED,
+                                   reason="chromium is not installed (apt-get install chromium)")
+
+
+def _wait(pred, timeout: float, what: str):
+    t0 = time.time()
+    while time.time() - t0 < timeout:
+        v = pred()
+        if v:
+            return v
+        time.sleep(0.2)
+    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+
+
+def _red_blue(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    r, g, b = (img[..., i].astype(int) for i in range(3))
+    return (r > 150) & (g < 90) & (b < 90), (b > 150) & (r < 90) & (g < 90)
+
+
+@pytest.mark.browser
+@needs_browser
+def test_chromium_shows_the_scene_and_the_server_render_follows_the_camera(two_colour_ply, tmp_path):
+    assert _CHROMIUM is not None, "CLSPLAT_REQUIRE_BROWSER=1 but no chromium on PATH"
+    ply, cam = two_colour_ply
+    scene = scene_from_ply(ply)
+    K = np.diag([10.0, 10.0, 1.0]) @ cam.K   # the fixture's camera at 640x480
+    scene.cameras = [ViewCamera("front", K, cam.viewmat, 640, 480)]
+    viewer = Viewer(scene, port=0, render_width=160, rest_s=0.3)
+    browser = HeadlessChromium(viewer.url, 1000, 640)
+    try:
+        _wait(lambda: len(viewer.clients()) > 0, 120, "the browser to connect")
+        cid = next(iter(viewer.clients()))
+        _wait(lambda: cid in viewer.last, 120, "the first exact render")
+        time.sleep(3)  # let WebGL draw the splats
+        shots: list = []
+
+        def splats_drawn() -> bool:   # WebGL in software takes a few frames to draw the splats
+            shots.append(browser.screenshot())
+            return int(_red_blue(shots[-1])[0].sum()) > 200
+        _wait(splats_drawn, 60, "the splats in the screenshot")
+        shot = shots[-1]
+        from clsplat.io.images import write_image
+        write_image(os.environ.get("CLSPLAT_VIEWER_SCREENSHOT", str(tmp_path / "screenshot.png")), shot / 255.0)
+        assert shot.std() > 10, "the screenshot is blank"
+        red, blue = _red_blue(shot[:, :480])   # the 3D view; the GUI panel is on the right
+        assert red.sum() > 200 and blue.sum() > 200, (red.sum(), blue.sum())
+        assert np.nonzero(red)[1].mean() < np.nonzero(blue)[1].mean()   # red left of blue, as the camera sees them
+        first = viewer.last[cid]
+        fr, fb = _red_blue((first["image"] * 255).astype(np.uint8))
+        assert np.nonzero(fr)[1].mean() < np.nonzero(fb)[1].mean()
+        # move the browser's camera through viser's API to the far side: the server render follows
+        n = viewer.renders
+        back = ViewCamera("back", K, look_at_viewmat([0, 4, 0.5], [0, 0, 0]), 640, 480)
+        viewer.set_client_camera(viewer.clients()[cid], back)
+        _wait(lambda: viewer.renders > n and viewer.last[cid]["time"] > first["time"], 120, "a new exact render")
+        second = viewer.last[cid]
+        assert not np.allclose(second["viewmat"], first["viewmat"])
+        np.testing.assert_allclose(np.linalg.inv(second["viewmat"])[:3, 3], [0, 4, 0.5], atol=1e-3)
+        sr, sb = _red_blue((second["image"] * 255).astype(np.uint8))
+        assert sr.sum() > 20 and sb.sum() > 20
+        assert np.nonzero(sr)[1].mean() > np.nonzero(sb)[1].mean()   # from behind, red is on the right
+    finally:
+        browser.close()
+        viewer.stop()
+
+
+def test_viewer_without_a_browser(two_colour_ply):
+    ply, cam = two_colour_ply
+    scene = scene_from_ply(ply)
+    scene.cameras = [cam]
+    v = Viewer(scene, port=0)
+    try:
+        assert v.url.startswith("http://127.0.0.1:") and v.port > 0
+        page = urllib.request.urlopen(v.url, timeout=30).read()
+        assert b"html" in page.lower()
+        views = v.views()
+        # lane change m metres: the first camera's centre moved m to its left (-x of the camera), same orientation
+        c0 = cam.cam_to_world
+        for m in (1, 2, 3):
+            c = views[f"lane change {m} m (front)"].cam_to_world
+            np.testing.assert_allclose(c[:3, 3], c0[:3, 3] - m * c0[:3, 0], atol=1e-9)
+            np.testing.assert_allclose(c[:3, :3], c0[:3, :3], atol=1e-12)
+        v.set_gaussians(scene_from_ply(ply))
+        # another model input: cameras, boxes and depth maps are replaced, not added to
+        other = scene_from_ply(ply)
+        other.cameras = [cam, ViewCamera("back", cam.K, look_at_viewmat([0, 4, 0.5], [0, 0, 0]), 64, 48)]
+        other.depths = {"front": np.zeros((48, 64, 3), np.float32)}
+        v.set_scene(other)
+        assert len(v._camera_handles) == 2 and len(v._depth_handles) == 1 and v.scene is other
+        v.set_scene(scene_from_ply(ply))
+        assert v._camera_handles == [] and v._depth_handles == []
+    finally:
+        v.stop()
+    # the port is free again once stopped (for a restart: connections in TIME_WAIT do not count)
+    from clsplat.viewer.server import check_port_free
+    check_port_free("127.0.0.1", v.port)
