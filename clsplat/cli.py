@@ -66,6 +66,9 @@ def _main(argv: list[str]) -> int:
     if argv[:1] in (["train"], ["eval"]):
         from .models.common.cli import dispatch
         return dispatch(argv[0], argv[1:])
+    if argv[:1] == ["data"]:
+        from .data.synthetic_cache import main as data
+        return data(argv[1:])
     if argv[:1] == ["fit"]:
         from .fit_image import _cli
         _cli(argv[1:])
@@ -80,6 +83,7 @@ def _main(argv: list[str]) -> int:
     d.set_defaults(fn=_demo)
     sub.add_parser("fit", help="fit Gaussians to an image (see clsplat fit --help)")
     sub.add_parser("bench", help="benchmark reports (see clsplat bench --help)")
+    sub.add_parser("data", help="data tools: clsplat data synth --count N --out DIR (a cache of synthetic streets)")
     sub.add_parser("train", help="train a model: clsplat train {drivingforward,pgt,autosplat} --help")
     sub.add_parser("eval", help="evaluate a model: clsplat eval {drivingforward,pgt,autosplat} --help")
     a = p.parse_args(argv)

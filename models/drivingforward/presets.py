@@ -66,6 +66,16 @@ class DFPreset(Preset):
             pose network only (the depth is detached from them); 0: off, as in the paper.
         jitter: colour jitter (brightness, contrast, saturation, hue) on network inputs only.
         scenes_dt: seconds between frames t-1, t, t+1 of a synthetic sample.
+        pose_source: "network" (the paper: the pose network's motion drives the temporal and
+            spatio-temporal warps and the SF render) or "dataset" (the data's ego motion does, and
+            the pose network is not trained; ``--pose dataset``).
+        pose_translation_init: initial camera-0 translation (metres, camera frame, earlier ->
+            later) of the pose network, set through the decoder's output bias; None: the paper's
+            zero-mean initialisation.
+        detach_render_pose: the SF/MF render loss sees the motion as a constant (no gradient
+            from the render to the pose network), as the release's rasteriser does in effect.
+        supersample: synthetic streets only: RGB is the mean of ``s x s`` rays per pixel
+            (training and held-out samples alike); 1: one ray per pixel.
     """
 
     name: str
@@ -114,6 +124,10 @@ class DFPreset(Preset):
     steps: int = 1000
     jitter: tuple[float, float, float, float] = (0.2, 0.2, 0.2, 0.05)
     scenes_dt: float = 0.1
+    pose_source: str = "network"
+    pose_translation_init: tuple[float, float, float] | None = None
+    detach_render_pose: bool = False
+    supersample: int = 1
 
     def __post_init__(self) -> None:
         if self.height % 8 or self.width % 8 or self.height < 16 or self.width < 16:
@@ -127,6 +141,14 @@ class DFPreset(Preset):
             raise ValueError(f"preset {self.name}: need 0 < min_depth < max_depth")
         if self.warmup_steps < 0:
             raise ValueError(f"preset {self.name}: warmup_steps must be >= 0, got {self.warmup_steps}")
+        if self.pose_source not in ("network", "dataset"):
+            raise ValueError(f"preset {self.name}: pose_source must be 'network' or 'dataset', got {self.pose_source!r}")
+        t = self.pose_translation_init
+        if t is not None and (len(t) != 3 or not all(abs(float(v)) <= self.max_translation for v in t)):
+            raise ValueError(f"preset {self.name}: pose_translation_init must be None or 3 values within "
+                             f"+-max_translation ({self.max_translation} m), got {t!r}")
+        if isinstance(self.supersample, bool) or not isinstance(self.supersample, int) or self.supersample < 1:
+            raise ValueError(f"preset {self.name}: supersample must be an int >= 1, got {self.supersample!r}")
         for name in ("pose_lr", "grad_clip"):
             v = getattr(self, name)
             if v is not None and not v > 0:
