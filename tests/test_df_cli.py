@@ -194,3 +194,11 @@ def test_eval_on_a_pandaset_sequence_scores_depth_against_projected_lidar(runs, 
     assert KEYS <= set(m["all"]) and m["all"]["n_pixels"] > 0 and "oracle_psnr" not in m["all"]
     assert m["settings"]["depth_gt"].startswith("projected LiDAR") and m["settings"]["data"].startswith("pandaset")
     assert (tmp_path / "eval" / "depth_sheet.png").is_file()
+    # the path of a user with one recorded sequence: self-supervised training on it with the same
+    # command, then held-out frames scored against projected LiDAR, with the pose against its ego poses
+    seq6 = parse_data("synthetic").sequence(1, num_frames=15, height=32, width=56, lidar=True, dt=0.1)
+    write_pandaset(seq6, tmp_path / "002")
+    assert _train(tmp_path / "train", 1, "--data", f"pandaset:{tmp_path / '002'}", "--eval-scenes", "1") == 0
+    m = json.loads((tmp_path / "train" / "metrics.json").read_text())
+    assert KEYS <= set(m["all"]) and POSE_KEYS <= set(m["all"]) and 0.7 < m["all"]["pose_t_true_m"] < 0.9
+    assert m["settings"]["depth_gt"].startswith("projected LiDAR")
