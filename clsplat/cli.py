@@ -4,10 +4,11 @@
     clsplat fit OUT [...]             fit Gaussians to an image (the optimisation example)
     clsplat view PATH [...]           look at a .ply, checkpoint or run folder in the browser
     clsplat render PATH --cameras FILE --out DIR   render a list of cameras to images
+    clsplat data synth --count N --out DIR        a cache of synthetic streets
     clsplat COMMAND [...]             a command another package registers (see below)
 
-The engine owns ``info``, ``fit``, ``view`` and ``render``. Every other command is registered by the package that
-implements it, through the ``clsplat.commands`` entry-point group (setup.cfg): an entry point
+The engine owns ``info``, ``fit``, ``view``, ``render`` and ``data``. Every other command is
+registered by the package that implements it, through the ``clsplat.commands`` entry-point group (setup.cfg): an entry point
 ``NAME = module:function`` makes ``clsplat NAME ARGS...`` call ``function(ARGS)`` (a list of
 strings; it returns the exit status, and the first line of its docstring is its help). This
 distribution registers ``demo``, ``train`` and ``eval`` (clsplat.models) and ``bench``
@@ -32,7 +33,8 @@ _EXTRAS = {"OpenImageIO": "io", "matplotlib": "io", "pandas": "data", "kornia": 
 _BUILTIN = {"info": "list OpenCL devices and features",
             "fit": "fit Gaussians to an image (see clsplat fit --help)",
             "view": "look at a .ply, checkpoint or run folder in the browser (see clsplat view --help)",
-            "render": "render a list of cameras to images (see clsplat render --help)"}
+            "render": "render a list of cameras to images (see clsplat render --help)",
+            "data": "data tools: clsplat data synth --count N --out DIR (a cache of synthetic streets)"}
 
 
 def registered_commands() -> dict[str, EntryPoint]:
@@ -104,6 +106,9 @@ def _main(argv: list[str]) -> int:
         from .fit_image import _cli
         _cli(argv[1:])
         return 0
+    if argv[:1] == ["data"]:
+        from .data.synthetic_cache import main as data
+        return data(argv[1:])
     if argv[:1] in (["view"], ["render"]):
         from .viewer.cli import render_main, view_main
         return (view_main if argv[0] == "view" else render_main)(argv[1:])

@@ -2,6 +2,7 @@
 two-process data parallel == one process, evaluation metrics and contact sheets (synthetic, and a
 PandaSet-format folder scored against projected LiDAR), LPIPS off without weights, and refusing a
 checkpoint of another preset."""
+import contextlib
 import json
 
 import pytest
@@ -11,6 +12,7 @@ from clsplat.models.common.metrics import LPIPS_OFF_MESSAGE
 from clsplat.models.drivingforward.cli import evaluate, load_model, train
 
 KEYS = {"psnr", "ssim", "abs_rel", "sq_rel", "rmse", "delta1", "scale_ratio"}
+POSE_KEYS = {"pose_t_err_m", "pose_t_err_pct", "pose_r_err_deg", "pose_t_pred_m", "pose_t_true_m"}
 
 
 def _train(out, steps, *extra):
@@ -24,6 +26,8 @@ def runs(tmp_path_factory):
     assert _train(root / "straight", 2, "--eval-scenes", "1") == 0
     assert _train(root / "resumed", 1, "--eval-scenes", "0") == 0
     assert _train(root / "resumed", 2, "--eval-scenes", "0", "--resume") == 0
+    assert _train(root / "dataset", 2, "--eval-scenes", "1", "--pose", "dataset",
+                  "--set", "detach_render_pose=True") == 0
     return root
 
 
@@ -39,6 +43,54 @@ def test_train_writes_the_run_files(runs, capsys):
     assert KEYS <= set(m["all"]) and KEYS <= set(m["CAM_FRONT"])
     ck = torch.load(d / "checkpoint.pt", weights_only=True)
     assert ck["preset"]["name"] == "tiny" and ck["step"] == 2
+
+
+def test_eval_reports_the_pose_networks_motion_against_the_datas(runs):
+    m = json.loads((runs / "straight" / "metrics.json").read_text())
+    assert POSE_KEYS <= set(m["all"]) and POSE_KEYS <= set(m) and not POSE_KEYS & set(m["CAM_FRONT"])
+    a = m["all"]
+    assert 0.7 < a["pose_t_true_m"] < 0.9                 # the generator's 0.8 m per frame
+    assert a["pose_t_err_m"] >= abs(a["pose_t_true_m"] - a["pose_t_pred_m"]) - 1e-9   # triangle inequality
+    assert a["pose_t_err_pct"] == pytest.approx(100 * a["pose_t_err_m"] / a["pose_t_true_m"], rel=1e-6)
+    assert m["settings"]["pose_source"] == "network"
+
+
+def test_dataset_pose_run_keeps_the_pose_network_untrained_and_its_choice(runs, tmp_path, capsys):
+    from clsplat.models.common.presets import get_preset
+    from clsplat.models.common.train import seed_everything
+    from clsplat.models.drivingforward.model import DrivingForward
+
+    d = runs / "dataset"
+    ck = torch.load(d / "checkpoint.pt", weights_only=True)
+    assert ck["preset"]["pose_source"] == "dataset" and ck["preset"]["detach_render_pose"] is True
+    seed_everything(0)
+    init = DrivingForward(get_preset("drivingforward", "tiny")).state_dict()
+    pose = [k for k in init if k.startswith("pose_net.") and "running" not in k and "num_batches" not in k]
+    assert pose and all(torch.equal(init[k], ck["model"][k]) for k in pose)
+    depth = [k for k in init if k.startswith("depth_net.") and k.endswith("weight")]
+    assert any(not torch.equal(init[k], ck["model"][k]) for k in depth)       # the rest did train
+    m = json.loads((d / "metrics.json").read_text())
+    assert KEYS <= set(m["all"]) and not POSE_KEYS & set(m["all"]) and m["settings"]["pose_source"] == "dataset"
+    model, preset = load_model(str(d / "checkpoint.pt"))                      # eval runs the run's preset
+    assert preset.pose_source == "dataset" and preset.detach_render_pose and preset.name == "tiny"
+    # resuming without the run's choices is refused, naming the field
+    assert _train(d, 3, "--eval-scenes", "0", "--resume") == 2
+    assert "pose_source" in capsys.readouterr().err
+    assert _train(d, 3, "--eval-scenes", "0", "--resume", "--pose", "dataset", "--set", "detach_render_pose=True") == 0
+
+
+@pytest.mark.parametrize("args, msg", [
+    (["--set", "nofield=1"], "unknown preset fields ['nofield']"), (["--set", "lr"], "FIELD=VALUE"),
+    (["--set", "lr=abc"], "not a Python literal"), (["--set", "detach_render_pose=3"], "expected a bool"),
+    (["--set", "name='x'"], "name cannot be changed"), (["--set", "supersample=0"], "supersample"),
+    (["--set", "pose_translation_init=(0, 0, -9)"], "pose_translation_init"), (["--pose", "gps"], "invalid choice"),
+])
+def test_preset_overrides_reject_bad_input_with_one_line(tmp_path, capsys, args, msg):
+    with pytest.raises(SystemExit) if args[0] == "--pose" else contextlib.nullcontext():
+        assert _train(tmp_path, 1, *args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert msg in err[-1]
+    assert not (tmp_path / "checkpoint.pt").exists()
 
 
 def test_resume_is_bitwise(runs):
@@ -142,3 +194,11 @@ def test_eval_on_a_pandaset_sequence_scores_depth_against_projected_lidar(runs, 
     assert KEYS <= set(m["all"]) and m["all"]["n_pixels"] > 0 and "oracle_psnr" not in m["all"]
     assert m["settings"]["depth_gt"].startswith("projected LiDAR") and m["settings"]["data"].startswith("pandaset")
     assert (tmp_path / "eval" / "depth_sheet.png").is_file()
+    # the path of a user with one recorded sequence: self-supervised training on it with the same
+    # command, then held-out frames scored against projected LiDAR, with the pose against its ego poses
+    seq6 = parse_data("synthetic").sequence(1, num_frames=15, height=32, width=56, lidar=True, dt=0.1)
+    write_pandaset(seq6, tmp_path / "002")
+    assert _train(tmp_path / "train", 1, "--data", f"pandaset:{tmp_path / '002'}", "--eval-scenes", "1") == 0
+    m = json.loads((tmp_path / "train" / "metrics.json").read_text())
+    assert KEYS <= set(m["all"]) and POSE_KEYS <= set(m["all"]) and 0.7 < m["all"]["pose_t_true_m"] < 0.9
+    assert m["settings"]["depth_gt"].startswith("projected LiDAR")

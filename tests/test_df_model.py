@@ -137,3 +137,59 @@ def test_optimizer_gives_the_pose_network_its_own_learning_rate(model):
         assert rest["lr"] == TINY.lr and pose["lr"] == expected
         assert {id(q) for q in pose["params"]} == {id(q) for q in model.pose_net.parameters()}
         assert len(rest["params"]) + len(pose["params"]) == len(list(model.parameters()))
+
+
+@pytest.mark.parametrize("detach", [False, True])
+def test_render_loss_reaches_the_pose_network_only_when_the_preset_allows(sample, detach):
+    # detach_render_pose: the render's viewmats carry the motion as a constant (issue 17, lead 2)
+    torch.manual_seed(0)
+    m = DrivingForward(TINY.replace(detach_render_pose=detach))
+    terms = m.training_losses(sample["images"], sample["images"], sample["Ks"], sample["cam_to_ego"])
+    m.zero_grad()
+    terms["render"].backward(retain_graph=True)
+    pose_params = len(list(m.pose_net.parameters()))
+    assert len(_without_grad(m, "pose_net")) == (pose_params if detach else 0)
+    assert _without_grad(m, "depth_net") == [] and _without_grad(m, "gaussian_net") == []
+    m.zero_grad()
+    terms["reproj"].backward()                        # the temporal warp still trains the pose
+    assert _without_grad(m, "pose_net") == []
+
+
+def test_dataset_pose_drives_the_warps_and_leaves_the_pose_network_untrained(sample):
+    torch.manual_seed(0)
+    m = DrivingForward(TINY.replace(pose_source="dataset"))
+    M = gt_ego_motion(sample)
+    terms = m.training_losses(sample["images"], sample["images"], sample["Ks"], sample["cam_to_ego"],
+                              ego_motion_gt=[M[0], M[2]])
+    m.zero_grad()
+    terms["loss"].backward()
+    assert len(_without_grad(m, "pose_net")) == len(list(m.pose_net.parameters()))
+    assert _without_grad(m, "depth_net") == []
+    E0 = sample["cam_to_ego"][0]
+    t_true = (torch.linalg.inv(E0) @ M[2] @ E0)[:3, 3].norm()
+    assert float(terms["diag_translation"]) == pytest.approx(float(t_true), rel=1e-5)
+    assert 0.7 < float(t_true) < 0.9                    # the generator's 8 m/s at 0.1 s
+    # the given motion is what the warps use: no motion gives other warped errors
+    with torch.no_grad():
+        still = m.training_losses(sample["images"], sample["images"], sample["Ks"], sample["cam_to_ego"],
+                                  ego_motion_gt=[torch.eye(4), torch.eye(4)])
+    for k in ("reproj", "spatio_temporal"):
+        assert float(still[k]) != pytest.approx(float(terms[k].detach()), rel=1e-4), k
+    with pytest.raises(ValueError, match="ego_motion_gt"):
+        m.training_losses(sample["images"], sample["images"], sample["Ks"], sample["cam_to_ego"])
+    with pytest.raises(ValueError, match="pose_source"):
+        TINY.replace(pose_source="lidar")
+
+
+def test_pose_translation_init_starts_the_pose_network_at_that_motion(sample):
+    torch.manual_seed(0)
+    m = DrivingForward(TINY.replace(pose_translation_init=(0.0, 0.0, -0.8)))
+    with torch.no_grad():
+        T = m.pose_net(sample["images"][1], sample["images"][2], sample["Ks"], sample["cam_to_ego"])
+    assert torch.allclose(T[:3, 3], torch.tensor([0.0, 0.0, -0.8]), atol=0.02)
+    torch.manual_seed(0)
+    with torch.no_grad():
+        T0 = DrivingForward(TINY).pose_net(sample["images"][1], sample["images"][2], sample["Ks"], sample["cam_to_ego"])
+    assert float(T0[:3, 3].norm()) < 0.02                 # the paper's initialisation: about no motion
+    with pytest.raises(ValueError, match="pose_translation_init"):
+        TINY.replace(pose_translation_init=(0.0, 0.0, -9.0))

@@ -156,3 +156,25 @@ def test_lpips_off_and_bad_files(tmp_path, vgg_file):
     torch.save({"conv1.weight": torch.zeros(64, 3, 7, 7)}, tmp_path / "resnet.pth")
     with pytest.raises(ValueError, match=r"VGG16 weights: .*resnet.pth.*missing keys"):
         LPIPS(tmp_path / "resnet.pth", tmp_path / "lin.pth")
+
+
+def test_pose_errors_against_a_known_motion():
+    import math
+
+    from clsplat.models.common.geometry import se3_exp
+    from clsplat.models.common.metrics import pose_errors
+
+    true = se3_exp(torch.tensor([0.0, 0.0, 0.0], dtype=torch.float64), torch.tensor([0.0, 0.0, -0.8], dtype=torch.float64))
+    pred = se3_exp(torch.tensor([0.0, math.radians(2.0), 0.0], dtype=torch.float64),
+                   torch.tensor([0.06, 0.0, -0.72], dtype=torch.float64))
+    e = pose_errors(pred, true)
+    assert e["t_err_m"] == pytest.approx(0.1) and e["t_err_pct"] == pytest.approx(12.5)
+    assert e["r_err_deg"] == pytest.approx(2.0, abs=1e-6)
+    assert e["t_true_m"] == pytest.approx(0.8) and e["t_pred_m"] == pytest.approx(math.hypot(0.06, 0.72))
+    assert pose_errors(true, true) == pytest.approx({"t_err_m": 0.0, "t_err_pct": 0.0, "r_err_deg": 0.0,
+                                                     "t_pred_m": 0.8, "t_true_m": 0.8}, abs=1e-6)
+    assert pose_errors(torch.eye(4), torch.eye(4))["t_err_pct"] is None      # no true motion: no percentage
+    with pytest.raises(ValueError, match="pred"):
+        pose_errors(torch.eye(3), true)
+    with pytest.raises(ValueError, match="true"):
+        pose_errors(true, torch.full((4, 4), float("nan")))

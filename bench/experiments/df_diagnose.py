@@ -17,6 +17,7 @@ A checkpoint's weights are loaded into ``--preset``'s networks as they are (its 
 fields, such as a probe's learning rate, need not match).
 
     .venv/bin/python bench/experiments/df_diagnose.py landscape --scenes 2
+    .venv/bin/python bench/experiments/df_diagnose.py landscape --scenes 2 --set supersample=3 --factors 0.5 0.8 1 1.25 2
     .venv/bin/python bench/experiments/df_diagnose.py grads bench/out/df_small/checkpoint.pt --scenes 3
     .venv/bin/python bench/experiments/df_diagnose.py motion bench/out/df_small/checkpoint.pt --scenes 3
 """
@@ -30,14 +31,15 @@ FACTORS = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
 TERMS = ("reproj", "spatial", "spatio_temporal", "smooth", "render")
 
 
-def _setup(preset_name: str, checkpoint: str | None):
+def _setup(preset_name: str, checkpoint: str | None, sets: list[str] | None = None):
     from clsplat.models.common.data import parse_data
     from clsplat.models.common.presets import get_preset
+    from clsplat.models.drivingforward.cli import preset_overrides
     from clsplat.models.drivingforward.model import DrivingForward
 
     torch.manual_seed(0)
     torch.set_num_threads(1)
-    preset = get_preset("drivingforward", preset_name)
+    preset = preset_overrides(get_preset("drivingforward", preset_name), None, sets)
     model = DrivingForward(preset)
     if checkpoint:
         from clsplat.models.common.train import load_checkpoint
@@ -45,11 +47,13 @@ def _setup(preset_name: str, checkpoint: str | None):
     return model, preset, parse_data("synthetic")
 
 
-def landscape(preset_name: str, scenes: int) -> dict:
-    """Mean of each term over ``scenes`` streets for (pose in {true, net}, factor)."""
+def landscape(preset_name: str, scenes: int, sets: list[str] | None = None,
+              factors: tuple[float, ...] = FACTORS) -> dict:
+    """Mean of each term over ``scenes`` streets for (pose in {true, net}, factor); ``sets``:
+    ``FIELD=VALUE`` preset changes (e.g. ``supersample=3``, ``height=128``)."""
     from clsplat.models.drivingforward.data import load_triplet
 
-    model, p, src = _setup(preset_name, None)
+    model, p, src = _setup(preset_name, None, sets)
     depth_fwd, pose_fwd = model.depth_net.forward, model.pose_net.forward
     rows: dict = {}
     try:
@@ -59,7 +63,7 @@ def landscape(preset_name: str, scenes: int) -> dict:
             V = s["viewmats"][:, 0].float()
             true_motion = [V[1] @ torch.linalg.inv(V[0]), V[2] @ torch.linalg.inv(V[1])]
             for pose in ("true", "net"):
-                for f in FACTORS:
+                for f in factors:
                     def depth_net(*a, f=f, **k):
                         d = depth_fwd(*a, **k)
                         d["depth"] = true_depth * f
@@ -165,6 +169,8 @@ def main(argv: list[str] | None = None) -> int:
     a1 = sub.add_parser("landscape")
     a1.add_argument("--preset", default="small")
     a1.add_argument("--scenes", type=int, default=2)
+    a1.add_argument("--set", action="append", default=None, metavar="FIELD=VALUE", help="preset change (repeatable)")
+    a1.add_argument("--factors", type=float, nargs="+", default=None, help=f"depth factors (default {FACTORS})")
     a2 = sub.add_parser("grads")
     a2.add_argument("checkpoint", help="a DrivingForward checkpoint, or 'init' for the seeded initialisation")
     a2.add_argument("--preset", default="small", help="with 'init'")
@@ -175,7 +181,7 @@ def main(argv: list[str] | None = None) -> int:
     a3.add_argument("--scenes", type=int, default=3)
     a = p.parse_args(argv)
     if a.cmd == "landscape":
-        res = landscape(a.preset, a.scenes)
+        res = landscape(a.preset, a.scenes, a.set, tuple(a.factors) if a.factors else FACTORS)
         keys = TERMS[:-1] + ("mse", "loss")
         print("| pose | depth x | " + " | ".join(keys) + " |")
         print("|---|---|" + "---|" * len(keys))

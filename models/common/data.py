@@ -2,6 +2,9 @@
 
     synthetic          a new procedural street (clsplat.data.synthetic) per sample index; train
                        and test streets never share a seed
+    synthetic-cache:DIR  the same streets, read from an on-disk cache (clsplat.data.synthetic_cache;
+                       fill it with ``clsplat data synth``); a street the cache lacks is generated
+                       and added to it
     pandaset:PATH      a PandaSet sequence folder (clsplat.data.load_pandaset)
     nuscenes:PATH      a nuScenes root, optionally ``nuscenes:PATH@VERSION#SCENE``
                        (clsplat.data.load_nuscenes_scene; default v1.0-mini, scene 0)
@@ -54,7 +57,7 @@ class DataSource:
     """Windows of driving sequences for training and evaluation (see the module docstring).
 
     Args:
-        kind: "synthetic", "pandaset" or "nuscenes".
+        kind: "synthetic", "synthetic-cache" (path: the cache folder), "pandaset" or "nuscenes".
         path: dataset folder (real data only).
         seed: base seed; synthetic street ``index`` of the train split has seed ``seed + index``.
         synthetic: extra :class:`SyntheticConfig` fields for synthetic streets (e.g. num_parked).
@@ -66,9 +69,15 @@ class DataSource:
     def __init__(self, kind: str, path: str | Path | None = None, seed: int = 0,
                  synthetic: dict | None = None, version: str = "v1.0-mini", scene: int | str = 0,
                  safe_pickle: bool = True) -> None:
-        if kind not in ("synthetic", "pandaset", "nuscenes"):
-            raise ValueError(f"kind: expected 'synthetic', 'pandaset' or 'nuscenes', got {kind!r}")
-        if kind != "synthetic":
+        if kind not in ("synthetic", "synthetic-cache", "pandaset", "nuscenes"):
+            raise ValueError(f"kind: expected 'synthetic', 'synthetic-cache', 'pandaset' or 'nuscenes', got {kind!r}")
+        self._cache = None
+        if kind == "synthetic-cache":
+            if path is None:
+                raise ValueError("data: synthetic-cache needs a folder (synthetic-cache:DIR)")
+            from clsplat.data.synthetic_cache import SyntheticCache
+            self._cache = SyntheticCache(path)
+        elif kind != "synthetic":
             if path is None or not Path(path).is_dir():
                 raise ValueError(f"data: {kind} folder {str(path)!r} does not exist")
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= seed < TEST_SEED_OFFSET:
@@ -90,9 +99,14 @@ class DataSource:
         return f"DataSource({self.name!r}, seed={self.seed})"
 
     # ------------------------------------------------------------------ real data
+    @property
+    def synthetic_streets(self) -> bool:
+        """True for ``synthetic`` and ``synthetic-cache`` (a new street per index)."""
+        return self.kind in ("synthetic", "synthetic-cache")
+
     def full_sequence(self) -> DrivingSequence:
         """The whole real sequence at native resolution (loaded once)."""
-        if self.kind == "synthetic":
+        if self.synthetic_streets:
             raise ValueError("data: a synthetic source has no fixed sequence; use sequence(index, ...)")
         if self._full is None:
             if self.kind == "pandaset":
@@ -115,7 +129,7 @@ class DataSource:
     # ------------------------------------------------------------------ the one entry point
     def sequence(self, index: int, *, num_frames: int, height: int, width: int, split: str = "train",
                  cameras: Sequence[str] | None = None, lidar: bool = False, dt: float | None = None,
-                 t0: float | None = None) -> DrivingSequence:
+                 t0: float | None = None, supersample: int | None = None) -> DrivingSequence:
         """Window ``index`` of ``split``: ``num_frames`` consecutive frames at ``height x width``.
 
         Args:
@@ -125,8 +139,8 @@ class DataSource:
             split: "train" or "test".
             cameras: camera names (default: all); other cameras are never rendered or loaded.
             lidar: synthetic only: simulate LiDAR (real data carries what the files hold).
-            dt, t0: synthetic only: frame interval and time of the first frame (default: the
-                SyntheticConfig's).
+            dt, t0, supersample: synthetic only: frame interval, time of the first frame and rays
+                per pixel side (default: the SyntheticConfig's).
         Returns:
             a :class:`DrivingSequence` whose cameras are ``height x width``.
         """
@@ -135,7 +149,7 @@ class DataSource:
         if split not in _SPLITS:
             raise ValueError(f"split: expected 'train' or 'test', got {split!r}")
         _check_size(num_frames, height, width)
-        if self.kind == "synthetic":
+        if self.synthetic_streets:
             names = _check_cameras(cameras, CAMERA_NAMES)
             seed = self.seed + int(index) + (TEST_SEED_OFFSET if split == "test" else 0)
             fields = {**self.synthetic, "seed": seed, "num_frames": num_frames, "height": height,
@@ -144,7 +158,10 @@ class DataSource:
                 fields["dt"] = dt
             if t0 is not None:
                 fields["t0"] = t0
-            return generate_sequence(SyntheticConfig(**fields))
+            if supersample is not None:
+                fields["supersample"] = supersample
+            cfg = SyntheticConfig(**fields)
+            return self._cache.sequence(cfg) if self._cache is not None else generate_sequence(cfg)
         full = self.full_sequence()
         names = _check_cameras(cameras, full.camera_names)
         starts = self._window_starts(len(full.frames), num_frames, split)
@@ -159,12 +176,14 @@ class DataSource:
 def parse_data(spec: str, seed: int = 0, **kwargs) -> DataSource:
     """A :class:`DataSource` from a ``--data`` spec (see the module docstring)."""
     if not isinstance(spec, str) or not spec:
-        raise ValueError(f"data: expected 'synthetic', 'pandaset:PATH' or 'nuscenes:PATH', got {spec!r}")
+        raise ValueError(f"data: expected 'synthetic', 'synthetic-cache:DIR', 'pandaset:PATH' or 'nuscenes:PATH', got {spec!r}")
     if spec == "synthetic":
         return DataSource("synthetic", seed=seed, **kwargs)
     kind, sep, rest = spec.partition(":")
+    if kind == "synthetic-cache" and sep and rest:
+        return DataSource("synthetic-cache", rest, seed=seed, **kwargs)
     if not sep or kind not in ("pandaset", "nuscenes") or not rest:
-        raise ValueError(f"data: expected 'synthetic', 'pandaset:PATH' or 'nuscenes:PATH', got {spec!r}")
+        raise ValueError(f"data: expected 'synthetic', 'synthetic-cache:DIR', 'pandaset:PATH' or 'nuscenes:PATH', got {spec!r}")
     if kind == "nuscenes":
         path, _, scene = rest.partition("#")
         path, _, version = path.partition("@")

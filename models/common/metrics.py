@@ -1,5 +1,6 @@
 """Evaluation metrics shared by the model families: PSNR, SSIM (kornia, 11x11 Gaussian window),
-depth errors in metric units, and LPIPS (VGG-16, v0.1 linear layers) from local weight files only.
+depth errors in metric units, relative-pose errors (translation in m and %, rotation in degrees),
+and LPIPS (VGG-16, v0.1 linear layers) from local weight files only.
 
 LPIPS is computed only from weights the user names; :func:`lpips_or_none` returns ``None`` and a
 message saying the metric is off when there are none. A randomly initialised backbone is never
@@ -19,7 +20,7 @@ from torch import Tensor, nn
 from .backbones import VGG16, load_backbone_weights
 from .losses import check_image_pair
 
-__all__ = ["psnr", "ssim", "depth_metrics", "LPIPS", "lpips_or_none", "LPIPS_OFF_MESSAGE"]
+__all__ = ["psnr", "ssim", "depth_metrics", "pose_errors", "LPIPS", "lpips_or_none", "LPIPS_OFF_MESSAGE"]
 
 LPIPS_OFF_MESSAGE = "LPIPS off: no VGG-16 / LPIPS weights given (nothing is downloaded)"
 
@@ -145,6 +146,31 @@ class _LinLayer(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         return self.model(x)
+
+
+def pose_errors(pred: Tensor, true: Tensor) -> dict[str, float]:
+    """Errors of a predicted rigid motion against the true one.
+
+    Args:
+        pred, true: ``[4, 4]`` rigid motions in the same frame (e.g. a camera's motion between two
+            instants, ``p_later = T p_earlier``).
+    Returns:
+        ``t_err_m`` (|t_pred - t_true|), ``t_err_pct`` (100 t_err / |t_true|; None when the true
+        translation is below 1 mm), ``r_err_deg`` (angle of ``R_pred^T R_true``), ``t_pred_m`` and
+        ``t_true_m`` (translation norms).
+    """
+    from .geometry import matrix_to_axis_angle
+
+    for name, T in (("pred", pred), ("true", true)):
+        if not isinstance(T, Tensor) or T.shape != (4, 4) or not torch.isfinite(T).all():
+            raise ValueError(f"{name}: expected a finite [4, 4] rigid motion, got "
+                             f"{list(T.shape) if isinstance(T, Tensor) else type(T).__name__}")
+    P, G = pred.double(), true.double()
+    t_err = float((P[:3, 3] - G[:3, 3]).norm())
+    t_true = float(G[:3, 3].norm())
+    angle = float(matrix_to_axis_angle(P[:3, :3].T @ G[:3, :3]).norm())
+    return {"t_err_m": t_err, "t_err_pct": 100.0 * t_err / t_true if t_true >= 1e-3 else None,
+            "r_err_deg": math.degrees(angle), "t_pred_m": float(P[:3, 3].norm()), "t_true_m": t_true}
 
 
 def _load_lin(path: str) -> dict[str, Tensor]:

@@ -3,6 +3,7 @@
     clsplat train drivingforward --data synthetic|pandaset:PATH|nuscenes:PATH --preset tiny|small|paper
                                  --steps N --out DIR [--resume] [--weights RESNET18.pth]
                                  [--lpips-vgg VGG.pth --lpips-lin LIN.pth] [--eval-scenes K]
+                                 [--pose network|dataset] [--set FIELD=VALUE ...]
     clsplat eval drivingforward --checkpoint FILE --data ... [--cameras ...] [--frames ...] --out DIR
 
 Training uses the shared loop (``clsplat.models.common.train``): Adam at the preset's learning
@@ -10,6 +11,11 @@ rate, one new window (synthetic: a new street) per sample, colour jitter on the 
 drawn from the sample's own generator, JSONL log, loss PNG, checkpoints with optimiser and RNG
 state, bitwise ``--resume``, DDP under ``torchrun``. After training, ``DIR/metrics.json`` holds the
 evaluation on ``--eval-scenes`` held-out windows.
+
+``--pose dataset`` trains with the data's ego motion in place of the pose network (the preset's
+``pose_source``); ``--set FIELD=VALUE`` changes one preset field for an experiment (a Python
+literal: ``--set detach_render_pose=True --set "pose_translation_init=(0, 0, -0.8)"``). Both are
+stored in the checkpoint with the preset, so ``--resume`` and ``clsplat eval`` run the same preset.
 """
 from __future__ import annotations
 
@@ -42,6 +48,44 @@ def build_model(preset, weights=None, device=None):
     return model
 
 
+def preset_overrides(preset, pose: str | None, sets: list[str] | None):
+    """``preset`` with ``--pose`` and every ``--set FIELD=VALUE`` applied (ValueError naming the
+    argument on a bad field or value; lists become tuples)."""
+    import ast
+    import dataclasses
+
+    changes: dict = {}
+    for item in sets or []:
+        field, sep, text = item.partition("=")
+        field = field.strip()
+        if not sep or not field:
+            raise ValueError(f"--set: expected FIELD=VALUE, got {item!r}")
+        if field == "name":
+            raise ValueError("--set: the preset's name cannot be changed")
+        try:
+            value = ast.literal_eval(text.strip())
+        except (ValueError, SyntaxError):
+            raise ValueError(f"--set {field}: {text!r} is not a Python literal (number, True/False, None, "
+                             f"tuple, quoted string)") from None
+        changes[field] = tuple(value) if isinstance(value, list) else value
+    if pose is not None:
+        changes["pose_source"] = pose
+    if not changes:
+        return preset
+    known = {f.name: f for f in dataclasses.fields(preset)}
+    bad = sorted(k for k in changes if k not in known)
+    if bad:
+        raise ValueError(f"--set: unknown preset fields {bad}; known: {sorted(known)}")
+    for k, v in changes.items():     # a value of the default's kind (ints are floats where floats are)
+        d = getattr(preset, k)
+        if d is not None and v is not None and not isinstance(v, type(d)) and not (
+                isinstance(d, float) and isinstance(v, int) and not isinstance(v, bool)):
+            raise ValueError(f"--set {k}: expected a {type(d).__name__} like {d!r}, got {v!r}")
+        if isinstance(d, float) and isinstance(v, int):
+            changes[k] = float(v)
+    return preset.replace(**changes)
+
+
 def make_optimizer(model, preset) -> torch.optim.Adam:
     """Adam at ``preset.lr``; the pose network at ``preset.pose_lr`` when the preset sets one."""
     pose = list(model.pose_net.parameters())
@@ -55,7 +99,7 @@ def make_sample_loss(source, preset, seed: int, cameras=None, lpips=None):
     """``sample_loss(model, step, index)`` for :func:`clsplat.models.common.train.train`: window
     ``index`` of the train split, jitter and automask noise from the sample's own generator."""
     from ..common.train import sample_generator
-    from .data import colour_jitter, load_triplet
+    from .data import colour_jitter, gt_ego_motion, load_triplet
 
     def sample_loss(model, step: int, index: int) -> dict:
         s = load_triplet(source, index, preset, "train", cameras)
@@ -63,7 +107,11 @@ def make_sample_loss(source, preset, seed: int, cameras=None, lpips=None):
         net = colour_jitter(s["images"], g, preset.jitter)
         V = s["Ks"].shape[0]
         noise = torch.randn(V, 2, preset.height, preset.width, generator=g) * preset.automask_noise
-        return model.training_losses(s["images"], net, s["Ks"], s["cam_to_ego"], noise, lpips, step)
+        gt = None
+        if preset.pose_source == "dataset":
+            M = gt_ego_motion(s)
+            gt = [M[0], M[2]]
+        return model.training_losses(s["images"], net, s["Ks"], s["cam_to_ego"], noise, lpips, step, gt)
 
     return sample_loss
 
@@ -79,9 +127,14 @@ def train(argv: list[str]) -> int:
     _add_model_args(p)
     p.add_argument("--eval-scenes", type=int, default=2, help="held-out windows evaluated at the end (0: none)")
     p.add_argument("--no-progress", action="store_true", help="no tqdm bar")
+    p.add_argument("--pose", choices=("network", "dataset"), default=None,
+                   help="ego motion of the temporal warps: the pose network (the paper; default: the "
+                        "preset's) or the data's ego poses (the pose network is not trained)")
+    p.add_argument("--set", action="append", default=None, metavar="FIELD=VALUE",
+                   help="change one preset field for this run (repeatable; stored in the checkpoint)")
     args = p.parse_args(argv)
     try:
-        preset = get_preset(FAMILY, args.preset)
+        preset = preset_overrides(get_preset(FAMILY, args.preset), args.pose, args.set)
         source = parse_data(args.data, seed=args.seed, safe_pickle=not args.trust_pickle)
         threads = set_threads(args.threads, args.device)
         seed_everything(args.seed)
@@ -109,7 +162,8 @@ def train(argv: list[str]) -> int:
 
 
 def _summary(m: dict) -> str:
-    keys = ("psnr", "ssim", "lpips", "abs_rel", "sq_rel", "rmse", "delta1", "scale_ratio", "oracle_psnr")
+    keys = ("psnr", "ssim", "lpips", "abs_rel", "sq_rel", "rmse", "delta1", "scale_ratio", "oracle_psnr",
+            "pose_t_err_m", "pose_t_err_pct", "pose_r_err_deg")
     return "eval all: " + ", ".join(f"{k} {m[k]:.4g}" for k in keys if k in m)
 
 
@@ -120,6 +174,14 @@ def load_model(path: str, device=None, preset_name: str | None = None):
     ck = load_checkpoint(path, FAMILY)
     saved = ck.get("preset") or {}
     preset = get_preset(FAMILY, preset_name or saved.get("name", "?"))
+    # a run's --pose / --set changes travel in the checkpoint; the registered preset's other
+    # fields must match it
+    import dataclasses
+    fields = {f.name for f in dataclasses.fields(preset)}
+    changed = {k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()
+               if k in fields and k != "name" and v != preset.to_dict().get(k)}
+    if changed and (preset_name is None or preset_name == saved.get("name")):
+        preset = preset.replace(**changed)
     load_checkpoint(path, FAMILY, preset)  # refuses a checkpoint of another preset
     model = build_model(preset, None, device)
     model.load_state_dict(ck["model"])

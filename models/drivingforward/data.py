@@ -37,7 +37,7 @@ def load_triplet(source: DataSource, index: int, preset, split: str = "train",
         LiDAR (NaN: no return), ``viewmats [3, V, 4, 4]`` world-to-camera,
         ``ego_to_world [3, 4, 4]``, ``names`` (list of camera names).
     """
-    kw = {"dt": preset.scenes_dt} if source.kind == "synthetic" else {}
+    kw = {"dt": preset.scenes_dt, "supersample": preset.supersample} if source.synthetic_streets else {}
     seq = source.sequence(index, num_frames=3, height=preset.height, width=preset.width, split=split,
                           cameras=cameras, **kw)
     frames = [to_torch_frame(seq, f) for f in range(3)]

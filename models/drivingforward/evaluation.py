@@ -9,6 +9,12 @@ depth (synthetic ground truth, or the LiDAR sweep at t projected into each camer
 scaling: AbsRel, SqRel, RMSE, delta<1.25, and the median scale ratio. Pixels are pooled per camera
 over all windows and over everything for ``all``.
 
+Pose (beside the depth in ``all``): the pose network's camera-0 motion from frame t to t+1 against
+the data's (``E_0^-1 M_{t->t+1} E_0``), as the mean over windows of the translation error in metres
+and in % of the true translation, and of the rotation error in degrees (``pose_t_err_m``,
+``pose_t_err_pct``, ``pose_r_err_deg``; also the mean predicted and true translation norms). A
+model trained with ``pose_source`` "dataset" has no trained pose network, and reports none.
+
 The oracle-depth baseline of ``make demo`` (:func:`clsplat.pixel_recon.lift_pixels`: every non-sky
 pixel of the input frame lifted at its true depth, one pixel's footprint, opacity 0.95, rendered
 with the mean sky colour behind) is run on the same windows at the same resolution when the
@@ -24,7 +30,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..common.metrics import depth_metrics, psnr, ssim
+from ..common.metrics import depth_metrics, pose_errors, psnr, ssim
 from .data import gt_ego_motion, load_triplet
 
 __all__ = ["evaluate_model", "OFFSETS"]
@@ -104,6 +110,8 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
     fi = [OFFSETS[f] for f in frames]
     ti = OFFSETS[target]
     renders, gts, preds, gdepths, oracles, names = [], [], [], [], [], None
+    poses: list[dict] = []
+    learned_pose = getattr(p, "pose_source", "network") == "network"
     first = None
     iterator = range(num_scenes)
     if progress:
@@ -127,6 +135,9 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
             r = torch.cat(rows)
         else:
             r = model.render(g, viewmats, Ks)[0]
+        if learned_pose:
+            T_true = torch.linalg.inv(E[0].double()) @ M[2].double() @ E[0].double()
+            poses.append(pose_errors(model.pose_net(s["images"][1], s["images"][2], Ks, E), T_true))
         renders.append(r.clamp(0, 1))
         gts.append(s["images"][ti])
         gt_depth = s["depths"][1] if "depths" in s else s.get("lidar_depth")
@@ -160,13 +171,20 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
     for c, name in enumerate(names):
         out[name] = block(slice(c, c + 1))
     out["all"] = block(slice(None))
+    for k in ("t_err_m", "t_err_pct", "r_err_deg", "t_pred_m", "t_true_m"):
+        vals = [q[k] for q in poses if q[k] is not None]
+        if vals:
+            out["all"][f"pose_{k}"] = float(np.mean(vals))
     out.update({k: v for k, v in out["all"].items()})
     out["settings"] = {"preset": p.name, "mode": p.mode, "frames": list(frames), "target": target,
                        "num_scenes": num_scenes, "cameras": names, "data": source.name,
                        "lpips": "on" if lpips is not None else "off (no weights given)",
                        "depth_gt": "none" if not preds else ("depth maps of the data" if "depths" in s
                                                              else "projected LiDAR at t (nearest return per pixel)"),
-                       "psnr": "over all pixels pooled; psnr_mean: mean of per-image PSNR"}
+                       "psnr": "over all pixels pooled; psnr_mean: mean of per-image PSNR",
+                       "pose_source": getattr(p, "pose_source", "network"),
+                       "pose": ("pose network, camera 0, t -> t+1, against the data's ego motion; mean over windows"
+                                if poses else "not evaluated (pose_source 'dataset': the pose network is not trained)")}
     if out_dir is not None:
         od = Path(out_dir)
         od.mkdir(parents=True, exist_ok=True)

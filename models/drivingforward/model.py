@@ -24,7 +24,7 @@ from ..common.geometry import check_rigid, invert_rigid
 from .depth import DepthNetwork
 from .gaussian import GaussianNetwork, pixels_to_gaussians
 from .losses import render_loss, smoothness_loss, spatial_loss, spatio_temporal_loss, temporal_loss
-from .pose import PoseNetwork, carry_pose, ego_motion
+from .pose import PoseNetwork, ego_motion
 
 __all__ = ["DrivingForward"]
 
@@ -162,7 +162,7 @@ class DrivingForward(nn.Module):
     # ------------------------------------------------------------------ training
     def training_losses(self, raw: Tensor, net: Tensor, Ks: Tensor, cam_to_ego: Tensor,
                         noise: Tensor | None = None, lpips: nn.Module | None = None,
-                        step: int | None = None) -> dict[str, Tensor]:
+                        step: int | None = None, ego_motion_gt: list[Tensor] | None = None) -> dict[str, Tensor]:
         """Every loss term of one sample (frames t-1, t, t+1).
 
         Args:
@@ -170,6 +170,10 @@ class DrivingForward(nn.Module):
             Ks ``[V, 3, 3]``; cam_to_ego ``[V, 4, 4]``; noise ``[V, 2, H, W]`` automask tie-break;
             lpips: LPIPS module for the render loss (None: the term is off and not reported).
             step: the training step (for the preset's warm-up; None: no warm-up).
+            ego_motion_gt: the data's ego motion ``[M_{t->t-1}, M_{t->t+1}]`` (each ``[4, 4]``, ego
+                coordinates at t to ego at the other frame); required when the preset's
+                ``pose_source`` is "dataset", where it replaces the pose network (which then gets
+                no gradient), else unused.
         Returns:
             ``loss`` (weighted total) and the terms ``reproj, smooth, spatial, spatio_temporal, render,
             mse`` (and ``lpips`` when on), and the logged-only ``diag_depth_median`` and
@@ -179,11 +183,20 @@ class DrivingForward(nn.Module):
         for f in range(3):
             self.check_views(raw[f], Ks, cam_to_ego, prefix=f"frame {f}: ")
         E = cam_to_ego
-        # pose network: camera-0 motion t -> t-1 and t -> t+1, carried to every camera
-        T_prev = invert_rigid(self.pose_net(net[0], net[1], Ks, E))
-        T_next = self.pose_net(net[1], net[2], Ks, E)
-        M = [ego_motion(T_prev, E[0]), ego_motion(T_next, E[0])]           # ego_t -> ego_s
-        Tc = [carry_pose(T_prev, E), carry_pose(T_next, E)]
+        if p.pose_source == "dataset":
+            # given poses: the data's ego motion drives every warp; the pose network is not run
+            if ego_motion_gt is None or len(ego_motion_gt) != 2 or any(
+                    not isinstance(m, Tensor) or m.shape != (4, 4) for m in ego_motion_gt):
+                raise ValueError("ego_motion_gt: preset pose_source 'dataset' needs the data's ego motion "
+                                 "[M_{t->t-1}, M_{t->t+1}] (two [4, 4] tensors)")
+            M = [m.to(Ks.dtype) for m in ego_motion_gt]
+            T_next = torch.linalg.inv(E[0]) @ M[1] @ E[0]
+        else:
+            # pose network: camera-0 motion t -> t-1 and t -> t+1, carried to every camera
+            T_prev = invert_rigid(self.pose_net(net[0], net[1], Ks, E))
+            T_next = self.pose_net(net[1], net[2], Ks, E)
+            M = [ego_motion(T_prev, E[0]), ego_motion(T_next, E[0])]           # ego_t -> ego_s
+        Tc = [torch.linalg.inv(E) @ m @ E for m in M]                          # pose.carry_pose
         d = self.depth_net(net[1], Ks, E)
         depth = d["depth"]
         tgt, srcs = raw[1], [raw[0], raw[2]]
@@ -198,16 +211,19 @@ class DrivingForward(nn.Module):
             "spatio_temporal": spatio_temporal_loss(tgt, srcs, d_t, Ks, E, M),
         }
         inv_E = invert_rigid(E)
+        # the render's view of the motion: a constant when the preset says so (no render gradient
+        # reaches the pose network; tests/test_df_model.py)
+        Mr = [m.detach() for m in M] if p.detach_render_pose else M
         if p.mode == "SF":
             g, _ = self.frame_gaussians(net[1], tgt, Ks, E, d)
-            viewmats = torch.cat([inv_E @ M[0], inv_E @ M[1]])
+            viewmats = torch.cat([inv_E @ Mr[0], inv_E @ Mr[1]])
             render, _ = self.render(g, viewmats, torch.cat([Ks, Ks]))
             r = render_loss(render, torch.cat(srcs), lpips, p.w_lpips)
         else:
             sets = []
             for k, f in enumerate((0, 2)):
                 g, _ = self.frame_gaussians(net[f], raw[f], Ks, E)
-                sets.append(g.transform(invert_rigid(M[k])))
+                sets.append(g.transform(invert_rigid(Mr[k])))
             V, HW = E.shape[0], p.height * p.width
             renders = []
             for c in range(V):

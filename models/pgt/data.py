@@ -75,7 +75,7 @@ def make_sample(source: DataSource, preset: PGTPreset, index: int, split: str = 
         pick = index % len(preset.cameras)
     else:
         pick = int(torch.randint(len(preset.cameras), (), generator=generator))
-        if source.kind == "synthetic":
+        if source.synthetic_streets:
             extra["t0"] = 2.0 * float(torch.rand((), generator=generator, dtype=torch.float64))
     if preset.views == "frames":
         cam = preset.cameras[pick]

@@ -1,6 +1,6 @@
 """AutoSplat's load stage timed and profiled: reading the sequence, then preparing it.
 
-    python -m clsplat.bench.autosplat_load --data pandaset:PATH [--cameras A B ...]
+    python bench/experiments/autosplat_load.py --data pandaset:PATH [--cameras A B ...]
         [--frames 0:40] [--scale 0.5] [--profile 15]
 
 The load stage is what ``clsplat train autosplat`` reports as ``load_seconds``: the sequence
@@ -22,7 +22,7 @@ __all__ = ["main"]
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m clsplat.bench.autosplat_load", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python bench/experiments/autosplat_load.py", description=__doc__.split("\n")[0])
     p.add_argument("--data", required=True, help="synthetic, pandaset:PATH or nuscenes:PATH")
     p.add_argument("--cameras", nargs="+", default=None)
     p.add_argument("--frames", default=None, help="A:B")
