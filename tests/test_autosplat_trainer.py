@@ -7,7 +7,8 @@ import torch
 
 from clsplat.data.scene import Box3D, DrivingSequence, Frame
 from clsplat.data.synthetic import generate_sequence
-from clsplat.models.autosplat.cli import parse_frames, train
+from clsplat.models.autosplat.cli import train
+from clsplat.models.autosplat.data import parse_frames
 from clsplat.models.autosplat.model import Switches
 from clsplat.models.autosplat.presets import PRESETS
 from clsplat.models.autosplat.trainer import Trainer, prepare_data

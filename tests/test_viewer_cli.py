@@ -36,7 +36,7 @@ def test_not_a_scene(tmp_path, capsys):
     assert main(["view", str(tmp_path / "missing.ply"), "--port", "0"]) == 2
     assert "no such file" in _one_line_error(capsys)
     assert main(["view", str(tmp_path), "--port", "0"]) == 2
-    assert "without checkpoint.pt or scene.ply" in _one_line_error(capsys)
+    assert "without checkpoint.pt" in _one_line_error(capsys)
 
 
 def test_not_a_scene_names_the_file(tmp_path, capsys):

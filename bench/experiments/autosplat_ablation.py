@@ -85,7 +85,7 @@ def main() -> None:
         return
 
     import torch
-    from clsplat.models.autosplat.cli import load_sequence
+    from clsplat.models.autosplat.data import load_sequence
     from clsplat.models.autosplat.model import Switches
     from clsplat.models.autosplat.presets import PRESETS
     from clsplat.models.autosplat.trainer import Trainer, prepare_data

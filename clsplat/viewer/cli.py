@@ -44,9 +44,11 @@ def load_scene(path: str, data: str | None = None, device=None, sample: int = 0)
             return scene_from_ply(p)
         except (ValueError, FileNotFoundError) as e:
             raise ValueError(f"PATH {path!r} is not a Gaussian scene: {e}") from None
-    if p.is_dir() and not (p / "checkpoint.pt").is_file() and not (p / "scene.ply").is_file():
-        raise ValueError(f"PATH {path!r}: a folder without checkpoint.pt or scene.ply; {_NOT_A_SCENE}")
     readers = sorted(entry_points(group=SCENE_READERS), key=lambda ep: ep.name)
+    if p.is_dir() and not readers:
+        if (p / "scene.ply").is_file():
+            return load_scene(str(p / "scene.ply"))
+        raise ValueError(f"PATH {path!r}: a folder without scene.ply; {_NOT_A_SCENE}")
     if not readers:
         raise ValueError(f"PATH {path!r}: reading a checkpoint needs a package that registers a "
                          f"{SCENE_READERS!r} entry point (this one's models: pip install 'clsplat[models]')")

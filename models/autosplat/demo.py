@@ -54,7 +54,8 @@ def run_demo(out_dir: str | Path, seed: int = 0, device=None, progress: bool = T
     from ..common.presets import get_preset
     from ..common.runfolder import RunFolder
     from ..common.train import atomic_write
-    from .cli import load_sequence, reconstruct
+    from .cli import reconstruct
+    from .data import load_sequence
     from .model import Switches
     from .trainer import prepare_data
 

@@ -1,5 +1,8 @@
 """Checkpoints and run folders of every model family -> a :class:`clsplat.viewer.ViewScene`
-(what ``clsplat view`` / ``clsplat render`` show for them).
+(what ``clsplat view`` / ``clsplat render`` show for them; registered as the engine's
+``clsplat.scene_readers`` entry point), the helpers the families' ``view`` modules share, and
+:class:`TrainView` (``clsplat train ... --view``). Each family's ``view.checkpoint_scene`` builds
+its scene:
 
 * AutoSplat (a per-scene optimisation): the model is rebuilt from the checkpoint and the run's
   data (``metrics.json``'s ``data`` and ``scale``, else ``--data``), and the scene carries the
@@ -15,18 +18,19 @@ Every failure is a ValueError naming PATH (unknown family, not a checkpoint, mis
 from __future__ import annotations
 
 import dataclasses
-import json
+import importlib
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from clsplat.viewer.scene import ViewBox, ViewCamera, ViewScene, scene_from_ply
+from clsplat.viewer.scene import ViewScene, scene_from_ply
 
-__all__ = ["scene_from_checkpoint", "autosplat_scene", "TrainView"]
+__all__ = ["scene_from_checkpoint", "TrainView", "preset_from_saved", "gaussians_scene", "depth_colour",
+           "VARIANT_SAMPLES"]
 
 
-def _preset_from_saved(family: str, saved: dict):
+def preset_from_saved(family: str, saved: dict):
     """The preset a checkpoint was written with (its named preset plus the fields a run changed)."""
     from .presets import get_preset
 
@@ -42,11 +46,11 @@ def _preset_from_saved(family: str, saved: dict):
     return base.replace(**changes) if changes else base
 
 
-def _gaussians_scene(g, title: str) -> ViewScene:
+def gaussians_scene(g, title: str) -> ViewScene:
     return ViewScene(g.means, g.quats, g.scales, g.opacities, g.sh, title=title)
 
 
-def _depth_colour(d: np.ndarray, far: float = 80.0) -> np.ndarray:
+def depth_colour(d: np.ndarray, far: float = 80.0) -> np.ndarray:
     """[H, W] metres -> [H, W, 3] turbo-like colours (near warm, far cool; inf/NaN black)."""
     ok = np.isfinite(d)
     t = np.clip(np.log1p(np.where(ok, d, far)) / np.log1p(far), 0, 1)
@@ -55,160 +59,8 @@ def _depth_colour(d: np.ndarray, far: float = 80.0) -> np.ndarray:
     return rgb.astype(np.float32)
 
 
-def _autosplat(ck: dict, ck_path: Path, run: Path, data: str | None) -> ViewScene:
-    from ..autosplat.cli import load_sequence
-    from ..autosplat.model import Switches
-    from ..autosplat.trainer import Trainer, prepare_data
-
-    preset = _preset_from_saved("autosplat", ck["preset"])
-    spec, scale = "synthetic", preset.scale
-    metrics = run / "metrics.json"
-    if metrics.is_file():
-        m = json.loads(metrics.read_text())
-        spec, scale = m.get("data", spec), m.get("scale", scale)
-    spec = data or spec
-    want = list(ck.get("train_frames") or [0])
-    # the run's frame range is not stored: the first cut of the sequence whose split gives its training frames
-    seq = load_sequence(spec, ck.get("cameras"), (0, max(want) + 1 + preset.holdout) if spec == "synthetic" else None,
-                        scale, seed=preset.seed)
-    from clsplat.data.scene import DrivingSequence
-    for n in range(max(want) + 1, len(seq.frames) + 1):
-        d = prepare_data(DrivingSequence(seq.cameras, seq.frames[:n], seq.name, seq.metadata), ck.get("cameras"),
-                         preset.holdout)
-        if d.train_frames == want:
-            seq = d.seq
-            break
-    else:
-        raise ValueError(f"PATH {str(ck_path)!r}: its training frames {ck.get('train_frames')} are not those of "
-                         f"--data {spec!r} ({d.train_frames}); name the run's data with --data")
-    tr = Trainer(d, preset, Switches(**ck["switches"]), run, progress=False)
-    if [t.track_id for t in tr.tracks] != ck.get("tracks"):
-        raise ValueError(f"PATH {str(ck_path)!r}: its tracked objects differ from those of --data {spec!r}")
-    tr.model.resize_(ck["sizes"])
-    tr.model.load_state_dict(ck["model"])
-    return autosplat_scene(tr.model.eval(), seq, d, f"AutoSplat {preset.name} ({run.name})")
-
-
-def autosplat_scene(model, seq, d, title: str, frame: int | None = None) -> ViewScene:
-    """The scene of an AutoSplat model at ``frame`` (default the first training frame) with the
-    recording's cameras and images, ego trajectory, LiDAR, boxes, and ``at_time`` placing the
-    moving objects (and their residual SH) at the frame nearest a time.
-
-    Args:
-        model: an ``AutoSplatModel``; seq: its ``DrivingSequence``; d: its ``RunData``.
-    """
-    frames = list(range(len(seq.frames)))
-    times = [float(seq.frames[f].timestamp) for f in frames]
-
-    def at(frame: int, with_extras: bool) -> ViewScene:
-        with torch.no_grad():
-            g = model.scene_at(frame)[0].detach()
-        sc = _gaussians_scene(g, f"{title}, frame {frame}")
-        sc.boxes = [ViewBox(f"{b.label} {b.track_id}", b.center, b.size, b.quat, times[frame])
-                    for b in seq.frames[frame].boxes]
-        if with_extras:
-            sc.cameras = [ViewCamera(f"{c} f{f:02d}", seq.camera(c).K, np.linalg.inv(seq.cam_to_world(f, c)),
-                                     seq.camera(c).width, seq.camera(c).height, seq.frames[f].images[c], times[f])
-                          for f in d.train_frames[:1] + d.test_frames + d.train_frames[1:] for c in d.cameras][:64]
-            sc.trajectory = np.stack([seq.frames[f].ego_to_world[:3, 3] for f in frames])
-            pts = []
-            for f in frames:
-                L = seq.frames[f].lidar
-                if L is not None:
-                    p = L.points.astype(np.float64)
-                    if L.frame == "ego":
-                        E = seq.frames[f].ego_to_world
-                        p = p @ E[:3, :3].T + E[:3, 3]
-                    pts.append(p[:: max(1, len(p) // 20000)])
-            sc.lidar = np.concatenate(pts).astype(np.float32) if pts else None
-            sc.times = times
-            sc.at_time = lambda t: at(int(np.argmin(np.abs(np.asarray(times) - t))), False)
-        return sc
-
-    return at(d.train_frames[0] if frame is None else frame, True)
-
-
 #: samples of the held-out split a feed-forward checkpoint's viewer offers
-_VARIANT_SAMPLES = 4
-
-
-def _drivingforward(ck_path: Path, data: str, sample: int, device) -> ViewScene:
-    from ..drivingforward.cli import load_model
-    from ..drivingforward.data import gt_ego_motion, load_triplet
-    from ..drivingforward.evaluation import OFFSETS
-    from .data import parse_data
-
-    model, preset = load_model(str(ck_path), device)
-    model.eval()
-    source = parse_data(data)
-    default_frames = (0,) if preset.mode == "SF" else (-1, 1)
-
-    def run(k: int, frames: tuple[int, ...], front_only: bool) -> ViewScene:
-        s = load_triplet(source, k, preset, split="test")
-        cams = slice(0, 1) if front_only else slice(None)
-        fi = [OFFSETS[f] for f in frames]
-        M = gt_ego_motion(s)
-        to_ref = torch.stack([torch.linalg.inv(M[f].double()).float() for f in fi])
-        Ks, E = s["Ks"][cams], s["cam_to_ego"][cams]
-        with torch.no_grad():
-            g = model.reconstruct(s["images"][fi][:, cams], Ks, E, frame_to_ref=to_ref,
-                                  ref=0 if 1 not in fi else fi.index(1))
-            depth = model.depth_net(s["images"][1][cams], Ks, E)["depth"][:, 0].numpy()
-        names = s["names"][cams]
-        sc = _gaussians_scene(g, f"DrivingForward {preset.name} on {data} sample {k}, frames {list(frames)} "
-                                 f"(ego frame)")
-        V = (s["viewmats"][1][cams] @ s["ego_to_world"][1]).double().numpy()   # ego(t) -> camera
-        imgs = s["images"][1][cams].permute(0, 2, 3, 1).numpy()
-        sc.cameras = [ViewCamera(n, Ks[i].numpy(), V[i], preset.width, preset.height, imgs[i])
-                      for i, n in enumerate(names)]
-        sc.depths = {n: _depth_colour(depth[i]) for i, n in enumerate(names)}
-        return sc
-
-    options = {f"sample {k}, frames {list(fr)}, {'front camera' if fo else 'all cameras'}": (k, fr, fo)
-               for k in range(max(_VARIANT_SAMPLES, sample + 1)) for fr in ((0,), (-1, 1), (-1, 0, 1))
-               for fo in (False, True)}
-    sc = run(sample, default_frames, False)
-    sc.variants = list(options)
-    sc.variant = lambda name: run(*options[name])
-    return sc
-
-
-def _pgt(ck: dict, ck_path: Path, data: str, sample: int) -> ViewScene:
-    from ..pgt.data import make_sample
-    from ..pgt.model import PGT
-    from .data import parse_data
-    from .presets import check_preset_matches, get_preset
-
-    preset = get_preset("pgt", ck["preset"]["name"])
-    check_preset_matches(ck["preset"], preset, str(ck_path))
-    model = PGT(preset)
-    if any(k.startswith("budget.") for k in ck["model"]):
-        model.enable_budget()
-    model.load_state_dict(ck["model"])
-    model.eval()
-    source = parse_data(data)
-
-    def run(k: int) -> ViewScene:
-        s = make_sample(source, preset, k, "test", None)
-        with torch.no_grad():
-            base = model(s.images, s.Ks, s.cam_to_world)
-            g = base.gaussians()
-        sc = _gaussians_scene(g, f"PGT {preset.name} on {data} sample {k}")
-        imgs = s.images.permute(0, 2, 3, 1).numpy()
-        H, W = imgs.shape[1:3]
-        sc.cameras = [ViewCamera(f"input {i}", s.Ks[i].numpy(), np.linalg.inv(s.cam_to_world[i].double().numpy()),
-                                 W, H, imgs[i]) for i in range(len(imgs))]
-        sc.cameras += [ViewCamera(f"target {i}", s.target_Ks[i].numpy(), s.target_viewmats[i].double().numpy(), W, H,
-                                  s.target_images[i].permute(1, 2, 0).numpy()) for i in range(len(s.target_images))]
-        dep = base.depth.reshape(len(imgs), H, W).numpy()
-        sc.depths = {f"input {i}": _depth_colour(dep[i], preset.far) for i in range(len(imgs))}
-        return sc
-
-    sc = run(sample)
-    options = {f"sample {k}": k for k in range(max(_VARIANT_SAMPLES, sample + 1))}
-    sc.variants = list(options)
-    sc.variant = lambda name: run(options[name])
-    return sc
+VARIANT_SAMPLES = 4
 
 
 def scene_from_checkpoint(path: str | Path, data: str | None = None, device=None, sample: int = 0) -> ViewScene:
@@ -216,11 +68,21 @@ def scene_from_checkpoint(path: str | Path, data: str | None = None, device=None
     from .. import FAMILIES
     from .train import load_checkpoint
 
+    from .runfolder import STAGING
+
     p = Path(path)
     run = p if p.is_dir() else p.parent
-    ck_path = p / "checkpoint.pt" if p.is_dir() else p
-    if p.is_dir() and not ck_path.is_file():
-        return scene_from_ply(p / "scene.ply")
+    ck_path = p
+    if p.is_dir():  # a finished run's checkpoint, else an unfinished one's, else the run's .ply
+        found = [c for c in (p / "checkpoint.pt", p / STAGING / "checkpoint.pt") if c.is_file()]
+        if not found:
+            if (p / "scene.ply").is_file():
+                return scene_from_ply(p / "scene.ply")
+            raise ValueError(f"PATH {str(path)!r}: a folder without checkpoint.pt (finished or in {STAGING}/) or "
+                             "scene.ply; expected an INRIA .ply, a checkpoint.pt written by clsplat train, or a run "
+                             "folder holding one")
+        ck_path = found[0]
+        run = ck_path.parent
     try:
         ck = load_checkpoint(ck_path)
     except ValueError as e:
@@ -232,11 +94,8 @@ def scene_from_checkpoint(path: str | Path, data: str | None = None, device=None
                          f"known: {', '.join(FAMILIES)}")
     if not isinstance(sample, int) or sample < 0:
         raise ValueError(f"--sample: expected an integer >= 0, got {sample!r}")
-    if fam == "autosplat":
-        return _autosplat(ck, ck_path, run, data)
-    if fam == "drivingforward":
-        return _drivingforward(ck_path, data or "synthetic", sample, device)
-    return _pgt(ck, ck_path, data or "synthetic", sample)
+    family = importlib.import_module(f"clsplat.models.{fam}.view")  # each family owns its scene
+    return family.checkpoint_scene(ck, ck_path, run, data, sample=sample, device=device)
 
 
 class TrainView:

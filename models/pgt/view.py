@@ -1,0 +1,55 @@
+"""PGT in the viewer: the network run on a held-out sample, its predicted Gaussians with the input
+and target cameras and the predicted depth maps; other samples offered as variants."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from clsplat.viewer.scene import ViewCamera, ViewScene
+
+from ..common.data import parse_data
+from ..common.presets import check_preset_matches, get_preset
+from ..common.view import VARIANT_SAMPLES, depth_colour, gaussians_scene
+from .data import make_sample
+from .model import PGT
+
+__all__ = ["checkpoint_scene"]
+
+
+def checkpoint_scene(ck: dict, ck_path: Path, run: Path, data: str | None, sample: int = 0, device=None) -> ViewScene:
+    """The scene of a PGT checkpoint run on held-out sample ``sample`` of ``data`` (input and
+    target cameras, predicted depth), with a variant per sample."""
+    data = data or "synthetic"
+
+    preset = get_preset("pgt", ck["preset"]["name"])
+    check_preset_matches(ck["preset"], preset, str(ck_path))
+    model = PGT(preset)
+    if any(k.startswith("budget.") for k in ck["model"]):
+        model.enable_budget()
+    model.load_state_dict(ck["model"])
+    model.eval()
+    source = parse_data(data)
+
+    def run(k: int) -> ViewScene:
+        s = make_sample(source, preset, k, "test", None)
+        with torch.no_grad():
+            base = model(s.images, s.Ks, s.cam_to_world)
+            g = base.gaussians()
+        sc = gaussians_scene(g, f"PGT {preset.name} on {data} sample {k}")
+        imgs = s.images.permute(0, 2, 3, 1).numpy()
+        H, W = imgs.shape[1:3]
+        sc.cameras = [ViewCamera(f"input {i}", s.Ks[i].numpy(), np.linalg.inv(s.cam_to_world[i].double().numpy()),
+                                 W, H, imgs[i]) for i in range(len(imgs))]
+        sc.cameras += [ViewCamera(f"target {i}", s.target_Ks[i].numpy(), s.target_viewmats[i].double().numpy(), W, H,
+                                  s.target_images[i].permute(1, 2, 0).numpy()) for i in range(len(s.target_images))]
+        dep = base.depth.reshape(len(imgs), H, W).numpy()
+        sc.depths = {f"input {i}": depth_colour(dep[i], preset.far) for i in range(len(imgs))}
+        return sc
+
+    sc = run(sample)
+    options = {f"sample {k}": k for k in range(max(VARIANT_SAMPLES, sample + 1))}
+    sc.variants = list(options)
+    sc.variant = lambda name: run(options[name])
+    return sc
