@@ -8,18 +8,19 @@ Each report writes ``<name>.json`` and ``<name>.md`` into ``--out`` (precision a
 """
 from __future__ import annotations
 
-import argparse
 import shlex
 import sys
 import time
 from pathlib import Path
+
+from clsplat.argparser import ArgumentParser
 
 __all__ = ["main"]
 
 
 def main(argv: list[str] | None = None) -> int:
     """benchmark reports: clsplat bench {stages,precision,stability,all} --out DIR"""
-    p = argparse.ArgumentParser(prog="clsplat bench", description=__doc__.split("\n")[0])
+    p = ArgumentParser(prog="clsplat bench", description=__doc__.split("\n")[0])
     p.add_argument("report", choices=("stages", "precision", "stability", "all"))
     p.add_argument("--out", default="bench_out", help="output folder (created)")
     p.add_argument("--device", default=None, help="OpenCL device, e.g. 'pocl' or '0:0' (default CLSPLAT_DEVICE)")

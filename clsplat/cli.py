@@ -1,7 +1,7 @@
 """The ``clsplat`` console command.
 
     clsplat info                      OpenCL platforms, devices and the features clsplat uses
-    clsplat fit OUT [...]             fit Gaussians to an image (the optimisation example)
+    clsplat fit --out DIR [...]       fit Gaussians to an image (the optimisation example)
     clsplat view PATH [...]           look at a .ply, checkpoint or run folder in the browser
     clsplat render PATH --cameras FILE --out DIR   render a list of cameras to images
     clsplat data synth --count N --out DIR        a cache of synthetic streets
@@ -17,9 +17,10 @@ could live in a distribution of its own.
 """
 from __future__ import annotations
 
-import argparse
 import sys
 from importlib.metadata import EntryPoint, entry_points
+
+from .argparser import ArgumentParser
 
 __all__ = ["main", "console", "COMMAND_GROUP", "registered_commands"]
 
@@ -114,7 +115,7 @@ def _main(argv: list[str]) -> int:
         return (view_main if argv[0] == "view" else render_main)(argv[1:])
     if argv and argv[0] in plugins:
         return int(plugins[argv[0]].load()(argv[1:]) or 0)
-    p = argparse.ArgumentParser(prog="clsplat", description=__doc__.split("\n")[0])
+    p = ArgumentParser(prog="clsplat", description=__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
     for name, text in _BUILTIN.items():
         sub.add_parser(name, help=text)

@@ -17,7 +17,6 @@ Command line::
 """
 from __future__ import annotations
 
-import argparse
 import math
 import numbers
 import time
@@ -26,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .argparser import ArgumentParser
 from .constants import MAX_IMAGE_SIDE
 from .memory import check_host_memory
 
@@ -260,21 +260,21 @@ def main(out_dir, target_path: str | None = None, n_gaussians: int = 2000, itera
 
 
 def _cli(argv=None) -> None:
-    ap = argparse.ArgumentParser(description="Fit Gaussians to an image with clsplat.")
-    ap.add_argument("out_dir")
+    ap = ArgumentParser(prog="clsplat fit", description="Fit Gaussians to an image with clsplat.")
+    ap.add_argument("--out", required=True, help="output folder (fit.png, loss_curve.png, metrics.json)")
     ap.add_argument("--target", default=None, help="image to fit (default: built-in pattern)")
     ap.add_argument("--gaussians", type=int, default=2000)
     ap.add_argument("--iterations", type=int, default=300)
     ap.add_argument("--lr", type=float, default=0.01)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--device", default=None)
-    ap.add_argument("--torch-threads", type=int, default=1,
-                    help="torch threads during the fit (0: leave torch's default)")
-    ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--threads", type=int, default=1,
+                    help="torch threads during the fit (default 1; 0: leave torch's default)")
+    ap.add_argument("--no-progress", action="store_true", help="no progress bar")
     a = ap.parse_args(argv)
-    m = main(a.out_dir, a.target, n_gaussians=a.gaussians, iterations=a.iterations, lr=a.lr,
+    m = main(a.out, a.target, n_gaussians=a.gaussians, iterations=a.iterations, lr=a.lr,
              seed=a.seed, device=a.device, progress=not a.no_progress,
-             torch_threads=a.torch_threads or None)
+             torch_threads=a.threads or None)
     print(f"loss {m['initial_loss']:.5f} -> {m['final_loss']:.5f}, PSNR {m['psnr']:.2f} dB, "
           f"{m['seconds_per_step'] * 1e3:.1f} ms/step; wrote {', '.join(m['paths'].values())}")
 

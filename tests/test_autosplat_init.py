@@ -5,13 +5,13 @@ import pytest
 from clsplat.data.scene import project_points
 from clsplat.data.synthetic import generate_sequence
 from clsplat.models.autosplat.init import BG_CLASSES, OTHER, ROAD, SKY, _SEM_TO_BG, init_background
-from clsplat.models.autosplat.presets import PRESETS
+from clsplat.models.common.presets import get_preset
 
 
 @pytest.fixture(scope="module")
 def street():
     seq = generate_sequence(height=44, width=80, num_frames=3, seed=2, dt=0.2)
-    init, sky = init_background(seq, [0, 1, 2], seq.camera_names, PRESETS["tiny"], np.random.default_rng(0))
+    init, sky = init_background(seq, [0, 1, 2], seq.camera_names, get_preset("autosplat", "tiny"), np.random.default_rng(0))
     return seq, init, sky
 
 
@@ -58,7 +58,7 @@ def test_points_in_tracked_boxes_are_removed(street):
 def test_sky_dome_is_far_coloured_and_radial(street):
     seq, init, sky = street
     dome = init.labels == SKY
-    assert dome.sum() == PRESETS["tiny"].dome_points
+    assert dome.sum() == get_preset("autosplat", "tiny").dome_points
     assert np.all(np.linalg.norm(init.normals[dome], axis=1) > 0.99)
     assert sky.shape == (3,) and 0.5 < sky.mean() < 1.0  # the generator's sky is bright
     assert init.scales[dome][:, 2].max() < init.scales[dome][:, 0].min()
@@ -67,7 +67,7 @@ def test_sky_dome_is_far_coloured_and_radial(street):
 def test_init_needs_lidar():
     seq = generate_sequence(height=16, width=32, num_frames=1, seed=0, lidar=False)
     with pytest.raises(ValueError, match="LiDAR"):
-        init_background(seq, [0], seq.camera_names, PRESETS["tiny"], np.random.default_rng(0))
+        init_background(seq, [0], seq.camera_names, get_preset("autosplat", "tiny"), np.random.default_rng(0))
 
 
 def test_dataset_lidar_labels_are_used_without_image_semantics():
@@ -88,7 +88,7 @@ def test_dataset_lidar_labels_are_used_without_image_semantics():
         labels.append(scene.shade(origin, dirs, s, pid, f.timestamp)[1][0].astype(np.uint8))
     bare = [Frame(f.timestamp, f.ego_to_world, f.images, lidar=f.lidar, boxes=f.boxes) for f in seq.frames]
     lab_seq = DrivingSequence(seq.cameras, bare, "labelled-lidar", {"lidar_semantics": labels})
-    init, _ = init_background(lab_seq, [0, 1], seq.camera_names, PRESETS["tiny"], np.random.default_rng(0))
+    init, _ = init_background(lab_seq, [0, 1], seq.camera_names, get_preset("autosplat", "tiny"), np.random.default_rng(0))
     lidar = init.source[:, 0] >= 0
     assert lidar.sum() > 300 and set(np.unique(init.labels[lidar])) >= {ROAD, OTHER}
     agree = 0

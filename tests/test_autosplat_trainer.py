@@ -10,10 +10,12 @@ from clsplat.data.synthetic import generate_sequence
 from clsplat.models.autosplat.cli import train
 from clsplat.models.autosplat.data import parse_frames
 from clsplat.models.autosplat.model import Switches
-from clsplat.models.autosplat.presets import PRESETS
-from clsplat.models.autosplat.trainer import Trainer, prepare_data
+from clsplat.models.common.presets import get_preset
+from clsplat.models.autosplat.data import prepare_data
+from clsplat.models.autosplat.evaluate import evaluate_run
+from clsplat.models.autosplat.trainer import Trainer
 
-TINY = PRESETS["tiny"]
+TINY = get_preset("autosplat", "tiny")
 CAMS = ["CAM_FRONT", "CAM_BACK_LEFT"]
 
 
@@ -63,12 +65,12 @@ def test_cli_writes_the_run_folder(tmp_path):
                  "lateral_shift_1m.png", "lateral_shift_2m.png", "lateral_shift_3m.png"):
         assert (out / name).is_file(), name
     m = json.loads((out / "metrics.json").read_text())
-    for k in ("test_psnr", "test_ssim", "train_psnr"):
-        assert np.isfinite(m[k])
-    assert set(m["per_camera"]) == {"CAM_FRONT", "CAM_BACK"}
+    for block in (m["all"], m["train"]):
+        assert np.isfinite(block["psnr"]) and np.isfinite(block["ssim"])
+    assert set(m["per_camera"]) == {"CAM_FRONT", "CAM_BACK"} == set(m["train"]["per_camera"])
     assert set(m["lateral_shift"]) == {"1m", "2m", "3m"} and m["lateral_shift"]["2m"]["psnr"] > 5
-    assert m["lateral_shift"]["2m"]["frames"] == m["test_frames"] and m["lateral_shift"]["2m"]["psnr_road"] > 5
-    assert np.isfinite(m["test_psnr_objects"]) and np.isfinite(m["train_psnr_objects"])
+    assert m["lateral_shift"]["2m"]["frames"] == m["protocol"]["test_frames"] and m["lateral_shift"]["2m"]["psnr_road"] > 5
+    assert np.isfinite(m["all"]["psnr_objects"]) and np.isfinite(m["train"]["psnr_objects"])
     assert m["gaussians"]["road"] > 0 and m["gaussians"]["sky"] > 0 and m["gaussians"]["objects"] > 0
     assert set(m["seconds_per_stage"]) >= {"load", "init", "bg_phase1", "bg_phase2", "foreground", "fusion"}
 
@@ -128,8 +130,8 @@ def test_unselected_camera_is_never_rendered_nor_read(street, tmp_path, monkeypa
     assert data.images.shape[1] == len(CAMS) and torch.isfinite(data.images).all()
     t = Trainer(data, TINY, Switches(), tmp_path, progress=False)
     t.fit()
-    m = t.evaluate()
-    assert np.isfinite(m["test_psnr"]) and np.isfinite(m["train_psnr"]) and set(m["per_camera"]) == set(CAMS)
+    m = evaluate_run(t)
+    assert np.isfinite(m["all"]["psnr"]) and np.isfinite(m["train"]["psnr"]) and set(m["per_camera"]) == set(CAMS)
     assert all(torch.isfinite(p).all() for p in t.model.parameters())
     forbidden = torch.from_numpy(np.stack([seq.viewmats(i, others) for i in range(len(seq.frames))])
                                  .reshape(-1, 4, 4).astype(np.float32))
@@ -145,7 +147,7 @@ def test_road_pixels_from_labelled_lidar_match_the_generator():
     projected into each camera: its pixels are road in the generator's own semantics."""
     from clsplat.data.synthetic import ROAD_HALF, SEMANTIC_CLASSES
     from clsplat.models.autosplat.init import ROAD
-    from clsplat.models.autosplat.trainer import ROAD_SEMANTIC, _lidar_classes
+    from clsplat.models.autosplat.data import ROAD_SEMANTIC, _lidar_classes
 
     seq = generate_sequence(height=44, width=80, num_frames=1, seed=2)
     f = seq.frames[0]

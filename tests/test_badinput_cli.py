@@ -21,7 +21,7 @@ def target(tmp_path_factory):
 
 def test_diverging_learning_rate_names_lr(tmp_path, target):
     with pytest.raises(ValueError, match=r"^lr: the fit diverged at iteration \d+ with lr=1e\+12"):
-        main(["fit", str(tmp_path / "o"), "--target", str(target), "--lr", "1e12",
+        main(["fit", "--out", str(tmp_path / "o"), "--target", str(target), "--lr", "1e12",
               "--gaussians", "8", "--iterations", "6", "--no-progress"])
 
 
@@ -30,21 +30,21 @@ def test_diverging_learning_rate_names_lr(tmp_path, target):
                                        (["--iterations", "0"], "^iterations must be")])
 def test_fit_arguments_named(tmp_path, target, args, what):
     with pytest.raises(ValueError, match=what):
-        main(["fit", str(tmp_path / "o"), "--target", str(target), *TINY, *args])
+        main(["fit", "--out", str(tmp_path / "o"), "--target", str(target), *TINY, *args])
 
 
 def test_fit_target_missing_or_corrupt(tmp_path):
     with pytest.raises(FileNotFoundError, match=r"nope\.png"):
-        main(["fit", str(tmp_path / "o"), "--target", str(tmp_path / "nope.png"), *TINY])
+        main(["fit", "--out", str(tmp_path / "o"), "--target", str(tmp_path / "nope.png"), *TINY])
     (tmp_path / "bad.png").write_bytes(b"\x89PNG\r\n\x1a\n garbage")
     with pytest.raises(ValueError, match=r"bad\.png"):
-        main(["fit", str(tmp_path / "o"), "--target", str(tmp_path / "bad.png"), *TINY])
+        main(["fit", "--out", str(tmp_path / "o"), "--target", str(tmp_path / "bad.png"), *TINY])
 
 
 def test_fit_out_dir_that_is_a_file(tmp_path, target):
     (tmp_path / "f").write_text("x")
     with pytest.raises(ValueError, match="^out_dir: .* is not a folder"):
-        main(["fit", str(tmp_path / "f"), "--target", str(target), *TINY])
+        main(["fit", "--out", str(tmp_path / "f"), "--target", str(target), *TINY])
 
 
 def test_demo_out_dir_that_is_a_file(tmp_path):
@@ -60,7 +60,7 @@ def test_huge_procedural_target_refused_before_allocation():
 
 def test_fit_on_a_full_disk_keeps_the_previous_run(tmp_path, target, monkeypatch):
     out = tmp_path / "o"
-    main(["fit", str(out), "--target", str(target), *TINY])
+    main(["fit", "--out", str(out), "--target", str(target), *TINY])
     before = {p.name: p.read_bytes() for p in out.iterdir()}
     assert sorted(before) == ["fit.png", "loss_curve.png", "target.png"]
 
@@ -70,23 +70,22 @@ def test_fit_on_a_full_disk_keeps_the_previous_run(tmp_path, target, monkeypatch
 
     monkeypatch.setattr(fit_image, "_save_loss_curve", full)
     with pytest.raises(OSError, match=r"loss_curve\.png.*No space left.*other files are unchanged") as e:
-        main(["fit", str(out), "--target", str(target), *TINY, "--seed", "1"])
+        main(["fit", "--out", str(out), "--target", str(target), *TINY, "--seed", "1"])
     assert e.value.errno == errno.ENOSPC
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before  # no temp files, nothing replaced
 
 
-@pytest.mark.parametrize("argv,named", [(["fit"], "out_dir"),
-                                        (["fit", "o", "--gaussians", "many"], "--gaussians"),
+@pytest.mark.parametrize("argv,named", [(["fit"], "--out"),
+                                        (["fit", "--out", "o", "--gaussians", "many"], "--gaussians"),
                                         (["demo", "--seed", "x"], "--seed"),
                                         (["nope"], "'nope'")])
 def test_argparse_errors_name_the_argument(argv, named, capsys):
-    """Each mistake's message names the argument that is wrong (each case its own), exit 2."""
+    """Each mistake is one line naming the argument that is wrong (each case its own), exit 2."""
     with pytest.raises(SystemExit) as e:
         main(argv)
     assert e.value.code == 2
-    err = capsys.readouterr().err
-    last = err.strip().splitlines()[-1]
-    assert "error:" in last and named in last, err
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("clsplat") and named in err[0], err
 
 
 def test_missing_optional_package_names_the_extra(tmp_path, monkeypatch):
@@ -95,21 +94,21 @@ def test_missing_optional_package_names_the_extra(tmp_path, monkeypatch):
     monkeypatch.delitem(sys.modules, "clsplat.io.images", raising=False)
     monkeypatch.delitem(sys.modules, "clsplat.io", raising=False)
     with pytest.raises(SystemExit, match=r"needs the optional package 'OpenImageIO'.*clsplat\[io\]"):
-        main(["fit", str(tmp_path / "o"), *TINY])
+        main(["fit", "--out", str(tmp_path / "o"), *TINY])
 
 
 def test_the_console_entry_point_prints_one_line_and_an_exit_status(tmp_path, target, monkeypatch, capsys):
     from clsplat.cli import console
 
-    assert console(["fit", str(tmp_path / "o"), "--target", str(target), *TINY, "--lr", "nan"]) == 2
+    assert console(["fit", "--out", str(tmp_path / "o"), "--target", str(target), *TINY, "--lr", "nan"]) == 2
     assert capsys.readouterr().err.splitlines() == ["clsplat fit: lr must be a finite number > 0, got nan"]
-    assert console(["fit", str(tmp_path / "o"), "--target", str(tmp_path / "nope.png"), *TINY]) == 2
+    assert console(["fit", "--out", str(tmp_path / "o"), "--target", str(tmp_path / "nope.png"), *TINY]) == 2
     assert "nope.png" in capsys.readouterr().err
 
     def full(path, losses):
         raise OSError(errno.ENOSPC, "No space left on device")
     monkeypatch.setattr(fit_image, "_save_loss_curve", full)
-    assert console(["fit", str(tmp_path / "o"), "--target", str(target), *TINY]) == 1
+    assert console(["fit", "--out", str(tmp_path / "o"), "--target", str(target), *TINY]) == 1
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 1 and err[0].startswith("clsplat fit: writing ") and "loss_curve.png" in err[0]
     assert "No space left on device" in err[0] and "[Errno" not in err[0]

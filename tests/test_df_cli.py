@@ -40,19 +40,19 @@ def test_train_writes_the_run_files(runs, capsys):
     assert {"loss", "reproj", "smooth", "spatial", "spatio_temporal", "render", "mse"} <= set(log[0])
     assert "lpips" not in log[0]
     m = json.loads((d / "metrics.json").read_text())
-    assert KEYS <= set(m["all"]) and KEYS <= set(m["CAM_FRONT"])
+    assert KEYS <= set(m["all"]) and KEYS <= set(m["per_camera"]["CAM_FRONT"])
     ck = torch.load(d / "checkpoint.pt", weights_only=True)
     assert ck["preset"]["name"] == "tiny" and ck["step"] == 2
 
 
 def test_eval_reports_the_pose_networks_motion_against_the_datas(runs):
     m = json.loads((runs / "straight" / "metrics.json").read_text())
-    assert POSE_KEYS <= set(m["all"]) and POSE_KEYS <= set(m) and not POSE_KEYS & set(m["CAM_FRONT"])
+    assert POSE_KEYS <= set(m["all"]) and not POSE_KEYS & set(m["per_camera"]["CAM_FRONT"])
     a = m["all"]
     assert 0.7 < a["pose_t_true_m"] < 0.9                 # the generator's 0.8 m per frame
     assert a["pose_t_err_m"] >= abs(a["pose_t_true_m"] - a["pose_t_pred_m"]) - 1e-9   # triangle inequality
     assert a["pose_t_err_pct"] == pytest.approx(100 * a["pose_t_err_m"] / a["pose_t_true_m"], rel=1e-6)
-    assert m["settings"]["pose_source"] == "network"
+    assert m["protocol"]["pose_source"] == "network"
 
 
 def test_dataset_pose_run_keeps_the_pose_network_untrained_and_its_choice(runs, tmp_path, capsys):
@@ -70,7 +70,7 @@ def test_dataset_pose_run_keeps_the_pose_network_untrained_and_its_choice(runs, 
     depth = [k for k in init if k.startswith("depth_net.") and k.endswith("weight")]
     assert any(not torch.equal(init[k], ck["model"][k]) for k in depth)       # the rest did train
     m = json.loads((d / "metrics.json").read_text())
-    assert KEYS <= set(m["all"]) and not POSE_KEYS & set(m["all"]) and m["settings"]["pose_source"] == "dataset"
+    assert KEYS <= set(m["all"]) and not POSE_KEYS & set(m["all"]) and m["protocol"]["pose_source"] == "dataset"
     model, preset = load_model(str(d / "checkpoint.pt"))                      # eval runs the run's preset
     assert preset.pose_source == "dataset" and preset.detach_render_pose and preset.name == "tiny"
     # resuming without the run's choices is refused, naming the field
@@ -107,13 +107,13 @@ def test_resume_is_bitwise(runs):
 def test_eval_subset_of_cameras_and_frames(runs, tmp_path, capsys):
     ck = runs / "straight" / "checkpoint.pt"
     rc = evaluate(["--checkpoint", str(ck), "--num-scenes", "1", "--cameras", "CAM_FRONT", "CAM_BACK",
-                   "--frames", "-1", "0", "--target", "1", "--no-oracle", "--out", str(tmp_path)])
+                   "--offsets", "-1", "0", "--target", "1", "--no-oracle", "--out", str(tmp_path)])
     assert rc == 0
     assert LPIPS_OFF_MESSAGE in capsys.readouterr().out    # no weights: says so, never reports LPIPS
     m = json.loads((tmp_path / "metrics.json").read_text())
-    assert set(m) >= {"CAM_FRONT", "CAM_BACK", "all"} and "CAM_FRONT_LEFT" not in m
-    assert KEYS <= set(m["all"]) and KEYS <= set(m["CAM_BACK"]) and m["settings"]["frames"] == [-1, 0]
-    assert "lpips" not in m["all"] and m["settings"]["lpips"].startswith("off")
+    assert set(m["per_camera"]) == {"CAM_FRONT", "CAM_BACK"}
+    assert KEYS <= set(m["all"]) and KEYS <= set(m["per_camera"]["CAM_BACK"]) and m["protocol"]["frames"] == [-1, 0]
+    assert "lpips" not in m["all"] and m["protocol"]["lpips"].startswith("off")
     assert (tmp_path / "contact_sheet.png").is_file()
 
 
@@ -123,8 +123,8 @@ def test_errors_name_the_argument(runs, tmp_path, capsys):
         load_model(str(ck), preset_name="small")
     assert evaluate(["--checkpoint", str(ck), "--preset", "small", "--out", str(tmp_path)]) == 2
     assert "not 'small'" in capsys.readouterr().err
-    assert evaluate(["--checkpoint", str(ck), "--frames", "2", "--out", str(tmp_path)]) == 2
-    assert "frames/target" in capsys.readouterr().err
+    assert evaluate(["--checkpoint", str(ck), "--offsets", "2", "--out", str(tmp_path)]) == 2
+    assert "--offsets/--target" in capsys.readouterr().err
     assert train(["--preset", "huge", "--steps", "1", "--out", str(tmp_path)]) == 2
     assert "unknown preset 'huge'" in capsys.readouterr().err
     assert evaluate(["--checkpoint", str(tmp_path / "none.pt"), "--out", str(tmp_path)]) == 2
@@ -192,7 +192,7 @@ def test_eval_on_a_pandaset_sequence_scores_depth_against_projected_lidar(runs, 
     assert rc == 0
     m = json.loads((tmp_path / "eval" / "metrics.json").read_text())
     assert KEYS <= set(m["all"]) and m["all"]["n_pixels"] > 0 and "oracle_psnr" not in m["all"]
-    assert m["settings"]["depth_gt"].startswith("projected LiDAR") and m["settings"]["data"].startswith("pandaset")
+    assert m["protocol"]["depth_gt"].startswith("projected LiDAR") and m["protocol"]["data"].startswith("pandaset")
     assert (tmp_path / "eval" / "depth_sheet.png").is_file()
     # the path of a user with one recorded sequence: self-supervised training on it with the same
     # command, then held-out frames scored against projected LiDAR, with the pose against its ego poses
@@ -201,4 +201,4 @@ def test_eval_on_a_pandaset_sequence_scores_depth_against_projected_lidar(runs, 
     assert _train(tmp_path / "train", 1, "--data", f"pandaset:{tmp_path / '002'}", "--eval-scenes", "1") == 0
     m = json.loads((tmp_path / "train" / "metrics.json").read_text())
     assert KEYS <= set(m["all"]) and POSE_KEYS <= set(m["all"]) and 0.7 < m["all"]["pose_t_true_m"] < 0.9
-    assert m["settings"]["depth_gt"].startswith("projected LiDAR")
+    assert m["protocol"]["depth_gt"].startswith("projected LiDAR")

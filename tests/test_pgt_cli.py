@@ -79,7 +79,8 @@ def test_eval_writes_the_budget_curve(runs):
     full = [r for r in rows if r["budget"] == 1.0]
     assert len({(r["psnr"], r["n_gaussians"]) for r in full}) == 1  # κ = 1 is the base model for all
     m = json.loads((out / "metrics.json").read_text())
-    assert {"abs_rel", "delta1"} <= set(m["depth_with_residual"]) and m["seconds_per_prediction"] > 0
+    assert {"abs_rel", "delta1"} <= set(m["all"]) and {"abs_rel", "delta1"} <= set(m["depth_without_residual"])
+    assert m["seconds_per_prediction"] > 0 and m["family"] == "pgt" and m["step"] >= 1
     assert (out / "budget.png").stat().st_size > 1000 and (out / "contact_sheet.png").is_file()
 
 

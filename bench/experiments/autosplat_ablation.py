@@ -87,10 +87,13 @@ def main() -> None:
     import torch
     from clsplat.models.autosplat.data import load_sequence
     from clsplat.models.autosplat.model import Switches
-    from clsplat.models.autosplat.presets import PRESETS
-    from clsplat.models.autosplat.trainer import Trainer, prepare_data
+    from clsplat.models.common.presets import get_preset
+    from clsplat.models.common.train import read_log
+    from clsplat.models.autosplat.data import prepare_data
+    from clsplat.models.autosplat.evaluate import evaluate_run
+    from clsplat.models.autosplat.trainer import Trainer
     torch.set_num_threads(1)
-    base = PRESETS[a.preset]
+    base = get_preset("autosplat", a.preset)
     if a.steps_scale <= 0:
         raise ValueError(f"--steps-scale: expected a positive factor, got {a.steps_scale}")
     if a.steps_scale != 1:
@@ -117,13 +120,13 @@ def main() -> None:
         t1 = time.perf_counter()
         tr = Trainer(data, preset, Switches(**sw), run_dir, progress=False)
         tr.fit()
-        m = tr.evaluate()
-        log = [json.loads(x) for x in (run_dir / "log.jsonl").read_text().splitlines() if x.strip()]
+        m = evaluate_run(tr)
+        log = read_log(run_dir / "log.jsonl")
         it = [x["time_s"] for x in log]
         train_s = sum(it)
         res = {"name": name, "switches": Switches(**sw).to_dict(), "overrides": over,
-               "test_psnr": m["test_psnr"], "test_ssim": m["test_ssim"], "train_psnr": m["train_psnr"],
-               "test_psnr_objects": m["test_psnr_objects"], "lateral_shift": m["lateral_shift"],
+               "test_psnr": m["all"]["psnr"], "test_ssim": m["all"]["ssim"], "train_psnr": m["train"]["psnr"],
+               "test_psnr_objects": m["all"]["psnr_objects"], "lateral_shift": m["lateral_shift"],
                "lateral_psnr": {k: v["psnr"] for k, v in m["lateral_shift"].items()},
                "lateral_ssim": {k: v["ssim"] for k, v in m["lateral_shift"].items()},
                "seconds_per_iteration_median": float(np.median(it)),

@@ -5,7 +5,7 @@
 
 The load stage is what ``clsplat train autosplat`` reports as ``load_seconds``: the sequence
 read and resized (:func:`clsplat.models.autosplat.data.load_sequence`) and the per-frame
-tensors prepared (:func:`clsplat.models.autosplat.trainer.prepare_data`: images, LiDAR-labelled
+tensors prepared (:func:`clsplat.models.autosplat.data.prepare_data`: images, LiDAR-labelled
 pixel classes, the foreground mask of tracked boxes). Prints one JSON line with the seconds of
 each part and, with ``--profile N``, the N cProfile entries with the most cumulative time.
 """
@@ -31,7 +31,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--profile", type=int, default=0, help="print this many cProfile entries")
     a = p.parse_args(argv)
     from clsplat.models.autosplat.data import load_sequence, parse_frames
-    from clsplat.models.autosplat.trainer import prepare_data
+    from clsplat.models.autosplat.data import prepare_data
 
     prof = cProfile.Profile() if a.profile else None
     if prof is not None:

@@ -98,12 +98,13 @@ def main() -> None:
         print(budget_table(json.loads((ev / "budget.json").read_text())))
     if (ev / "metrics.json").is_file():
         m = json.loads((ev / "metrics.json").read_text())
-        print(f"\nfull set (step {m.get('step')}, {m['num_scenes']} held-out samples): PSNR {m['psnr']:.2f}, "
-              f"SSIM {m['ssim']:.3f}, render {m['render_ms']:.1f} ms, prediction {m['seconds_per_prediction']:.3f} s")
+        a = m["all"]
+        print(f"\nfull set (step {m.get('step')}, {m['protocol']['scenes']} held-out samples): PSNR {a['psnr']:.2f}, "
+              f"SSIM {a['ssim']:.3f}, render {m['render_ms']:.1f} ms, prediction {m['seconds_per_prediction']:.3f} s")
         print("| depth | AbsRel | SqRel | RMSE (m) | δ<1.25 |\n|---|---|---|---|---|")
         for name, key in (("coarse D₀ (no residual head)", "depth_without_residual"),
                           ("D₀ + 0.5·tanh(r) (residual head)", "depth_with_residual")):
-            d = m[key]
+            d = m["all"] if key == "depth_with_residual" else m[key]
             print(f"| {name} | {d['abs_rel']:.3f} | {d['sq_rel']:.3f} | {d['rmse']:.2f} | {d['delta1']:.3f} |")
     sp = run / "speed" / "pgt_speed.json"
     if sp.is_file():

@@ -49,9 +49,9 @@ def main() -> None:
         log = read_log(run / "log.jsonl")
         m = res["metrics"]
         row = {"matching": matching, "steps": args.steps, "step_s": statistics.median(r["time_s"] for r in log),
-               "prediction_s": m["seconds_per_prediction"], "psnr": m["psnr"], "ssim": m["ssim"],
+               "prediction_s": m["seconds_per_prediction"], "psnr": m["all"]["psnr"], "ssim": m["all"]["ssim"],
                "abs_rel_coarse": m["depth_without_residual"]["abs_rel"],
-               "abs_rel_refined": m["depth_with_residual"]["abs_rel"],
+               "abs_rel_refined": m["all"]["abs_rel"],
                "delta1_coarse": m["depth_without_residual"]["delta1"],
                "final_depth_loss": statistics.mean(r["depth"] for r in log[-20:]),
                "parameters": sum(t.numel() for t in model.parameters())}

@@ -29,6 +29,7 @@ from typing import Callable, Iterable
 
 import numpy as np
 
+from ..argparser import ArgumentParser
 from .scene import Box3D, Camera, DrivingSequence, Frame, LidarPoints
 from .synthetic import SyntheticConfig, generate_sequence
 
@@ -219,7 +220,7 @@ def main(argv: list[str]) -> int:
     from .scene import CAMERA_NAMES
 
     d = SyntheticConfig()
-    p = argparse.ArgumentParser(prog="clsplat data synth", description=__doc__,
+    p = ArgumentParser(prog="clsplat data synth", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--count", type=int, required=True, help="number of streets (seeds SEED .. SEED+COUNT-1)")
     p.add_argument("--out", required=True, help="cache folder (created if missing; streets already there are kept)")

@@ -14,6 +14,7 @@ import sys
 from importlib.metadata import entry_points
 from pathlib import Path
 
+from ..argparser import ArgumentParser
 from .scene import ViewScene, scene_from_ply
 
 __all__ = ["view_main", "render_main", "load_scene"]
@@ -77,7 +78,7 @@ def _fail(prog: str, e: Exception) -> int:
 
 def view_main(argv: list[str]) -> int:
     """``clsplat view``: serve the scene until Ctrl-C."""
-    p = argparse.ArgumentParser(prog="clsplat view", description="Look at a reconstruction in the browser (viser).")
+    p = ArgumentParser(prog="clsplat view", description="Look at a reconstruction in the browser (viser).")
     _common(p)
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (default: 127.0.0.1, this machine only)")
     p.add_argument("--port", type=int, default=8080, help="port (default: 8080; 0 picks a free one)")
@@ -106,7 +107,7 @@ def view_main(argv: list[str]) -> int:
 
 def render_main(argv: list[str]) -> int:
     """``clsplat render``: render every camera of a camera file into a folder."""
-    p = argparse.ArgumentParser(prog="clsplat render", description="Render a scene from a list of cameras "
+    p = ArgumentParser(prog="clsplat render", description="Render a scene from a list of cameras "
                                 "(see clsplat/viewer/cameras.py or the README for the camera file format).")
     _common(p)
     p.add_argument("--cameras", required=True, help="camera JSON: clsplat's list, INRIA cameras.json or "

@@ -1,34 +1,40 @@
-"""``clsplat train autosplat ...``: reconstruct one sequence, evaluate it, write the run folder.
+"""``clsplat train autosplat`` (reconstruct one sequence, evaluate it, write the run folder) and
+``clsplat eval autosplat`` (re-evaluate a run from its checkpoint).
 
     clsplat train autosplat --data synthetic|pandaset:PATH|nuscenes:PATH [--cameras CAM ...]
-        [--frames A:B] [--scale S] [--preset NAME] [--holdout K] [--no-flatness] [--no-symmetry]
-        [--no-residual-sh] [--no-pose-correction] [--no-densify] [--no-decompose] [--masks DIR]
-        --out DIR [--resume] [--stop-after N] [--view [--view-port P] [--view-every N]]
+        [--frames A:B] [--scale S] [--preset NAME] [--steps N] [--set FIELD=VALUE] [--holdout K]
+        [--no-flatness] [--no-symmetry] [--no-residual-sh] [--no-pose-correction] [--no-densify]
+        [--no-decompose] [--masks DIR] --out DIR [--resume] [--stop-after N]
+        [--view [--view-port P] [--view-every N]]
+    clsplat eval autosplat --checkpoint RUN/checkpoint.pt --out DIR [--data ...]
 
-``--no-decompose`` is plain 3DGS from LiDAR (one static set, no objects, no phase 1).
+``--no-decompose`` is plain 3DGS from LiDAR (one static set, no objects, no phase 1). ``--steps N``
+rescales the preset's four stages to N iterations in all, each keeping its share.
 
-Writes ``DIR/metrics.json`` (test/train PSNR and SSIM per camera and overall, PSNR over object
-pixels, LPIPS when weights are given, lateral-shift errors over the held-out frames, Gaussian
-counts per class, seconds per stage), ``DIR/scene.ply``,
+Writes ``DIR/metrics.json`` (:mod:`clsplat.models.common.report`'s schema: held-out PSNR, SSIM
+per camera and overall with PSNR over object pixels, LPIPS when weights are given; ``train`` the
+same on the training frames; lateral-shift errors over the held-out frames, Gaussian counts per
+class, seconds per stage), ``DIR/scene.ply``,
 ``DIR/checkpoint.pt``, ``DIR/log.jsonl``, ``DIR/loss.png``, ``DIR/contact_sheet.png`` and
 ``DIR/lateral_shift_{1,2,3}m.png``.
 """
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 
+from clsplat.argparser import ArgumentParser
+
 from .data import load_sequence, parse_frames
 
-__all__ = ["train", "reconstruct"]
+__all__ = ["train", "evaluate", "reconstruct"]
 
 def _parser() -> argparse.ArgumentParser:
-    from ..common.cli import add_common_args, add_lpips_args, add_view_args
-    p = argparse.ArgumentParser(prog="clsplat train autosplat", description=__doc__.split("\n")[0])
+    from ..common.cli import add_common_args, add_view_args
+    p = ArgumentParser(prog="clsplat train autosplat", description=__doc__.split("\n")[0])
     add_common_args(p, default_preset="demo")
     p.add_argument("--cameras", nargs="+", default=None, help="camera names (default: all)")
     p.add_argument("--frames", default=None, help="frame range A:B (default: the whole sequence; synthetic 0:16)")
@@ -37,11 +43,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--masks", default=None, help="folder of semantic masks <CAM>/<NN>.png (class indices)")
     for flag in ("decompose", "flatness", "symmetry", "residual-sh", "pose-correction", "densify"):
         p.add_argument(f"--no-{flag}", action="store_true", help=f"switch the {flag.replace('-', ' ')} constraint off")
-    add_lpips_args(p)
     add_view_args(p)
     p.add_argument("--stop-after", type=int, default=None,
                    help="stop after this many iterations in all (checkpointed; continue with --resume)")
-    p.add_argument("--no-progress", action="store_true")
     return p
 
 
@@ -56,8 +60,10 @@ def reconstruct(data, preset, switches, out: Path, *, device=None, progress: boo
     the staging folder of a :class:`~..common.runfolder.RunFolder`, which publishes it as a group.
     Returns the metrics, or None when ``stop_after`` stopped the schedule early.
     """
-    from ..common.train import atomic_write
-    from .trainer import STAGES, Trainer
+    from ..common.report import metrics_report, write_metrics
+    from ..common.train import read_log
+    from .evaluate import evaluate_run
+    from .trainer import Trainer
 
     t_start = time.perf_counter()
     trainer = Trainer(data, preset, switches, out, device=device, progress=progress,
@@ -77,16 +83,18 @@ def reconstruct(data, preset, switches, out: Path, *, device=None, progress: boo
         print(f"stopped after {trainer.step} of {trainer.total} iterations (the unfinished run is in {out}); "
               "continue with --resume")
         return None
-    steps = [json.loads(x) for x in (out / "log.jsonl").read_text().splitlines() if x.strip()]
+    steps = read_log(out / "log.jsonl")
     it = [r["time_s"] for r in steps]
     train_s = sum(it)
-    metrics = trainer.evaluate(lpips=lpips[0])
-    metrics["lpips"] = lpips[1]
-    metrics.update({
-        **(extra or {}), "preset": preset.name, "switches": switches.to_dict(),
+    ev = evaluate_run(trainer, lpips=lpips[0])
+    ev["protocol"].update({k: extra[k] for k in ("data", "scale") if extra and k in extra})
+    ev["protocol"]["lpips"] = lpips[1] if lpips[0] is None else ev["protocol"]["lpips"]
+    sections = {k: v for k, v in ev.items() if k not in ("protocol", "all", "per_camera", "eval_seconds")}
+    sections.update({
+        **{k: v for k, v in (extra or {}).items() if k not in ("data", "scale")},
+        "switches": switches.to_dict(),
         "seconds_per_stage": {**({"load": extra["load_seconds"]} if extra and "load_seconds" in extra else {}),
-                              **trainer.stage_seconds, "eval": metrics["eval_seconds"]},
-        "iterations": trainer.total,
+                              **trainer.stage_seconds, "eval": ev["eval_seconds"]},
         "seconds_per_iteration": float(np.median(it)) if it else None,
         # kernels' device time (forward + backward) from OpenCL profiling events, over step wall time
         "renderer_device_share": float(sum(r["renderer_device_s"] for r in steps) / train_s) if it else None,
@@ -94,24 +102,29 @@ def reconstruct(data, preset, switches, out: Path, *, device=None, progress: boo
         "renderer_wall_share": float(sum(r["render_wall_s"] + r["backward_s"] for r in steps) / train_s) if it else None,
         "wall_seconds": time.perf_counter() - t_start,
     })
+    metrics = metrics_report("autosplat", preset.name, trainer.total, ev["protocol"], ev["all"], ev["per_camera"],
+                             **sections)
     show = data.test_frames[len(data.test_frames) // 2] if data.test_frames else data.train_frames[0]
     trainer.scene_gaussians(show).save_ply(out / "scene.ply")
-    atomic_write(out / "metrics.json", lambda p: p.write_text(json.dumps(metrics, indent=2)))
+    write_metrics(out, metrics)
     return metrics
 
 
 def train(argv: list[str]) -> int:
     """Entry point of ``clsplat train autosplat``; returns the exit status."""
+    from ..common.cli import no_weights
     from ..common.metrics import lpips_or_none
-    from ..common.presets import get_preset
+    from ..common.presets import apply_sets, get_preset
     from ..common.train import set_threads
+    from .data import prepare_data
     from .model import Switches
-    from .trainer import prepare_data
+    from .presets import with_total_steps
 
     a = _parser().parse_args(argv)
-    preset = get_preset("autosplat", a.preset)
-    if a.steps is not None:
-        raise ValueError("--steps: AutoSplat's schedule has four stages; choose a --preset instead")
+    no_weights(a, "AutoSplat", "a per-scene optimisation of Gaussians initialised from LiDAR, no network encoder")
+    preset = apply_sets(get_preset("autosplat", a.preset), a.set)
+    if a.steps is not None:   # the four stages keep their shares of the schedule
+        preset = with_total_steps(preset, a.steps)
     if a.batch_size is not None:
         raise ValueError("--batch-size: an AutoSplat iteration renders every selected camera of one frame; "
                          "it has no batch size")
@@ -139,6 +152,7 @@ def train(argv: list[str]) -> int:
     if a.stop_after is not None and a.stop_after < 1:
         raise ValueError(f"--stop-after: expected a positive number of iterations, got {a.stop_after}")
     lp, msg = lpips_or_none(a.lpips_vgg, a.lpips_lin)
+    print(msg, flush=True)
     from ..common.runfolder import RunFolder
     with RunFolder(a.out, resume=a.resume) as rf:  # the lock; outputs staged, then published as a group
         metrics = reconstruct(data, preset, switches, rf.stage, device=a.device, progress=not a.no_progress,
@@ -149,7 +163,42 @@ def train(argv: list[str]) -> int:
         if metrics is None:
             return 0
         rf.publish()
-    print(f"held-out PSNR {metrics.get('test_psnr', float('nan')):.2f} dB  SSIM {metrics.get('test_ssim', float('nan')):.3f}"
-          f"  (train PSNR {metrics.get('train_psnr', float('nan')):.2f} dB); {metrics['gaussians']['total']} Gaussians; "
+    print(f"held-out PSNR {metrics['all']['psnr']:.2f} dB  SSIM {metrics['all']['ssim']:.3f}"
+          f"  (train PSNR {metrics['train']['psnr']:.2f} dB); {metrics['gaussians']['total']} Gaussians; "
           f"outputs in {a.out}")
+    return 0
+
+
+def evaluate(argv: list[str]) -> int:
+    """Entry point of ``clsplat eval autosplat``: re-evaluate a run from its checkpoint (on the
+    run's data, or ``--data``) into ``--out``: metrics.json, contact and lateral-shift sheets."""
+    from ..common.cli import add_eval_args, lpips_from_args
+    from ..common.report import metrics_report, write_metrics
+    from ..common.runfolder import STAGING
+    from ..common.train import load_checkpoint, set_threads
+    from .evaluate import evaluate_run, trainer_from_checkpoint
+
+    p = ArgumentParser(prog="clsplat eval autosplat", description=evaluate.__doc__.split("\n")[0])
+    add_eval_args(p, scenes=False)
+    p.set_defaults(data=None)
+    a = p.parse_args(argv)
+    ck_path = Path(a.checkpoint)
+    if ck_path.is_dir():   # a run folder: its checkpoint, finished or not
+        ck_path = next((c for c in (ck_path / "checkpoint.pt", ck_path / STAGING / "checkpoint.pt") if c.is_file()),
+                       ck_path / "checkpoint.pt")
+    set_threads(a.threads, a.device)
+    ck = load_checkpoint(ck_path, "autosplat")
+    run = ck_path.parent.parent if ck_path.parent.name == STAGING else ck_path.parent
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    tr = trainer_from_checkpoint(ck, ck_path, run, a.data, out_dir=out, device=a.device, arg="--checkpoint")
+    lpips = lpips_from_args(a)
+    ev = evaluate_run(tr, lpips=lpips)
+    ev["protocol"]["checkpoint"] = str(ck_path)
+    sections = {k: v for k, v in ev.items() if k not in ("protocol", "all", "per_camera", "eval_seconds")}
+    m = metrics_report("autosplat", tr.preset.name, tr.step, ev["protocol"], ev["all"], ev["per_camera"],
+                       switches=tr.switches.to_dict(), eval_seconds=ev["eval_seconds"], **sections)
+    write_metrics(out, m)
+    print(f"held-out PSNR {m['all']['psnr']:.2f} dB  SSIM {m['all']['ssim']:.3f}  (train PSNR "
+          f"{m['train']['psnr']:.2f} dB) at step {tr.step}; wrote {out}/metrics.json")
     return 0

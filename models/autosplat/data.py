@@ -1,12 +1,23 @@
-"""The sequence AutoSplat reconstructs: ``--data`` (the built-in street, PandaSet, nuScenes) cut
-to ``--frames`` and scaled by ``--scale``, with each argument named when it is wrong."""
+"""The data of one AutoSplat run: the sequence (``--data``: the built-in street, PandaSet,
+nuScenes) cut to ``--frames`` and scaled by ``--scale``, each argument named when it is wrong;
+and its tensors (:class:`RunData`: images, cameras, per-pixel classes from masks or labelled
+LiDAR, foreground masks of the tracked boxes, the train / held-out split)."""
 from __future__ import annotations
 
-from clsplat.data.scene import DrivingSequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from clsplat.data.scene import SEMANTIC_CLASSES, DrivingSequence
 
 from ..common.metrics import SSIM_WINDOW
+from .background import foreground_mask
+from .init import ROAD, UNKNOWN, pixel_classes, project_to_pixels
 
-__all__ = ["load_sequence", "parse_frames", "SYNTHETIC_DT"]
+__all__ = ["load_sequence", "parse_frames", "SYNTHETIC_DT", "RunData", "prepare_data", "ROAD_SEMANTIC"]
+
+ROAD_SEMANTIC = SEMANTIC_CLASSES.index("road")
 
 #: frame interval of the built-in street (seconds): 16 frames cover 3 s of driving.
 SYNTHETIC_DT = 0.2
@@ -64,3 +75,78 @@ def load_sequence(spec: str, cameras: list[str] | None, frames: tuple[int, int] 
         raise ValueError(f"--scale: {scale:g} makes camera {small[0].name} {small[0].height}x{small[0].width} "
                          f"pixels, smaller than SSIM's {SSIM_WINDOW}-pixel window; use a larger --scale")
     return seq
+
+
+@dataclass
+class RunData:
+    """Tensors of one sequence, for the selected cameras.
+
+    images [F,C,H,W,3], viewmats [F,C,4,4], Ks [C,3,3]; classes [F,C,H,W] uint8 (``BG_CLASSES``
+    or 255 = unknown); foreground [F,C,H,W] bool; train / test frame indices.
+    """
+
+    seq: DrivingSequence
+    cameras: list[str]
+    train_frames: list[int]
+    test_frames: list[int]
+    images: torch.Tensor
+    viewmats: torch.Tensor
+    Ks: torch.Tensor
+    classes: torch.Tensor
+    foreground: torch.Tensor
+    width: int
+    height: int
+
+
+def _lidar_classes(seq: DrivingSequence, i: int, cam: str) -> np.ndarray:
+    """Per-pixel classes from the frame's labelled LiDAR points (3x3-dilated), 255 elsewhere."""
+    labels = seq.metadata.get("lidar_semantics")
+    c = seq.camera(cam)
+    out = np.full((c.height, c.width), UNKNOWN, np.uint8)
+    f = seq.frames[i]
+    if labels is None or labels[i] is None or f.lidar is None:
+        return out
+    pts = f.lidar.to_world(f.ego_to_world).points.astype(np.float64)
+    lab = np.asarray(labels[i])
+    vis, lin, _, _, _ = project_to_pixels(seq, i, cam, pts, 0.1)
+    road = np.zeros((c.height, c.width), np.float32)
+    road.reshape(-1)[lin[vis]] = lab[vis] == ROAD_SEMANTIC
+    road = torch.nn.functional.max_pool2d(torch.from_numpy(road)[None, None], 3, 1, 1)[0, 0].numpy() > 0
+    out[road] = ROAD
+    return out
+
+
+def prepare_data(seq: DrivingSequence, cameras: list[str] | None, holdout: int) -> RunData:
+    """Select cameras, split frames (every ``holdout``-th frame, offset ``holdout // 2``, is held
+    out) and build the per-frame tensors. ValueError naming the argument on bad input."""
+    if cameras is None:
+        cameras = seq.camera_names
+    if not cameras:
+        raise ValueError("cameras: select at least one camera")
+    for c in cameras:
+        if c not in seq.camera_names:
+            raise ValueError(f"cameras: {c!r} is not in the data; cameras are {seq.camera_names}")
+    sizes = {(seq.camera(c).height, seq.camera(c).width) for c in cameras}
+    if len(sizes) != 1:
+        raise ValueError(f"cameras: the selected cameras have different image sizes {sorted(sizes)}")
+    if isinstance(holdout, bool) or not isinstance(holdout, int) or holdout < 2:
+        raise ValueError(f"holdout: expected an int >= 2 (every k-th frame is held out), got {holdout!r}")
+    F = len(seq.frames)
+    if F == 0:
+        raise ValueError("frames: the frame range is empty")
+    test = [i for i in range(F) if i % holdout == holdout // 2]
+    train = [i for i in range(F) if i not in test]
+    if not train:
+        raise ValueError(f"frames: {F} frame(s) leave no training frame with holdout {holdout}")
+    H, W = sizes.pop()
+    images = torch.from_numpy(np.stack([seq.images(i, cameras) for i in range(F)]))
+    viewmats = torch.from_numpy(np.stack([seq.viewmats(i, cameras) for i in range(F)]).astype(np.float32))
+    Ks = torch.from_numpy(seq.Ks(cameras).astype(np.float32))
+    classes = np.full((F, len(cameras), H, W), UNKNOWN, np.uint8)
+    for i in range(F):
+        for j, c in enumerate(cameras):
+            pc = pixel_classes(seq.frames[i], c)
+            classes[i, j] = pc if pc is not None else _lidar_classes(seq, i, c)
+    fg = np.stack([foreground_mask(seq, i, cameras) for i in range(F)])
+    return RunData(seq, list(cameras), train, test, images, viewmats, Ks, torch.from_numpy(classes),
+                   torch.from_numpy(fg), W, H)

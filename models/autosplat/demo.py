@@ -19,6 +19,8 @@ from pathlib import Path
 
 import torch
 
+from clsplat.argparser import ArgumentParser
+
 __all__ = ["run_demo", "oracle_baseline", "command"]
 
 
@@ -45,7 +47,7 @@ def oracle_baseline(data, device=None) -> dict:
         t = data.images[i].permute(0, 3, 1, 2)
         ps.append(psnr(r, t))
         ss.append(ssim(r, t))
-    return {"test_psnr": float(torch.cat(ps).mean()), "test_ssim": float(torch.cat(ss).mean()),
+    return {"psnr": float(torch.cat(ps).mean()), "ssim": float(torch.cat(ss).mean()),
             "method": "pixel_recon.lift_pixels: frame i-1 lifted with ground-truth depth, rendered at frame i"}
 
 
@@ -53,11 +55,11 @@ def run_demo(out_dir: str | Path, seed: int = 0, device=None, progress: bool = T
     """Run the main job into ``out_dir``; returns the metrics (also in ``out_dir/metrics.json``)."""
     from ..common.presets import get_preset
     from ..common.runfolder import RunFolder
-    from ..common.train import atomic_write
+    from ..common.report import write_metrics
     from .cli import reconstruct
     from .data import load_sequence
     from .model import Switches
-    from .trainer import prepare_data
+    from .data import prepare_data
 
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
@@ -74,16 +76,14 @@ def run_demo(out_dir: str | Path, seed: int = 0, device=None, progress: bool = T
         m = reconstruct(data, preset, Switches(), rf.stage, device=device, progress=progress,
                         extra={"data": "synthetic", "scale": preset.scale, "load_seconds": load_s})
         m["baseline"] = oracle_baseline(data, device)
-        atomic_write(rf.stage / "metrics.json", lambda p: p.write_text(json.dumps(m, indent=2)))
+        write_metrics(rf.stage, m)
         rf.publish()
     return m
 
 
 def command(argv: list[str]) -> int:
     """the main job: AutoSplat reconstruction of the built-in street (``clsplat demo``)"""
-    import argparse
-
-    p = argparse.ArgumentParser(prog="clsplat demo", description=command.__doc__)
+    p = ArgumentParser(prog="clsplat demo", description=command.__doc__)
     p.add_argument("--out", default="out", help="output folder (default: out)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default=None, help="OpenCL device (default: CLSPLAT_DEVICE, else GPU, else PoCL)")
@@ -91,12 +91,13 @@ def command(argv: list[str]) -> int:
     torch.set_num_threads(1)  # torch and PoCL's workers otherwise fight over the cores
     m = run_demo(a.out, seed=a.seed, device=a.device)
     g, b = m["gaussians"], m["baseline"]
-    print(f"AutoSplat reconstruction of the built-in street: {len(m['cameras'])} cameras, "
-          f"{len(m['train_frames'])} training frames, held-out frames {m['test_frames']}")
+    pr = m["protocol"]
+    print(f"AutoSplat reconstruction of the built-in street: {len(pr['cameras'])} cameras, "
+          f"{len(pr['train_frames'])} training frames, held-out frames {pr['test_frames']}")
     print(f"  {g['total']} Gaussians (road {g['road']}, sky {g['sky']}, other {g['other']}, "
-          f"{g['tracks']} tracked objects {g['objects']}), {m['iterations']} iterations")
-    print(f"held-out PSNR {m['test_psnr']:.2f} dB  SSIM {m['test_ssim']:.3f}   "
-          f"(oracle-depth baseline, pixel_recon: PSNR {b['test_psnr']:.2f} dB  SSIM {b['test_ssim']:.3f})")
+          f"{g['tracks']} tracked objects {g['objects']}), {m['step']} iterations")
+    print(f"held-out PSNR {m['all']['psnr']:.2f} dB  SSIM {m['all']['ssim']:.3f}   "
+          f"(oracle-depth baseline, pixel_recon: PSNR {b['psnr']:.2f} dB  SSIM {b['ssim']:.3f})")
     print("lane-change renders (rig shifted left), PSNR vs the generator: "
           + "  ".join(f"{k} {v['psnr']:.2f} dB" for k, v in m["lateral_shift"].items()))
     print("seconds per stage: " + json.dumps({k: round(v, 1) for k, v in m["seconds_per_stage"].items()}))

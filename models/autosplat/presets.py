@@ -1,7 +1,8 @@
 """AutoSplat presets: every knob of a run in one frozen dataclass, registered by name.
 
 ``paper`` holds the paper's schedule (30k background iterations in two phases, 5k foreground,
-10k fusion; MODELS.md §3) at full resolution; ``standard`` is a longer run for a workstation;
+10k fusion; MODELS.md §3) at full resolution; ``small`` (called ``standard`` before issue 20, which
+gave every family the same ``tiny``/``small``/``paper`` names) is a longer run for a workstation;
 ``demo`` (the default: ``make demo`` and the ablation benchmark) fits the 2-core CPU machine in
 minutes; ``tiny`` is for tests. λ = 0.2 is 3DGS's value; β (flatness), the residual-SH sparsity weight
 and the sky model are not published and were chosen by measurement (bench/RESULTS.md (AutoSplat)).
@@ -12,7 +13,11 @@ from dataclasses import dataclass, replace
 
 from ..common.presets import Preset, register
 
-__all__ = ["AutoSplatPreset", "PRESETS"]
+__all__ = ["AutoSplatPreset", "with_total_steps"]
+
+#: the sky models and object templates a preset may name
+SKIES = ("dome", "color")
+TEMPLATES = ("car", "box")
 
 
 @dataclass(frozen=True)
@@ -74,28 +79,68 @@ class AutoSplatPreset(Preset):
     dynamic_threshold: float = 0.5    # metres of track displacement above which a track is dynamic
     seed: int = 0
 
+    def __post_init__(self) -> None:
+        def bad(field: str, why: str) -> ValueError:
+            return ValueError(f"AutoSplatPreset({self.name!r}).{field}: {why}, got {getattr(self, field)!r}")
+        if not 0 < self.scale <= 4:
+            raise bad("scale", "expected a number in (0, 4]")
+        if not 0 <= self.sh_degree <= 4:
+            raise bad("sh_degree", "expected 0..4")
+        if self.holdout < 2:
+            raise bad("holdout", "expected >= 2 (every k-th frame is held out)")
+        for f in ("bg_phase1_steps", "bg_phase2_steps", "fg_steps", "fusion_steps", "densify_start"):
+            if getattr(self, f) < 0:
+                raise bad(f, "must be >= 0")
+        if sum(self.stage_steps().values()) < 1:
+            raise bad("fusion_steps", "the schedule has no iteration at all")
+        for f in ("densify_every", "max_bg_points", "max_gaussians", "object_points", "residual_width"):
+            if getattr(self, f) < 1:
+                raise bad(f, "must be >= 1")
+        if not 0 <= self.lambda_dssim <= 1:
+            raise bad("lambda_dssim", "expected a weight in [0, 1]")
+        for f in ("beta_flatness", "sparsity_weight", "dynamic_threshold", "prune_opacity"):
+            if getattr(self, f) < 0:
+                raise bad(f, "must be >= 0")
+        for f in ("lidar_voxel", "dome_radius", "box_margin", "split_scale", "object_split_scale", "prune_scale",
+                  "grad_threshold"):
+            if not getattr(self, f) > 0:
+                raise bad(f, "must be > 0")
+        if self.sky not in SKIES:
+            raise bad("sky", f"expected one of {SKIES}")
+        if self.template not in TEMPLATES:
+            raise bad("template", f"expected one of {TEMPLATES}")
+
     def stage_steps(self) -> dict[str, int]:
         """Iterations per stage, in order."""
         return {"bg_phase1": self.bg_phase1_steps, "bg_phase2": self.bg_phase2_steps,
                 "foreground": self.fg_steps, "fusion": self.fusion_steps}
 
 
-PRESETS: dict[str, AutoSplatPreset] = {}
+def with_total_steps(preset: AutoSplatPreset, steps: int) -> AutoSplatPreset:
+    """``preset`` with its four-stage schedule rescaled to ``steps`` iterations in all (``--steps``):
+    each stage keeps its share (the last stage with any iterations takes the rounding), and
+    densification starts at the same fraction of a stage."""
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise ValueError(f"--steps: expected a positive number of iterations, got {steps!r}")
+    stages = preset.stage_steps()
+    total = sum(stages.values())
+    new = {k: int(v * steps // total) for k, v in stages.items()}
+    last = [k for k, v in stages.items() if v][-1]
+    new[last] += steps - sum(new.values())
+    fields = dict(zip(("bg_phase1_steps", "bg_phase2_steps", "fg_steps", "fusion_steps"), new.values()))
+    return preset.replace(**fields, densify_start=int(preset.densify_start * steps // total))
 
 
-def _add(p: AutoSplatPreset) -> None:
-    PRESETS[p.name] = p
-    register("autosplat", p)
-
-
-_add(AutoSplatPreset())
-_add(AutoSplatPreset(name="paper", scale=1.0, sh_degree=3, bg_phase1_steps=15000, bg_phase2_steps=15000,
-                     fg_steps=5000, fusion_steps=10000, lidar_voxel=0.1, max_bg_points=1_000_000,
-                     dome_points=20000, object_points=5000, lr_means=1.6e-4 * 50, densify_every=100,
-                     densify_start=500, max_gaussians=3_000_000, holdout=10))
-_add(replace(PRESETS["demo"], name="standard", scale=1.0, sh_degree=2, bg_phase1_steps=1000,
-             bg_phase2_steps=2000, fg_steps=500, fusion_steps=1500, lidar_voxel=0.15, max_bg_points=80000,
-             dome_points=6000, object_points=1500, densify_every=100, densify_start=200, max_gaussians=200000))
-_add(replace(PRESETS["demo"], name="tiny", scale=0.25, bg_phase1_steps=4, bg_phase2_steps=4, fg_steps=4,
-             fusion_steps=4, lidar_voxel=0.5, max_bg_points=3000, dome_points=300, object_points=200,
-             densify_every=3, densify_start=2, max_gaussians=8000))
+demo = register("autosplat", AutoSplatPreset())
+register("autosplat", AutoSplatPreset(
+    name="paper", scale=1.0, sh_degree=3, bg_phase1_steps=15000, bg_phase2_steps=15000, fg_steps=5000,
+    fusion_steps=10000, lidar_voxel=0.1, max_bg_points=1_000_000, dome_points=20000, object_points=5000,
+    lr_means=1.6e-4 * 50, densify_every=100, densify_start=500, max_gaussians=3_000_000, holdout=10))
+register("autosplat", replace(
+    demo, name="small", scale=1.0, sh_degree=2, bg_phase1_steps=1000, bg_phase2_steps=2000, fg_steps=500,
+    fusion_steps=1500, lidar_voxel=0.15, max_bg_points=80000, dome_points=6000, object_points=1500,
+    densify_every=100, densify_start=200, max_gaussians=200000))
+register("autosplat", replace(
+    demo, name="tiny", scale=0.25, bg_phase1_steps=4, bg_phase2_steps=4, fg_steps=4, fusion_steps=4,
+    lidar_voxel=0.5, max_bg_points=3000, dome_points=300, object_points=200, densify_every=3, densify_start=2,
+    max_gaussians=8000))

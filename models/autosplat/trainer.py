@@ -1,4 +1,5 @@
-"""The staged AutoSplat optimisation: data preparation, the four stages, checkpoints, evaluation.
+"""The staged AutoSplat optimisation: the four stages, densification, checkpoints, the loop
+(the run's tensors come from :mod:`.data`, its evaluation is :mod:`.evaluate`).
 
 Stages (iterations from the preset; one iteration = all selected cameras of one training frame,
 drawn with a generator keyed by (seed, step), so a resumed run draws the same frames):
@@ -17,130 +18,33 @@ resumed run continues bitwise.
 """
 from __future__ import annotations
 
-import json
-import math
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from clsplat.data.scene import DrivingSequence, SEMANTIC_CLASSES
-
 from ..common.gaussians import GaussianSet
-from ..common.metrics import psnr as psnr_metric, ssim as ssim_metric
 from ..common.train import (JsonlLog, capture_rng, load_checkpoint, plot_losses, restore_rng, sample_generator,
                             save_checkpoint, seed_everything)
-from .background import flatness, foreground_mask, masked_photometric, reference_frames
+from .background import flatness, masked_photometric, reference_frames
 from .densify import GaussianParams, GradStats, densify_and_prune
-from .init import OTHER, ROAD, SKY, UNKNOWN, BG_CLASSES, init_background, pixel_classes, project_to_pixels
+from .data import RunData
+from .init import ROAD, SKY, init_background
 from .model import AutoSplatModel, Switches, collect_tracks
 from .objects import object_points_and_colours
 from .presets import AutoSplatPreset
 
-__all__ = ["STAGES", "RunData", "prepare_data", "Trainer", "lateral_shift_poses"]
+__all__ = ["STAGES", "Trainer", "checkpoint_extra"]
 
 STAGES: tuple[str, ...] = ("bg_phase1", "bg_phase2", "foreground", "fusion")
 FAMILY = "autosplat"
-LATERAL_SHIFTS_M: tuple[float, ...] = (1.0, 2.0, 3.0)
-ROAD_SEMANTIC = SEMANTIC_CLASSES.index("road")
 
 
-@dataclass
-class RunData:
-    """Tensors of one sequence, for the selected cameras.
-
-    images [F,C,H,W,3], viewmats [F,C,4,4], Ks [C,3,3]; classes [F,C,H,W] uint8 (``BG_CLASSES``
-    or 255 = unknown); foreground [F,C,H,W] bool; train / test frame indices.
-    """
-
-    seq: DrivingSequence
-    cameras: list[str]
-    train_frames: list[int]
-    test_frames: list[int]
-    images: torch.Tensor
-    viewmats: torch.Tensor
-    Ks: torch.Tensor
-    classes: torch.Tensor
-    foreground: torch.Tensor
-    width: int
-    height: int
-
-
-def _lidar_classes(seq: DrivingSequence, i: int, cam: str) -> np.ndarray:
-    """Per-pixel classes from the frame's labelled LiDAR points (3x3-dilated), 255 elsewhere."""
-    labels = seq.metadata.get("lidar_semantics")
-    c = seq.camera(cam)
-    out = np.full((c.height, c.width), UNKNOWN, np.uint8)
-    f = seq.frames[i]
-    if labels is None or labels[i] is None or f.lidar is None:
-        return out
-    pts = f.lidar.to_world(f.ego_to_world).points.astype(np.float64)
-    lab = np.asarray(labels[i])
-    vis, lin, _, _, _ = project_to_pixels(seq, i, cam, pts, 0.1)
-    road = np.zeros((c.height, c.width), np.float32)
-    road.reshape(-1)[lin[vis]] = lab[vis] == ROAD_SEMANTIC
-    road = torch.nn.functional.max_pool2d(torch.from_numpy(road)[None, None], 3, 1, 1)[0, 0].numpy() > 0
-    out[road] = ROAD
-    return out
-
-
-def prepare_data(seq: DrivingSequence, cameras: list[str] | None, holdout: int) -> RunData:
-    """Select cameras, split frames (every ``holdout``-th frame, offset ``holdout // 2``, is held
-    out) and build the per-frame tensors. ValueError naming the argument on bad input."""
-    if cameras is None:
-        cameras = seq.camera_names
-    if not cameras:
-        raise ValueError("cameras: select at least one camera")
-    for c in cameras:
-        if c not in seq.camera_names:
-            raise ValueError(f"cameras: {c!r} is not in the data; cameras are {seq.camera_names}")
-    sizes = {(seq.camera(c).height, seq.camera(c).width) for c in cameras}
-    if len(sizes) != 1:
-        raise ValueError(f"cameras: the selected cameras have different image sizes {sorted(sizes)}")
-    if isinstance(holdout, bool) or not isinstance(holdout, int) or holdout < 2:
-        raise ValueError(f"holdout: expected an int >= 2 (every k-th frame is held out), got {holdout!r}")
-    F = len(seq.frames)
-    if F == 0:
-        raise ValueError("frames: the frame range is empty")
-    test = [i for i in range(F) if i % holdout == holdout // 2]
-    train = [i for i in range(F) if i not in test]
-    if not train:
-        raise ValueError(f"frames: {F} frame(s) leave no training frame with holdout {holdout}")
-    H, W = sizes.pop()
-    images = torch.from_numpy(np.stack([seq.images(i, cameras) for i in range(F)]))
-    viewmats = torch.from_numpy(np.stack([seq.viewmats(i, cameras) for i in range(F)]).astype(np.float32))
-    Ks = torch.from_numpy(seq.Ks(cameras).astype(np.float32))
-    classes = np.full((F, len(cameras), H, W), UNKNOWN, np.uint8)
-    for i in range(F):
-        for j, c in enumerate(cameras):
-            pc = pixel_classes(seq.frames[i], c)
-            classes[i, j] = pc if pc is not None else _lidar_classes(seq, i, c)
-    fg = np.stack([foreground_mask(seq, i, cameras) for i in range(F)])
-    return RunData(seq, list(cameras), train, test, images, viewmats, Ks, torch.from_numpy(classes),
-                   torch.from_numpy(fg), W, H)
-
-
-def lateral_shift_poses(seq: DrivingSequence, frame: int, cameras: list[str], shift: float) -> np.ndarray:
-    """``[C, 4, 4]`` cam-to-world of the rig at ``frame`` moved ``shift`` metres along ego +y (left)."""
-    f = seq.frames[frame]
-    S = np.eye(4)
-    S[1, 3] = shift
-    return np.stack([f.ego_to_world @ S @ np.linalg.inv(f.ego_to_world) @ seq.cam_to_world(frame, c) for c in cameras])
-
-
-def _squared_error(render: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """``[2]`` float64 (sum of squared errors, number of values) of ``render``/``target``
-    ``[C, 3, H, W]`` (clipped to [0, 1]) over ``mask`` ``[C, H, W]``."""
-    m = mask[:, None].to(torch.float64)
-    err = (render.clamp(0, 1) - target.clamp(0, 1)).to(torch.float64) ** 2
-    return torch.stack([(err * m).sum(), m.sum() * render.shape[1]])
-
-
-def _pooled_psnr(acc: torch.Tensor) -> float | None:
-    """PSNR of pooled ``(sum of squared errors, count)``; None when nothing was counted."""
-    return None if float(acc[1]) == 0 else float(-10 * torch.log10(acc[0] / acc[1]))
+def checkpoint_extra(ck: dict) -> dict:
+    """AutoSplat's own checkpoint state (``ck["extra"]``; checkpoints written before issue 20 kept
+    it at the top level)."""
+    return ck.get("extra") or ck
 
 
 class Trainer:
@@ -387,11 +291,15 @@ class Trainer:
 
     # ------------------------------------------------------------------ checkpoints
     def state(self) -> dict:
-        return {"model": self.model.state_dict(), "sizes": self.model.sizes(), "optimizer": self.opt.state_dict(),
-                "step": self.step, "rng": capture_rng(), "stats": {k: s.state() for k, s in self.stats.items()},
-                "switches": self.switches.to_dict(), "cameras": self.data.cameras,
-                "train_frames": self.data.train_frames, "tracks": [t.track_id for t in self.tracks],
-                "stage_seconds": dict(self.stage_seconds)}
+        """The shared loop's checkpoint layout (model, optimizer, scheduler, step, rng) with
+        AutoSplat's own state under ``extra`` (set sizes, densification statistics, the run's
+        switches, cameras, training frames and tracks)."""
+        return {"model": self.model.state_dict(), "optimizer": self.opt.state_dict(), "scheduler": None,
+                "step": self.step, "rng": capture_rng(),
+                "extra": {"sizes": self.model.sizes(), "stats": {k: s.state() for k, s in self.stats.items()},
+                          "switches": self.switches.to_dict(), "cameras": self.data.cameras,
+                          "train_frames": self.data.train_frames, "tracks": [t.track_id for t in self.tracks],
+                          "stage_seconds": dict(self.stage_seconds)}}
 
     def save(self) -> Path:
         return save_checkpoint(self.out / "checkpoint.pt", self.state(), FAMILY, self.preset)
@@ -399,19 +307,20 @@ class Trainer:
     def load(self, path: str | Path) -> None:
         """Restore a checkpoint of the same data, preset and switches."""
         ck = load_checkpoint(path, FAMILY, self.preset)
+        ex = checkpoint_extra(ck)
         for key, mine in (("switches", self.switches.to_dict()), ("cameras", self.data.cameras),
                           ("train_frames", self.data.train_frames), ("tracks", [t.track_id for t in self.tracks])):
-            if ck.get(key) != mine:
-                raise ValueError(f"checkpoint: {str(path)!r} was made with {key} {ck.get(key)!r}, this run has "
+            if ex.get(key) != mine:
+                raise ValueError(f"checkpoint: {str(path)!r} was made with {key} {ex.get(key)!r}, this run has "
                                  f"{mine!r}; resume with the same arguments")
-        self.model.resize_(ck["sizes"])
+        self.model.resize_(ex["sizes"])
         self.model.load_state_dict(ck["model"])
         self._build_optimizer()
         self.opt.load_state_dict(ck["optimizer"])
-        for k, st in ck["stats"].items():
+        for k, st in ex["stats"].items():
             self.stats[k].load(st)
         self.step = int(ck["step"])
-        self.stage_seconds.update(ck.get("stage_seconds", {}))
+        self.stage_seconds.update(ex.get("stage_seconds", {}))
         restore_rng(ck["rng"])
 
     # ------------------------------------------------------------------ the loop
@@ -455,92 +364,6 @@ class Trainer:
         self._events, self._render_wall = [], 0.0
         col, _, _ = self._render(gs, vm, absgrad=False)
         return col.clamp(0, 1)
-
-    @torch.no_grad()
-    def evaluate(self, lpips=None) -> dict:
-        """Held-out and training PSNR / SSIM per camera and overall, PSNR over the tracked objects'
-        pixels (``*_psnr_objects``), lateral-shift errors and sheets, Gaussian counts per class."""
-        from clsplat.io.contact_sheet import make_contact_sheet
-
-        d = self.data
-        out: dict = {"cameras": d.cameras, "train_frames": d.train_frames, "test_frames": d.test_frames}
-
-        def score(frames):
-            ps, ss, lp, obj = [], [], [], torch.zeros(2, dtype=torch.float64)
-            for i in frames:
-                r = self.render_frame(i).permute(0, 3, 1, 2)
-                t = d.images[i].permute(0, 3, 1, 2)
-                ps.append(psnr_metric(r, t))
-                ss.append(ssim_metric(r, t))
-                obj += _squared_error(r, t, d.foreground[i])
-                if lpips is not None:
-                    lp.append(lpips(r, t))
-            return (torch.stack(ps), torch.stack(ss), torch.stack(lp) if lp else None, _pooled_psnr(obj))
-
-        t0 = time.perf_counter()
-        for split, frames in (("test", d.test_frames), ("train", d.train_frames)):
-            if not frames:
-                continue
-            ps, ss, lp, obj = score(frames)
-            out[f"{split}_psnr"] = float(ps.mean())
-            out[f"{split}_ssim"] = float(ss.mean())
-            out[f"{split}_psnr_objects"] = obj
-            if lp is not None:
-                out[f"{split}_lpips"] = float(lp.mean())
-            for j, c in enumerate(d.cameras):
-                pc = out.setdefault("per_camera", {}).setdefault(c, {})
-                pc[f"{split}_psnr"] = float(ps[:, j].mean())
-                pc[f"{split}_ssim"] = float(ss[:, j].mean())
-        show = d.test_frames[len(d.test_frames) // 2] if d.test_frames else d.train_frames[0]
-        r = self.render_frame(show)
-        make_contact_sheet(r.numpy(), d.images[show].numpy(), self.out / "contact_sheet.png", names=d.cameras,
-                           title=f"AutoSplat, held-out frame {show}: render | ground truth | error")
-        out["lateral_shift"] = self._lateral(show, make_contact_sheet)
-        out["eval_seconds"] = time.perf_counter() - t0
-        bg = self.model.background
-        out["gaussians"] = {**{name: int((bg.labels == c).sum()) for c, name in enumerate(BG_CLASSES)},
-                            "objects": int(sum(len(o) for o in self.model.objects)),
-                            "objects_rendered_with_mirrors": int(sum(len(o) for o in self.model.objects)
-                                                                 * (2 if self.switches.symmetry else 1)),
-                            "tracks": len(self.tracks),
-                            "dynamic_tracks": sum(t.dynamic for t in self.tracks)}
-        out["gaussians"]["total"] = len(bg) + out["gaussians"]["objects"]
-        return out
-
-    def _lateral(self, show: int, make_sheet) -> dict:
-        """Renders of the rig shifted 1/2/3 m left. With the generator at hand, errors against its
-        exact renders, averaged over the held-out frames (PSNR also over object and road pixels
-        only, pooled); sheets of frame ``show``."""
-        d = self.data
-        scene = d.seq.metadata.get("scene")
-        frames = d.test_frames or [show]
-        res = {}
-        for shift in LATERAL_SHIFTS_M:
-            ps, ss = [], []
-            obj, road = torch.zeros(2, dtype=torch.float64), torch.zeros(2, dtype=torch.float64)
-            for frame in (frames if scene is not None else [show]):
-                c2w = lateral_shift_poses(d.seq, frame, d.cameras, shift)
-                r = self.render_frame(frame, torch.from_numpy(np.linalg.inv(c2w).astype(np.float32)))
-                if scene is None:
-                    gt = d.images[frame].numpy()
-                    title = f"rig shifted {shift:g} m left, frame {frame}: render | unshifted image (no ground truth) | diff"
-                else:
-                    views = [scene.render(d.seq.camera(c).K, c2w[j], d.width, d.height, d.seq.frames[frame].timestamp)
-                             for j, c in enumerate(d.cameras)]
-                    gt = np.stack([v.rgb for v in views])
-                    g, rr = torch.from_numpy(gt).permute(0, 3, 1, 2), r.permute(0, 3, 1, 2)
-                    ps.append(psnr_metric(rr, g))
-                    ss.append(ssim_metric(rr, g))
-                    obj += _squared_error(rr, g, torch.from_numpy(np.stack([v.instance > 0 for v in views])))
-                    road += _squared_error(rr, g, torch.from_numpy(np.stack([v.semantic == ROAD_SEMANTIC
-                                                                             for v in views])))
-                    title = f"rig shifted {shift:g} m left, frame {frame}: render | generator ground truth | error"
-                if frame == show:
-                    make_sheet(r.numpy(), gt, self.out / f"lateral_shift_{shift:g}m.png", names=d.cameras, title=title)
-            res[f"{shift:g}m"] = None if scene is None else {
-                "psnr": float(torch.cat(ps).mean()), "ssim": float(torch.cat(ss).mean()),
-                "psnr_objects": _pooled_psnr(obj), "psnr_road": _pooled_psnr(road), "frames": frames}
-        return res
 
     def scene_gaussians(self, frame: int) -> GaussianSet:
         """Every Gaussian placed at ``frame`` (for the .ply export)."""

@@ -3,52 +3,23 @@ frame (recording cameras and images, ego trajectory, LiDAR, boxes, a time slider
 moving objects and their residual SH), also served live by ``clsplat train autosplat --view``."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from clsplat.data.scene import DrivingSequence
 from clsplat.viewer.scene import ViewBox, ViewCamera, ViewScene
 
-from ..common.view import gaussians_scene, preset_from_saved
-from .data import load_sequence
-from .model import Switches
-from .trainer import Trainer, prepare_data
+from ..common.view import gaussians_scene
+from .evaluate import trainer_from_checkpoint
 
 __all__ = ["checkpoint_scene", "autosplat_scene"]
 
 
 def checkpoint_scene(ck: dict, ck_path: Path, run: Path, data: str | None, sample: int = 0, device=None) -> ViewScene:
-    """The scene of an AutoSplat checkpoint (``sample`` and ``device`` are unused: the model is the scene)."""
-
-    preset = preset_from_saved("autosplat", ck["preset"])
-    spec, scale = "synthetic", preset.scale
-    metrics = run / "metrics.json"
-    if metrics.is_file():
-        m = json.loads(metrics.read_text())
-        spec, scale = m.get("data", spec), m.get("scale", scale)
-    spec = data or spec
-    want = list(ck.get("train_frames") or [0])
-    # the run's frame range is not stored: the first cut of the sequence whose split gives its training frames
-    seq = load_sequence(spec, ck.get("cameras"), (0, max(want) + 1 + preset.holdout) if spec == "synthetic" else None,
-                        scale, seed=preset.seed)
-    for n in range(max(want) + 1, len(seq.frames) + 1):
-        d = prepare_data(DrivingSequence(seq.cameras, seq.frames[:n], seq.name, seq.metadata), ck.get("cameras"),
-                         preset.holdout)
-        if d.train_frames == want:
-            seq = d.seq
-            break
-    else:
-        raise ValueError(f"PATH {str(ck_path)!r}: its training frames {ck.get('train_frames')} are not those of "
-                         f"--data {spec!r} ({d.train_frames}); name the run's data with --data")
-    tr = Trainer(d, preset, Switches(**ck["switches"]), run, progress=False)
-    if [t.track_id for t in tr.tracks] != ck.get("tracks"):
-        raise ValueError(f"PATH {str(ck_path)!r}: its tracked objects differ from those of --data {spec!r}")
-    tr.model.resize_(ck["sizes"])
-    tr.model.load_state_dict(ck["model"])
-    return autosplat_scene(tr.model.eval(), seq, d, f"AutoSplat {preset.name} ({run.name})")
+    """The scene of an AutoSplat checkpoint (``sample`` is unused: the model is the scene)."""
+    tr = trainer_from_checkpoint(ck, ck_path, run, data, device=device)
+    return autosplat_scene(tr.model, tr.data.seq, tr.data, f"AutoSplat {tr.preset.name} ({run.name})")
 
 
 def autosplat_scene(model, seq, d, title: str, frame: int | None = None) -> ViewScene:

@@ -14,7 +14,8 @@ import importlib
 import sys
 
 __all__ = ["dispatch", "train_command", "eval_command", "add_common_args", "add_view_args", "add_eval_args",
-           "add_lpips_args", "lpips_from_args", "positive_int", "add_trust_pickle_arg"]
+           "add_lpips_args", "lpips_from_args", "positive_int", "add_trust_pickle_arg", "no_weights",
+           "add_eval_scenes_arg"]
 
 
 def positive_int(text: str) -> int:
@@ -36,11 +37,15 @@ def add_trust_pickle_arg(p: argparse.ArgumentParser) -> None:
 
 
 def add_common_args(p: argparse.ArgumentParser, default_preset: str = "small") -> None:
-    """--data, --preset, --steps, --out, --resume, --seed, --device, --threads,
-    --checkpoint-every, --batch-size, --trust-pickle."""
+    """The flags every ``clsplat train FAMILY`` takes: --data, --preset, --set, --steps, --out,
+    --resume, --seed, --device, --threads, --checkpoint-every, --batch-size, --weights,
+    --no-progress, --trust-pickle, --lpips-vgg, --lpips-lin."""
     p.add_argument("--data", default="synthetic",
                    help="synthetic | pandaset:PATH | nuscenes:PATH (default: synthetic)")
     p.add_argument("--preset", default=default_preset, help=f"preset name (default: {default_preset})")
+    p.add_argument("--set", action="append", default=None, metavar="FIELD=VALUE",
+                   help="change one preset field for this run (a Python literal; repeatable; stored in the "
+                        "checkpoint)")
     p.add_argument("--steps", type=positive_int, default=None, help="training steps (default: the preset's)")
     p.add_argument("--out", required=True, help="run directory (checkpoint.pt, log.jsonl, loss.png, metrics.json)")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt, bitwise")
@@ -50,7 +55,18 @@ def add_common_args(p: argparse.ArgumentParser, default_preset: str = "small") -
                    help="torch threads (default: 1 on a CPU OpenCL device, where PoCL needs the cores)")
     p.add_argument("--checkpoint-every", type=positive_int, default=100, help="steps between checkpoints")
     p.add_argument("--batch-size", type=positive_int, default=None, help="global batch (default: the preset's)")
+    p.add_argument("--weights", default=None,
+                   help="local pretrained backbone weights (torchvision names) for the family's encoders; "
+                        "nothing is downloaded (default: random initialisation)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_trust_pickle_arg(p)
+    add_lpips_args(p)
+
+
+def add_eval_scenes_arg(p: argparse.ArgumentParser) -> None:
+    """--eval-scenes: held-out scenes a feed-forward family evaluates at the end of training."""
+    p.add_argument("--eval-scenes", type=int, default=2,
+                   help="held-out scenes evaluated at the end into OUT/metrics.json (default 2; 0: none)")
 
 
 def add_view_args(p: argparse.ArgumentParser) -> None:
@@ -62,16 +78,21 @@ def add_view_args(p: argparse.ArgumentParser) -> None:
                    help="steps between refreshes of the Gaussians shown (default 10; only while a browser is open)")
 
 
-def add_eval_args(p: argparse.ArgumentParser) -> None:
-    """--checkpoint, --data, --out, --device, --threads, --seed, --num-scenes, --trust-pickle."""
+def add_eval_args(p: argparse.ArgumentParser, scenes: bool = True) -> None:
+    """The flags every ``clsplat eval FAMILY`` takes: --checkpoint, --data, --out, --device,
+    --threads, --seed, --no-progress, --trust-pickle, --lpips-vgg, --lpips-lin, and with
+    ``scenes`` (the feed-forward families) --num-scenes."""
     p.add_argument("--checkpoint", required=True, help="checkpoint.pt written by clsplat train")
     p.add_argument("--data", default="synthetic", help="synthetic | pandaset:PATH | nuscenes:PATH")
     p.add_argument("--out", required=True, help="output folder (metrics.json, contact sheets)")
     p.add_argument("--device", default=None, help="OpenCL device")
     p.add_argument("--threads", type=positive_int, default=None, help="torch threads")
     p.add_argument("--seed", type=int, default=0, help="seed of the held-out scenes")
-    p.add_argument("--num-scenes", type=positive_int, default=4, help="held-out scenes to evaluate")
+    if scenes:
+        p.add_argument("--num-scenes", type=positive_int, default=4, help="held-out scenes to evaluate")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_trust_pickle_arg(p)
+    add_lpips_args(p)
 
 
 def add_lpips_args(p: argparse.ArgumentParser) -> None:
@@ -79,6 +100,12 @@ def add_lpips_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lpips-vgg", default=None,
                    help="local torchvision VGG-16 state dict for LPIPS (without it LPIPS is off)")
     p.add_argument("--lpips-lin", default=None, help="local lpips v0.1 linear layers (lpips/weights/v0.1/vgg.pth)")
+
+
+def no_weights(args: argparse.Namespace, family: str, why: str) -> None:
+    """ValueError naming --weights for a family whose networks have no pretrained backbone."""
+    if args.weights is not None:
+        raise ValueError(f"--weights: {family} has no pretrained backbone to load ({why})")
 
 
 def lpips_from_args(args: argparse.Namespace):

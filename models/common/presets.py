@@ -19,7 +19,8 @@ import dataclasses
 import json
 from typing import Any
 
-__all__ = ["Preset", "register", "get_preset", "preset_names", "check_preset_matches"]
+__all__ = ["Preset", "register", "get_preset", "preset_names", "check_preset_matches", "apply_sets",
+           "preset_from_saved"]
 
 _REGISTRY: dict[str, dict[str, "Preset"]] = {}  # family -> name -> preset (filled at import)
 
@@ -95,6 +96,58 @@ def check_preset_matches(saved: dict, preset: Preset, where: str) -> None:
     shown = ", ".join(f"{k}: {saved.get(k)!r} != {mine.get(k)!r}" for k in diff[:5])
     raise ValueError(f"{where}: checkpoint was made with preset {saved.get('name')!r}, not "
                      f"{mine.get('name')!r} ({shown}{', ...' if len(diff) > 5 else ''})")
+
+
+def apply_sets(preset: Preset, sets: list[str] | None, **fields: Any) -> Preset:
+    """``preset`` with every ``--set FIELD=VALUE`` (VALUE a Python literal) and every non-None
+    keyword field applied; ValueError naming ``--set`` on an unknown field or a value of the wrong
+    kind (an int is accepted where the default is a float; lists become tuples)."""
+    import ast
+
+    changes: dict[str, Any] = {k: v for k, v in fields.items() if v is not None}
+    for item in sets or []:
+        field, sep, text = item.partition("=")
+        field = field.strip()
+        if not sep or not field:
+            raise ValueError(f"--set: expected FIELD=VALUE, got {item!r}")
+        if field == "name":
+            raise ValueError("--set: the preset's name cannot be changed")
+        try:
+            value = ast.literal_eval(text.strip())
+        except (ValueError, SyntaxError):
+            raise ValueError(f"--set {field}: {text!r} is not a Python literal (number, True/False, None, "
+                             f"tuple, quoted string)") from None
+        changes[field] = tuple(value) if isinstance(value, list) else value
+    if not changes:
+        return preset
+    known = {f.name for f in dataclasses.fields(preset)}  # type: ignore[arg-type]
+    bad = sorted(k for k in changes if k not in known)
+    if bad:
+        raise ValueError(f"--set: unknown preset fields {bad}; known: {sorted(known)}")
+    for k, v in changes.items():
+        d = getattr(preset, k)
+        if d is not None and v is not None and not isinstance(v, type(d)) and not (
+                isinstance(d, float) and isinstance(v, int) and not isinstance(v, bool)):
+            raise ValueError(f"--set {k}: expected a {type(d).__name__} like {d!r}, got {v!r}")
+        if isinstance(d, float) and isinstance(v, int):
+            changes[k] = float(v)
+    return preset.replace(**changes)
+
+
+def preset_from_saved(family: str, saved: dict, name: str | None = None) -> Preset:
+    """The preset a checkpoint was written with: its registered preset (or ``name``, when the
+    caller expects one) with the fields its run changed (``--set``) applied. Fields added to the
+    preset class after the checkpoint was written keep their defaults."""
+    if not isinstance(saved, dict):
+        raise ValueError("checkpoint has no preset record")
+    base = get_preset(family, name or saved.get("name", "?"))
+    if name is not None and name != saved.get("name"):
+        return base     # another preset: check_preset_matches names the difference
+    names = {f.name for f in dataclasses.fields(base)}  # type: ignore[arg-type]
+    mine = base.to_dict()
+    changes = {k: tuple(v) if isinstance(mine.get(k), list) and isinstance(v, list) else v
+               for k, v in saved.items() if k in names and k != "name" and v != mine.get(k)}
+    return base.replace(**changes) if changes else base
 
 
 def _import_family(family: str) -> None:

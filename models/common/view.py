@@ -17,33 +17,15 @@ Every failure is a ValueError naming PATH (unknown family, not a checkpoint, mis
 """
 from __future__ import annotations
 
-import dataclasses
 import importlib
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from clsplat.viewer.scene import ViewScene, scene_from_ply
 
-__all__ = ["scene_from_checkpoint", "TrainView", "preset_from_saved", "gaussians_scene", "depth_colour",
+__all__ = ["scene_from_checkpoint", "TrainView", "gaussians_scene", "depth_colour",
            "VARIANT_SAMPLES"]
-
-
-def preset_from_saved(family: str, saved: dict):
-    """The preset a checkpoint was written with (its named preset plus the fields a run changed)."""
-    from .presets import get_preset
-
-    base = get_preset(family, saved.get("name", "?"))
-    names = {f.name for f in dataclasses.fields(base)}
-    changes = {}
-    for k, v in saved.items():
-        if k in names and k != "name":
-            cur = getattr(base, k)
-            v = tuple(v) if isinstance(cur, tuple) and isinstance(v, list) else v
-            if v != cur:
-                changes[k] = v
-    return base.replace(**changes) if changes else base
 
 
 def gaussians_scene(g, title: str) -> ViewScene:

@@ -4,7 +4,7 @@
                                  --steps N --out DIR [--resume] [--weights RESNET18.pth]
                                  [--lpips-vgg VGG.pth --lpips-lin LIN.pth] [--eval-scenes K]
                                  [--pose network|dataset] [--set FIELD=VALUE ...]
-    clsplat eval drivingforward --checkpoint FILE --data ... [--cameras ...] [--frames ...] --out DIR
+    clsplat eval drivingforward --checkpoint FILE --data ... [--cameras ...] [--offsets ...] --out DIR
 
 Training uses the shared loop (``clsplat.models.common.train``): Adam at the preset's learning
 rate, one new window (synthetic: a new street) per sample, colour jitter on the network inputs
@@ -24,18 +24,18 @@ import sys
 
 import torch
 
-from ..common.cli import add_common_args, add_eval_args, add_lpips_args, lpips_from_args
+from clsplat.argparser import ArgumentParser
+
+from ..common.cli import add_common_args, add_eval_args, add_eval_scenes_arg, lpips_from_args
 from ..common.data import parse_data
-from ..common.presets import get_preset
+from ..common.presets import apply_sets, get_preset, preset_from_saved
 
 __all__ = ["train", "evaluate", "build_model", "make_sample_loss"]
 
 FAMILY = "drivingforward"
 
 
-def _add_model_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--weights", default=None, help="local torchvision ResNet-18 state dict for both encoders")
-    add_lpips_args(p)
+def _add_cameras_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cameras", nargs="+", default=None, help="camera names (default: all, rig order)")
 
 
@@ -50,40 +50,8 @@ def build_model(preset, weights=None, device=None):
 
 def preset_overrides(preset, pose: str | None, sets: list[str] | None):
     """``preset`` with ``--pose`` and every ``--set FIELD=VALUE`` applied (ValueError naming the
-    argument on a bad field or value; lists become tuples)."""
-    import ast
-    import dataclasses
-
-    changes: dict = {}
-    for item in sets or []:
-        field, sep, text = item.partition("=")
-        field = field.strip()
-        if not sep or not field:
-            raise ValueError(f"--set: expected FIELD=VALUE, got {item!r}")
-        if field == "name":
-            raise ValueError("--set: the preset's name cannot be changed")
-        try:
-            value = ast.literal_eval(text.strip())
-        except (ValueError, SyntaxError):
-            raise ValueError(f"--set {field}: {text!r} is not a Python literal (number, True/False, None, "
-                             f"tuple, quoted string)") from None
-        changes[field] = tuple(value) if isinstance(value, list) else value
-    if pose is not None:
-        changes["pose_source"] = pose
-    if not changes:
-        return preset
-    known = {f.name: f for f in dataclasses.fields(preset)}
-    bad = sorted(k for k in changes if k not in known)
-    if bad:
-        raise ValueError(f"--set: unknown preset fields {bad}; known: {sorted(known)}")
-    for k, v in changes.items():     # a value of the default's kind (ints are floats where floats are)
-        d = getattr(preset, k)
-        if d is not None and v is not None and not isinstance(v, type(d)) and not (
-                isinstance(d, float) and isinstance(v, int) and not isinstance(v, bool)):
-            raise ValueError(f"--set {k}: expected a {type(d).__name__} like {d!r}, got {v!r}")
-        if isinstance(d, float) and isinstance(v, int):
-            changes[k] = float(v)
-    return preset.replace(**changes)
+    argument on a bad field or value)."""
+    return apply_sets(preset, sets, pose_source=pose)
 
 
 def make_optimizer(model, preset) -> torch.optim.Adam:
@@ -121,17 +89,14 @@ def train(argv: list[str]) -> int:
     from ..common.train import TrainSpec, seed_everything, set_threads, train as run
     from .evaluation import evaluate_model
 
-    p = argparse.ArgumentParser(prog="clsplat train drivingforward", description=__doc__,
+    p = ArgumentParser(prog="clsplat train drivingforward", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     add_common_args(p, default_preset="small")
-    _add_model_args(p)
-    p.add_argument("--eval-scenes", type=int, default=2, help="held-out windows evaluated at the end (0: none)")
-    p.add_argument("--no-progress", action="store_true", help="no tqdm bar")
+    _add_cameras_arg(p)
+    add_eval_scenes_arg(p)
     p.add_argument("--pose", choices=("network", "dataset"), default=None,
                    help="ego motion of the temporal warps: the pose network (the paper; default: the "
                         "preset's) or the data's ego poses (the pose network is not trained)")
-    p.add_argument("--set", action="append", default=None, metavar="FIELD=VALUE",
-                   help="change one preset field for this run (repeatable; stored in the checkpoint)")
     args = p.parse_args(argv)
     try:
         preset = preset_overrides(get_preset(FAMILY, args.preset), args.pose, args.set)
@@ -152,7 +117,8 @@ def train(argv: list[str]) -> int:
             print(f"data {source.name}, torch threads {threads}", flush=True)
             run(model, opt, spec, preset, FAMILY, make_sample_loss(source, preset, args.seed, args.cameras, lpips))
             if args.eval_scenes > 0 and distributed_info()[0] == 0:
-                m = evaluate_model(model, source, args.eval_scenes, args.cameras, lpips=lpips, out_dir=rf.stage)
+                m = evaluate_model(model, source, args.eval_scenes, args.cameras, lpips=lpips, out_dir=rf.stage,
+                                   step=spec.steps)
                 print(_summary(m), flush=True)
             rf.publish()
     except ValueError as e:
@@ -164,7 +130,7 @@ def train(argv: list[str]) -> int:
 def _summary(m: dict) -> str:
     keys = ("psnr", "ssim", "lpips", "abs_rel", "sq_rel", "rmse", "delta1", "scale_ratio", "oracle_psnr",
             "pose_t_err_m", "pose_t_err_pct", "pose_r_err_deg")
-    return "eval all: " + ", ".join(f"{k} {m[k]:.4g}" for k in keys if k in m)
+    return "eval all: " + ", ".join(f"{k} {m['all'][k]:.4g}" for k in keys if k in m["all"])
 
 
 def load_model(path: str, device=None, preset_name: str | None = None):
@@ -172,19 +138,13 @@ def load_model(path: str, device=None, preset_name: str | None = None):
     from ..common.train import load_checkpoint
 
     ck = load_checkpoint(path, FAMILY)
-    saved = ck.get("preset") or {}
-    preset = get_preset(FAMILY, preset_name or saved.get("name", "?"))
     # a run's --pose / --set changes travel in the checkpoint; the registered preset's other
     # fields must match it
-    import dataclasses
-    fields = {f.name for f in dataclasses.fields(preset)}
-    changed = {k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()
-               if k in fields and k != "name" and v != preset.to_dict().get(k)}
-    if changed and (preset_name is None or preset_name == saved.get("name")):
-        preset = preset.replace(**changed)
+    preset = preset_from_saved(FAMILY, ck.get("preset"), preset_name)
     load_checkpoint(path, FAMILY, preset)  # refuses a checkpoint of another preset
     model = build_model(preset, None, device)
     model.load_state_dict(ck["model"])
+    model.trained_steps = int(ck.get("step", 0))   # recorded in metrics.json by eval
     return model, preset
 
 
@@ -193,12 +153,12 @@ def evaluate(argv: list[str]) -> int:
     from ..common.train import set_threads
     from .evaluation import evaluate_model
 
-    p = argparse.ArgumentParser(prog="clsplat eval drivingforward")
+    p = ArgumentParser(prog="clsplat eval drivingforward")
     add_eval_args(p)
-    _add_model_args(p)
+    _add_cameras_arg(p)
     p.add_argument("--preset", default=None, help="expected preset (default: the checkpoint's)")
-    p.add_argument("--frames", nargs="+", type=int, default=None,
-                   help="input frame offsets in {-1, 0, 1} (default SF: 0; MF: -1 1)")
+    p.add_argument("--offsets", nargs="+", type=int, default=None,
+                   help="input frames as offsets from t in {-1, 0, 1} (default SF: 0; MF: -1 1)")
     p.add_argument("--target", type=int, default=None, help="rendered frame offset (default SF: 1; MF: 0)")
     p.add_argument("--no-oracle", action="store_true", help="skip the oracle-depth baseline")
     args = p.parse_args(argv)
@@ -207,8 +167,9 @@ def evaluate(argv: list[str]) -> int:
         model, preset = load_model(args.checkpoint, args.device, args.preset)
         source = parse_data(args.data, seed=args.seed, safe_pickle=not args.trust_pickle)
         lpips = lpips_from_args(args)
-        m = evaluate_model(model, source, args.num_scenes, args.cameras, args.frames, args.target, lpips,
-                           out_dir=args.out, oracle=not args.no_oracle, progress=True)
+        m = evaluate_model(model, source, args.num_scenes, args.cameras, args.offsets, args.target, lpips,
+                           out_dir=args.out, oracle=not args.no_oracle, progress=not args.no_progress,
+                           step=model.trained_steps)
         print(_summary(m))
         print(f"wrote {args.out}/metrics.json, contact_sheet.png, depth_sheet.png")
     except ValueError as e:

@@ -22,7 +22,6 @@ data has depth, so that ``oracle_psnr`` can be read beside ``psnr``.
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Sequence
 
@@ -30,8 +29,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..common.metrics import depth_metrics, pose_errors, psnr, ssim
+from ..common.metrics import depth_metrics, pose_errors, psnr
+from ..common.report import camera_blocks, image_scores, metrics_report, write_metrics
 from .data import gt_ego_motion, load_triplet
+
+FAMILY = "drivingforward"
 
 __all__ = ["evaluate_model", "OFFSETS"]
 
@@ -84,7 +86,8 @@ def _depth_colour(depth: Tensor, max_depth: float = 80.0) -> np.ndarray:
 @torch.no_grad()
 def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | None = None,
                    frames: Sequence[int] | None = None, target: int | None = None, lpips=None,
-                   out_dir: str | Path | None = None, oracle: bool = True, progress: bool = False) -> dict:
+                   out_dir: str | Path | None = None, oracle: bool = True, progress: bool = False,
+                   step: int = 0) -> dict:
     """Novel-view and depth metrics on held-out windows ``0 .. num_scenes-1`` of the test split.
 
     Args:
@@ -94,9 +97,11 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
         target: target offset (default SF: +1, MF: 0).
         lpips: optional LPIPS module; out_dir: where to write ``metrics.json`` and the contact sheets.
         oracle: also run the oracle-depth baseline (needs depth in the data).
+        step: the training steps behind the model (recorded).
     Returns:
-        dict with per-camera entries, ``all``, the ``all`` values at top level, ``oracle_psnr``
-        (when run), and the settings used.
+        the ``metrics.json`` dict (:mod:`clsplat.models.common.report`): ``all`` and
+        ``per_camera`` hold PSNR/SSIM[/LPIPS], depth errors and ``oracle_psnr`` (when run),
+        ``all`` also the pose errors; ``protocol`` the settings used.
     """
     from clsplat.io.contact_sheet import make_contact_sheet
 
@@ -106,7 +111,7 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
     target = target if target is not None else (1 if p.mode == "SF" else 0)
     bad = [f for f in (*frames, target) if f not in OFFSETS]
     if bad or not frames:
-        raise ValueError(f"frames/target: offsets must be in {{-1, 0, 1}}, got frames={list(frames)} target={target}")
+        raise ValueError(f"--offsets/--target: offsets must be in {{-1, 0, 1}}, got {list(frames)} and {target}")
     fi = [OFFSETS[f] for f in frames]
     ti = OFFSETS[target]
     renders, gts, preds, gdepths, oracles, names = [], [], [], [], [], None
@@ -149,52 +154,41 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
         if first is None:
             first = (r, s, (preds[-1], gdepths[-1]) if preds else None)
     R, G = torch.stack(renders), torch.stack(gts)              # [S, V, 3, H, W]
-    out: dict = {}
-
-    def block(sel: slice | int) -> dict:
-        r = R[:, sel].reshape(-1, 3, p.height, p.width)
-        g = G[:, sel].reshape(-1, 3, p.height, p.width)
-        mse = ((r - g) ** 2).mean()
-        m = {"psnr": float(-10 * torch.log10(mse.clamp_min(1e-12))), "psnr_mean": float(psnr(r, g).mean()),
-             "ssim": float(ssim(r, g).mean())}
-        if lpips is not None:
-            m["lpips"] = float(lpips(r, g).mean())
-        if preds:
-            dm = depth_metrics(torch.stack(preds)[:, sel], torch.stack(gdepths)[:, sel],
-                               min_depth=1e-3, max_depth=p.max_depth)
-            m.update(dm)
-        if oracles:
-            o = torch.stack(oracles)[:, sel].reshape(-1, 3, p.height, p.width)
-            m["oracle_psnr"] = float(-10 * torch.log10(((o - g) ** 2).mean().clamp_min(1e-12)))
-        return m
-
-    for c, name in enumerate(names):
-        out[name] = block(slice(c, c + 1))
-    out["all"] = block(slice(None))
+    S, V = R.shape[:2]
+    cams = [n for _ in range(S) for n in names]                # image i of R.flatten(0, 1) is cams[i]
+    scores = image_scores(R.flatten(0, 1), G.flatten(0, 1), lpips)
+    if oracles:
+        scores["oracle_psnr"] = psnr(torch.stack(oracles).flatten(0, 1), G.flatten(0, 1)).double()
+    all_, per_camera = camera_blocks(scores, cams)
+    if preds:
+        P, D = torch.stack(preds), torch.stack(gdepths)       # [S, V, H, W]
+        all_.update(depth_metrics(P, D, min_depth=1e-3, max_depth=p.max_depth))
+        for c, name in enumerate(names):
+            per_camera[name].update(depth_metrics(P[:, c], D[:, c], min_depth=1e-3, max_depth=p.max_depth))
     for k in ("t_err_m", "t_err_pct", "r_err_deg", "t_pred_m", "t_true_m"):
         vals = [q[k] for q in poses if q[k] is not None]
         if vals:
-            out["all"][f"pose_{k}"] = float(np.mean(vals))
-    out.update({k: v for k, v in out["all"].items()})
-    out["settings"] = {"preset": p.name, "mode": p.mode, "frames": list(frames), "target": target,
-                       "num_scenes": num_scenes, "cameras": names, "data": source.name,
-                       "lpips": "on" if lpips is not None else "off (no weights given)",
-                       "depth_gt": "none" if not preds else ("depth maps of the data" if "depths" in s
-                                                             else "projected LiDAR at t (nearest return per pixel)"),
-                       "psnr": "over all pixels pooled; psnr_mean: mean of per-image PSNR",
-                       "pose_source": getattr(p, "pose_source", "network"),
-                       "pose": ("pose network, camera 0, t -> t+1, against the data's ego motion; mean over windows"
-                                if poses else "not evaluated (pose_source 'dataset': the pose network is not trained)")}
+            all_[f"pose_{k}"] = float(np.mean(vals))
+    protocol = {"data": source.name, "split": "test", "scenes": num_scenes, "images": S * V, "cameras": names,
+                "mode": p.mode, "frames": list(frames), "target": target,
+                "lpips": "on" if lpips is not None else "off (no weights given)",
+                "depth_gt": "none" if not preds else ("depth maps of the data" if "depths" in s
+                                                      else "projected LiDAR at t (nearest return per pixel)"),
+                "oracle_psnr": "oracle-depth pixel reconstruction of the same target" if oracles else "not run",
+                "pose_source": getattr(p, "pose_source", "network"),
+                "pose": ("pose network, camera 0, t -> t+1, against the data's ego motion; mean over windows"
+                         if poses else "not evaluated (pose_source 'dataset': the pose network is not trained)")}
+    out = metrics_report(FAMILY, p.name, step, protocol, all_, per_camera)
     if out_dir is not None:
         od = Path(out_dir)
         od.mkdir(parents=True, exist_ok=True)
-        (od / "metrics.json").write_text(json.dumps(out, indent=2))
+        write_metrics(od, out)
         r, s, d = first
         t = s["images"][ti]
         make_contact_sheet(r.clamp(0, 1).permute(0, 2, 3, 1), t.permute(0, 2, 3, 1), od / "contact_sheet.png",
                            names=names, title=f"DrivingForward {p.name} ({p.mode}): frames {list(frames)} -> {target:+d}, "
-                                             f"PSNR {out['psnr']:.2f} dB")
+                                             f"PSNR {out['all']['psnr']:.2f} dB")
         if d is not None:
             make_contact_sheet(_depth_colour(d[0]), _depth_colour(d[1]), od / "depth_sheet.png", names=names,
-                               title=f"depth at t: prediction | ground truth (inverse depth); AbsRel {out['abs_rel']:.3f}")
+                               title=f"depth at t: prediction | ground truth (inverse depth); AbsRel {out['all']['abs_rel']:.3f}")
     return out

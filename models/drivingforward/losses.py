@@ -128,20 +128,14 @@ def spatial_loss(images: Tensor, depth: Tensor, Ks: Tensor, cam_to_ego: Tensor) 
     Returns:
         scalar (0 with one camera).
     """
-    V = images.shape[0]
-    pairs = rig_neighbours(cam_to_ego)
-    if not pairs:
-        return depth.sum() * 0.0
-    c = [p[0] for p in pairs]
-    n = [p[1] for p in pairs]
-    T = invert_rigid(cam_to_ego[n]) @ cam_to_ego[c]
-    err, valid = _neighbour_errors(images, images, depth, Ks, T, pairs)
-    return _masked_mean_per_pair(err, valid, pairs, V)
+    eye = torch.eye(4, dtype=cam_to_ego.dtype, device=cam_to_ego.device)
+    return spatio_temporal_loss(images, [images], depth, Ks, cam_to_ego, [eye])   # one source: no minimum
 
 
 def spatio_temporal_loss(target: Tensor, sources: list[Tensor], depth: Tensor, Ks: Tensor, cam_to_ego: Tensor,
                          ego_to_src: list[Tensor]) -> Tensor:
-    """Neighbouring cameras at t-1 and t+1 warped into each camera at t, minimum over the frames.
+    """Neighbouring cameras at t-1 and t+1 warped into each camera at t, minimum over the frames
+    (with one source, the frame itself and the identity motion, this is :func:`spatial_loss`).
 
     Args:
         target: ``[V, 3, H, W]`` at t; sources: images at t-1 and t+1; depth ``[V, 1, H, W]``;

@@ -7,20 +7,22 @@
                      --budgets 1,0.5,0.2,0.1,0.05 --out runs/pgt-eval
 
 ``train`` writes the run folder of :func:`clsplat.models.common.train.train` (checkpoint.pt,
-log.jsonl, loss.png). ``eval`` writes budget.json (rows: method, budget, n_gaussians, psnr, ssim,
+log.jsonl, loss.png) and the evaluation on ``--eval-scenes`` held-out samples (as ``eval`` does, at
+κ = 1 after the base stage). ``eval`` writes budget.json (rows: method, budget, n_gaussians, psnr, ssim,
 render_ms), budget.png (quality against Gaussian count and render time, Pareto front),
-metrics.json (full-set quality, depth AbsRel with and without the residual head, seconds per
-prediction) and contact_sheet.png.
+metrics.json (full-set quality in the shared schema of :mod:`clsplat.models.common.report`,
+depth with and without the residual head, seconds per prediction) and contact_sheet.png.
 """
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
-from clsplat.models.common.cli import add_common_args, add_eval_args, add_lpips_args, lpips_from_args
+from clsplat.argparser import ArgumentParser
+from clsplat.models.common.cli import (add_common_args, add_eval_args, add_eval_scenes_arg, lpips_from_args,
+                                      no_weights)
 from clsplat.models.common.data import parse_data
-from clsplat.models.common.presets import check_preset_matches, get_preset
+from clsplat.models.common.presets import apply_sets, check_preset_matches, get_preset, preset_from_saved
 from clsplat.models.common.train import TrainSpec, load_checkpoint, seed_everything, set_threads
 from clsplat.models.common.train import train as run_train
 
@@ -48,17 +50,30 @@ def parse_budgets(text: str) -> list[float]:
     return values
 
 
+#: the budgets κ of ``eval pgt`` (and of the evaluation after a budget-stage run)
+DEFAULT_BUDGETS = (1.0, 0.5, 0.2, 0.1, 0.05)
+
+
+def _summary(m: dict) -> str:
+    a = m["all"]
+    return (f"full set: PSNR {a['psnr']:.2f} dB, SSIM {a['ssim']:.3f}"
+            + (f", LPIPS {a['lpips']:.3f}" if "lpips" in a else "")
+            + f"; depth AbsRel {m['depth_without_residual'].get('abs_rel', float('nan')):.3f} (coarse) -> "
+              f"{a.get('abs_rel', float('nan')):.3f} (residual)")
+
+
 def train(argv: list[str]) -> int:
     """``clsplat train pgt ...``; returns the exit status."""
-    p = argparse.ArgumentParser(prog="clsplat train pgt", description="Train PGT (base) or EcoSplat's budget stage.")
+    p = ArgumentParser(prog="clsplat train pgt", description="Train PGT (base) or EcoSplat's budget stage.")
     add_common_args(p, default_preset="small")
     p.add_argument("--stage", choices=("base", "budget"), default="base",
                    help="base: the pixel-aligned predictor; budget: EcoSplat stage 2 from --init")
     p.add_argument("--init", default=None, help="base checkpoint to start the budget stage from")
-    add_lpips_args(p)
+    add_eval_scenes_arg(p)
     args = p.parse_args(argv)
     try:
-        preset = get_preset(FAMILY, args.preset)
+        no_weights(args, "PGT", "its U-Net encoder and matcher train from random initialisation, as in the paper")
+        preset = apply_sets(get_preset(FAMILY, args.preset), args.set)
         if args.stage == "budget" and args.init is None and not args.resume:
             raise ValueError("--init: the budget stage starts from a base checkpoint; give --init FILE")
         source = parse_data(args.data, seed=args.seed, safe_pickle=not args.trust_pickle)
@@ -74,17 +89,25 @@ def train(argv: list[str]) -> int:
         steps = args.steps or (preset.steps if args.stage == "base" else preset.budget_steps)
         from .training import make_optimizer, make_sample_loss
         opt, sched = make_optimizer(model, preset, steps, args.stage)
-        lpips = lpips_from_args(args) if preset.w_lpips else None
+        lpips = lpips_from_args(args)   # the loss's LPIPS term (w_lpips) and the final evaluation
         from ..common.runfolder import RunFolder
         from ..common.train import distributed_info
         distributed_info()
         with RunFolder(args.out, resume=args.resume) as rf:  # the lock; outputs staged, then published as a group
             spec = TrainSpec(out_dir=rf.stage, steps=steps, batch_size=args.batch_size or preset.batch_size,
                              checkpoint_every=args.checkpoint_every, seed=args.seed, grad_clip=preset.grad_clip,
-                             resume=args.resume)
+                             resume=args.resume, progress=not args.no_progress)
             run_train(model, opt, spec, preset, FAMILY,
-                      make_sample_loss(source, preset, args.stage, args.seed, lpips),
+                      make_sample_loss(source, preset, args.stage, args.seed, lpips if preset.w_lpips else None),
                       scheduler=sched, extra_state={"stage": args.stage})
+            if args.eval_scenes > 0 and distributed_info()[0] == 0:
+                from .evaluate import evaluate_model, write_results
+                res = evaluate_model(model, source, preset, [1.0] if args.stage == "base" else DEFAULT_BUDGETS,
+                                     args.eval_scenes, args.seed, sheet=rf.stage / "contact_sheet.png",
+                                     lpips=lpips, step=steps)
+                write_results(res, rf.stage, f"PGT {preset.name} ({args.stage}, step {steps}) on held-out "
+                                             f"{source.name}")
+                print(_summary(res["metrics"]), flush=True)
             rf.publish()
     except ValueError as e:
         print(f"clsplat train pgt: {e}", file=sys.stderr)
@@ -94,17 +117,19 @@ def train(argv: list[str]) -> int:
 
 def evaluate(argv: list[str]) -> int:
     """``clsplat eval pgt ...``; returns the exit status."""
-    p = argparse.ArgumentParser(prog="clsplat eval pgt", description="Evaluate PGT on held-out data: budget curve.")
+    p = ArgumentParser(prog="clsplat eval pgt", description="Evaluate PGT on held-out data: budget curve.")
     add_eval_args(p)
-    p.add_argument("--budgets", default="1,0.5,0.2,0.1,0.05", help="comma-separated κ in (0, 1]")
+    p.add_argument("--budgets", default=",".join(f"{k:g}" for k in DEFAULT_BUDGETS),
+                   help="comma-separated κ in (0, 1]")
     p.add_argument("--repeats", type=int, default=3, help="timed renders per point (median)")
     args = p.parse_args(argv)
     try:
         budgets = parse_budgets(args.budgets)
         ck = load_checkpoint(args.checkpoint, FAMILY)
-        preset = get_preset(FAMILY, ck["preset"]["name"])
+        preset = preset_from_saved(FAMILY, ck["preset"])   # with the run's --set changes
         check_preset_matches(ck["preset"], preset, str(args.checkpoint))
         source = parse_data(args.data, seed=args.seed, safe_pickle=not args.trust_pickle)
+        lpips = lpips_from_args(args)
         set_threads(args.threads, args.device)
         model = PGT(preset)
         if any(k.startswith("budget.") for k in ck["model"]):
@@ -113,14 +138,10 @@ def evaluate(argv: list[str]) -> int:
         from .evaluate import evaluate_model, write_results
         Path(args.out).mkdir(parents=True, exist_ok=True)
         res = evaluate_model(model, source, preset, budgets, args.num_scenes, args.seed, args.repeats,
-                             sheet=Path(args.out) / "contact_sheet.png")
+                             sheet=Path(args.out) / "contact_sheet.png", lpips=lpips, step=int(ck["step"]))
         res["metrics"]["checkpoint"] = str(args.checkpoint)
-        res["metrics"]["step"] = int(ck["step"])
         write_results(res, args.out, f"PGT {preset.name} (step {ck['step']}) on held-out {source.name}")
-        m = res["metrics"]
-        print(f"full set: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.3f}; depth AbsRel "
-              f"{m['depth_without_residual'].get('abs_rel', float('nan')):.3f} (coarse) -> "
-              f"{m['depth_with_residual'].get('abs_rel', float('nan')):.3f} (residual)")
+        print(_summary(res["metrics"]))
         for r in res["rows"]:
             print(f"  {r['method']:>9} kappa={r['budget']:<5g} n={r['n_gaussians']:>8.0f} PSNR {r['psnr']:.2f} "
                   f"SSIM {r['ssim']:.3f} render {r['render_ms']:.1f} ms")

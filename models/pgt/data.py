@@ -35,7 +35,8 @@ class Sample:
 
     images [V, 3, H, W], Ks [V, 3, 3], cam_to_world [V, 4, 4], depths [V, H, W] or None (inf = sky);
     target_images [T, 3, H, W], target_Ks [T, 3, 3], target_viewmats [T, 4, 4] (world-to-camera),
-    target_depths [T, H, W] or None; name: where it came from.
+    target_depths [T, H, W] or None; name: where it came from; target_cameras: the camera of each
+    target view.
     """
 
     images: Tensor
@@ -47,6 +48,7 @@ class Sample:
     target_viewmats: Tensor
     target_depths: Tensor | None
     name: str
+    target_cameras: tuple[str, ...] = ()
 
 
 def _stack(frames: list[dict], key: str) -> Tensor | None:
@@ -84,6 +86,7 @@ def make_sample(source: DataSource, preset: PGTPreset, index: int, split: str = 
         src = [to_torch_frame(seq, 2 * g * k, [cam], dtype=torch.float64) for k in range(V)]
         tgt = [to_torch_frame(seq, 2 * g * k + g, [cam], dtype=torch.float64) for k in range(V - 1)]
         name = f"{seq.name}:{cam}"
+        target_cameras = (cam,) * (V - 1)
     else:
         start = RING.index(preset.cameras[pick]) if preset.cameras[pick] in RING else 0
         names = [RING[(start + k) % len(RING)] for k in range(V)]
@@ -92,6 +95,7 @@ def make_sample(source: DataSource, preset: PGTPreset, index: int, split: str = 
         src = [to_torch_frame(seq, 0, names, dtype=torch.float64)]
         tgt = [to_torch_frame(seq, 1, names, dtype=torch.float64)]
         name = f"{seq.name}:{'+'.join(names)}"
+        target_cameras = tuple(names)
     c2w = torch.cat([f["cam_to_world"] for f in src])
     ref = torch.linalg.inv(c2w[0])
     tc2w = ref @ torch.cat([f["cam_to_world"] for f in tgt])
@@ -106,4 +110,4 @@ def make_sample(source: DataSource, preset: PGTPreset, index: int, split: str = 
         target_Ks=torch.cat([f["Ks"] for f in tgt]).to(f32),
         target_viewmats=invert_rigid(tc2w).to(f32),
         target_depths=None if tdepths is None else tdepths.to(f32),
-        name=name)
+        name=name, target_cameras=target_cameras)

@@ -22,7 +22,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from clsplat.io.atomic import atomic_write
 from clsplat.models.common.metrics import depth_metrics, psnr, ssim
+from clsplat.models.common.report import camera_blocks, image_scores, metrics_report, write_metrics
 
 from .budget import per_view_budgets, random_mask, topk_mask, view_weights
 from .data import make_sample
@@ -46,18 +48,20 @@ def _timed_render(g, s, preset: PGTPreset, repeats: int) -> tuple[torch.Tensor, 
 
 
 def evaluate_model(model: PGT, source, preset: PGTPreset, budgets: list[float], num_scenes: int = 4,
-                   seed: int = 0, repeats: int = 3, sheet: str | Path | None = None) -> dict:
+                   seed: int = 0, repeats: int = 3, sheet: str | Path | None = None, lpips=None,
+                   step: int = 0) -> dict:
     """Evaluate ``model`` on held-out samples 0..num_scenes-1 (split "test").
 
     Returns {"rows": budget rows (method, budget, n_gaussians, psnr, ssim, render_ms),
-    "metrics": full-set PSNR/SSIM, depth metrics with and without the residual head, seconds per
-    prediction}. With ``sheet``, a contact sheet of sample 0 (full set and each method at the
-    smallest budget against the ground truth).
+    "metrics": the ``metrics.json`` dict (:mod:`clsplat.models.common.report`) of the full set:
+    PSNR/SSIM[/LPIPS] and depth (with the residual head) overall and per target camera, the depth
+    without the residual head, render and prediction times}. With ``sheet``, a contact sheet of
+    sample 0 (full set and each method at the smallest budget against the ground truth).
     """
     model.eval()
     methods = [m for m in METHODS if m != "finetuned" or model.budget is not None]
     acc: dict[tuple[str, float], list[dict]] = {}
-    full, d_coarse, d_fine, pred_s = [], [], [], []
+    full, full_gt, cams, d_coarse, d_fine, pred_s, render_ms = [], [], [], [], [], [], []
     for i in range(num_scenes):
         s = make_sample(source, preset, i, "test", None)
         V, _, H, W = s.images.shape
@@ -66,8 +70,10 @@ def evaluate_model(model: PGT, source, preset: PGTPreset, budgets: list[float], 
             base = model(s.images, s.Ks, s.cam_to_world)
             pred_s.append(time.perf_counter() - t0)
             rgb, ms = _timed_render(base.gaussians(), s, preset, repeats)
-            full.append({"psnr": float(psnr(rgb, s.target_images).mean()), "ssim": float(ssim(rgb, s.target_images).mean()),
-                         "render_ms": ms})
+            full.append(rgb)
+            full_gt.append(s.target_images)
+            cams += list(s.target_cameras)
+            render_ms.append(ms)
             if s.depths is not None:
                 d_coarse.append(depth_metrics(base.depth0, s.depths, max_depth=preset.far))
                 d_fine.append(depth_metrics(base.depth, s.depths, max_depth=preset.far))
@@ -106,13 +112,17 @@ def evaluate_model(model: PGT, source, preset: PGTPreset, budgets: list[float], 
         keys = ("abs_rel", "sq_rel", "rmse", "delta1")
         return {k: float(np.nanmean([d[k] for d in ds])) for k in keys} if ds else {}
 
-    metrics = {
-        "num_scenes": num_scenes,
-        "psnr": float(np.mean([f["psnr"] for f in full])), "ssim": float(np.mean([f["ssim"] for f in full])),
-        "render_ms": float(np.median([f["render_ms"] for f in full])),
-        "seconds_per_prediction": float(np.median(pred_s)),
-        "depth_without_residual": mean_depth(d_coarse), "depth_with_residual": mean_depth(d_fine),
-    }
+    all_, per_camera = camera_blocks(image_scores(torch.cat(full), torch.cat(full_gt), lpips), cams)
+    all_.update(mean_depth(d_fine))
+    protocol = {"data": source.name, "split": "test", "scenes": num_scenes, "images": len(cams),
+                "cameras": list(dict.fromkeys(cams)), "views": f"{preset.num_views} source views ({preset.views})",
+                "lpips": "on" if lpips is not None else "off (no weights given)",
+                "depth": "source views' depth after the residual head against the data's depth (mean over samples)",
+                "render_ms": "median over samples of the median of timed forward renders"}
+    metrics = metrics_report(
+        "pgt", preset.name, step, protocol, all_, per_camera,
+        depth_without_residual=mean_depth(d_coarse), render_ms=float(np.median(render_ms)),
+        seconds_per_prediction=float(np.median(pred_s)))
     return {"rows": rows, "metrics": metrics}
 
 
@@ -151,16 +161,17 @@ def plot_budget(rows: list[dict], png: str | Path, title: str = "PGT budget curv
     fig.suptitle(title)
     fig.tight_layout()
     png = Path(png)
-    fig.savefig(png)
+    atomic_write(Path(png), lambda p: fig.savefig(p, format="png"))
     plt.close(fig)
     return png
 
 
 def write_results(result: dict, out_dir: str | Path, title: str) -> None:
-    """out_dir/budget.json (rows), budget.png, metrics.json."""
+    """out_dir/budget.json (rows), budget.png, metrics.json, each written atomically."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "budget.json").write_text(json.dumps(result["rows"], indent=1))
-    (out / "metrics.json").write_text(json.dumps(result["metrics"], indent=1))
+    text = json.dumps(result["rows"], indent=1)
+    atomic_write(out / "budget.json", lambda p: p.write_text(text))
+    write_metrics(out, result["metrics"])
     plot_budget(result["rows"], out / "budget.png", title)
 
