@@ -87,11 +87,11 @@ def reconstruct(data, preset, switches, out: Path, *, device=None, progress: boo
     it = [r["time_s"] for r in steps]
     train_s = sum(it)
     ev = evaluate_run(trainer, lpips=lpips[0])
-    ev["protocol"].update({k: extra[k] for k in ("data", "scale") if extra and k in extra})
-    ev["protocol"]["lpips"] = lpips[1] if lpips[0] is None else ev["protocol"]["lpips"]
+    recorded = ("data", "scale", "frames")   # what eval autosplat and the viewer rebuild the run from
+    ev["protocol"].update({k: extra[k] for k in recorded if extra and k in extra})
     sections = {k: v for k, v in ev.items() if k not in ("protocol", "all", "per_camera", "eval_seconds")}
     sections.update({
-        **{k: v for k, v in (extra or {}).items() if k not in ("data", "scale")},
+        **{k: v for k, v in (extra or {}).items() if k not in recorded},
         "switches": switches.to_dict(),
         "seconds_per_stage": {**({"load": extra["load_seconds"]} if extra and "load_seconds" in extra else {}),
                               **trainer.stage_seconds, "eval": ev["eval_seconds"]},
@@ -157,7 +157,8 @@ def train(argv: list[str]) -> int:
     with RunFolder(a.out, resume=a.resume) as rf:  # the lock; outputs staged, then published as a group
         metrics = reconstruct(data, preset, switches, rf.stage, device=a.device, progress=not a.no_progress,
                               checkpoint_every=a.checkpoint_every, resume=a.resume, stop_after=a.stop_after,
-                              lpips=(lp, msg), extra={"data": a.data, "scale": scale, "load_seconds": load_s},
+                              lpips=(lp, msg), extra={"data": a.data, "scale": scale, "frames": list(frames) if frames else None,
+                                     "load_seconds": load_s},
                               view={"host": a.view_host, "port": a.view_port, "every": a.view_every}
                               if a.view else None)
         if metrics is None:

@@ -135,30 +135,35 @@ def _lateral(trainer: Trainer, show: int, make_sheet) -> dict:
 def trainer_from_checkpoint(ck: dict, ck_path: Path, run: Path, data: str | None, out_dir: Path | None = None,
                             device=None, arg: str = "PATH") -> Trainer:
     """The :class:`Trainer` of a run rebuilt from its checkpoint ``ck`` (read from ``ck_path`` in
-    the run folder ``run``) on the run's data: ``--data``/``--scale`` from the run's
-    ``metrics.json`` (else the built-in street at the preset's scale), or ``data`` when given.
+    the run folder ``run``) on the run's data: ``--data``, ``--scale`` and ``--frames`` recorded in
+    the run's ``metrics.json`` (else the built-in street at the preset's scale, cut to the run's
+    training frames), or ``data`` when given.
     Its sheets go to ``out_dir`` (default the run folder). ValueError naming ``arg`` when the data
     does not give the run's training frames or tracked objects."""
     preset = preset_from_saved("autosplat", ck["preset"])
     ex = checkpoint_extra(ck)
-    spec, scale = "synthetic", preset.scale
+    spec, scale, frames = "synthetic", preset.scale, None
     metrics = run / "metrics.json"
     if metrics.is_file():
         m = json.loads(metrics.read_text())
         recorded = m.get("protocol", m)   # schema 1 keeps them in "protocol"; earlier runs at the top
-        spec, scale = recorded.get("data", spec), recorded.get("scale", scale)
-    spec = data or spec
+        spec, scale, frames = recorded.get("data", spec), recorded.get("scale", scale), recorded.get("frames")
+    if data is not None and data != spec:
+        spec, frames = data, None
     want = list(ex.get("train_frames") or [0])
-    # the run's frame range is not stored: the first cut of the sequence whose split gives its training frames
-    seq = load_sequence(spec, ex.get("cameras"), (0, max(want) + 1 + preset.holdout) if spec == "synthetic" else None,
-                        scale, seed=preset.seed)
-    for n in range(max(want) + 1, len(seq.frames) + 1):
-        d = prepare_data(DrivingSequence(seq.cameras, seq.frames[:n], seq.name, seq.metadata), ex.get("cameras"),
-                         preset.holdout)
-        if d.train_frames == want:
-            break
-    else:
-        raise ValueError(f"{arg} {str(ck_path)!r}: its training frames {ck.get('train_frames')} are not those of "
+    if frames is not None:      # the run's recorded frame range: the same sequence
+        d = prepare_data(load_sequence(spec, ex.get("cameras"), tuple(frames), scale, seed=preset.seed),
+                         ex.get("cameras"), preset.holdout)
+    else:   # not recorded (an unfinished run, or --data named): the first cut whose split gives the frames
+        d = None
+        seq = load_sequence(spec, ex.get("cameras"), None, scale, seed=preset.seed)
+        for n in range(max(want) + 1, len(seq.frames) + 1):
+            d = prepare_data(DrivingSequence(seq.cameras, seq.frames[:n], seq.name, seq.metadata),
+                             ex.get("cameras"), preset.holdout)
+            if d.train_frames == want:
+                break
+    if d is None or d.train_frames != want:
+        raise ValueError(f"{arg} {str(ck_path)!r}: its training frames {want} are not those of "
                          f"--data {spec!r}; name the run's data with --data")
     tr = Trainer(d, preset, Switches(**ex["switches"]), out_dir or run, device=device, progress=False)
     if [t.track_id for t in tr.tracks] != ex.get("tracks"):
