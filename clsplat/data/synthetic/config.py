@@ -28,7 +28,7 @@ _AMBIENT = 0.55
 
 @dataclass
 class SyntheticConfig:
-    """Parameters of :func:`generate_sequence`.
+    """Parameters of :func:`~clsplat.data.synthetic.generate_sequence`.
 
     Attributes:
         height, width: image size of every camera (pixels).

@@ -20,7 +20,8 @@ class StreetScene:
     Args:
         seed: layout / texture seed.
         x_range: ``(xmin, xmax)`` world extent of buildings and street furniture.
-        num_parked, num_moving, poles, trees, blink_period: see :class:`SyntheticConfig`.
+        num_parked, num_moving, poles, trees, blink_period: see
+            :class:`~clsplat.data.synthetic.config.SyntheticConfig`.
         ego_speed: speed of the ego vehicle; moving vehicles drive at speeds relative to it.
     """
 
