@@ -8,9 +8,10 @@
    mean focal length), opacity 0.95, colour = the pixel's RGB (plain colours, no SH).
 3. Render the 6 cameras of frame 1 with :func:`clsplat.rasterization`; the background is the
    mean sky colour of frame 0 (sky pixels are not lifted).
-4. Report PSNR and SSIM (``kornia.metrics``, 11x11 Gaussian window) against frame 1's ground
-   truth, over all pixels of all cameras and per camera, ``psnr_masked`` over the pixels that
-   are neither sky nor a moving vehicle in frame 1, plus wall time per step.  Errors come
+4. Report PSNR and SSIM (:mod:`clsplat.image_metrics`, the models' metrics: 11x11 Gaussian
+   window, 'valid' padding) against frame 1's ground truth, over all pixels of all cameras and
+   per camera, ``psnr_masked`` over the pixels that are neither sky nor a moving vehicle in
+   frame 1, plus wall time per step.  Errors come
    from disocclusions, the moving vehicles (lifted at their frame-0 place), the blinking lights
    and the stretched footprint of surfaces seen at grazing angles.
 5. Write ``contact_sheet.png`` (render | ground truth | |error| per camera), ``renders/<CAM>.png``,
@@ -27,6 +28,7 @@ import torch
 
 from .data.scene import SEMANTIC_CLASSES, DrivingSequence, unproject_depth
 from .data.synthetic import SyntheticConfig, generate_sequence
+from .image_metrics import psnr, ssim
 
 __all__ = ["lift_pixels", "main", "evaluate"]
 
@@ -73,30 +75,37 @@ def lift_pixels(seq: DrivingSequence, frame_index: int = 0, opacity: float = 0.9
 
 
 def evaluate(renders: torch.Tensor, targets: torch.Tensor, mask: torch.Tensor | None = None) -> dict:
-    """PSNR (dB) and SSIM of ``renders`` vs ``targets``, both ``[C, H, W, 3]`` in [0, 1].
+    """PSNR (dB) and SSIM of ``renders`` vs ``targets``, both ``[C, H, W, 3]`` in [0, 1], with the
+    metrics the model families report (:mod:`clsplat.image_metrics`: SSIM over 11x11 Gaussian
+    windows with 'valid' padding, so H, W >= 11).
 
     Returns ``{"psnr", "ssim", "psnr_per_camera": [C], "ssim_per_camera": [C]}``; the overall
-    PSNR is over all pixels of all cameras (not the mean of per-camera values).  With a boolean
-    ``mask`` ``[C, H, W]`` also ``psnr_masked``: PSNR over the masked pixels only.
+    PSNR is over all pixels of all cameras (not the mean of per-camera values), the overall SSIM
+    the mean over all cameras' windows.  With a boolean ``mask`` ``[C, H, W]`` also
+    ``psnr_masked``: PSNR over the masked pixels only (NaN when the mask is empty).
     """
-    import kornia
+    if not (isinstance(renders, torch.Tensor) and isinstance(targets, torch.Tensor)) \
+            or renders.shape != targets.shape or renders.ndim != 4 or renders.shape[-1] != 3:
+        raise ValueError(f"renders {list(getattr(renders, 'shape', []))} and targets "
+                         f"{list(getattr(targets, 'shape', []))} must both be [C, H, W, 3] tensors")
+    a = renders.detach().float().permute(0, 3, 1, 2)
+    b = targets.detach().float().permute(0, 3, 1, 2)
 
-    if renders.shape != targets.shape or renders.ndim != 4 or renders.shape[-1] != 3:
-        raise ValueError(f"renders {list(renders.shape)} and targets {list(targets.shape)} must both be [C, H, W, 3]")
-    a = renders.detach().float().clamp(0, 1).permute(0, 3, 1, 2)
-    b = targets.detach().float().clamp(0, 1).permute(0, 3, 1, 2)
-    ssim_map = kornia.metrics.ssim(a, b, window_size=11, max_val=1.0)
+    def side_by_side(x: torch.Tensor) -> torch.Tensor:
+        """[C, ch, H, W] -> [1, ch, H, C*W]: one image holding every camera (pooled PSNR)."""
+        return torch.cat(list(x), dim=-1)[None]
+
     extra = {}
     if mask is not None:
-        if mask.shape != renders.shape[:3]:
-            raise ValueError(f"mask must have shape {list(renders.shape[:3])}, got {list(mask.shape)}")
-        se = ((a - b) ** 2).mean(dim=1)[mask]
-        extra["psnr_masked"] = float(-10 * torch.log10(se.mean().clamp_min(1e-12))) if se.numel() else float("nan")
+        if not isinstance(mask, torch.Tensor) or mask.shape != renders.shape[:3]:
+            raise ValueError(f"mask must have shape {list(renders.shape[:3])}, got {list(getattr(mask, 'shape', []))}")
+        extra["psnr_masked"] = float(psnr(side_by_side(a), side_by_side(b), side_by_side(mask[:, None])))
+    ssim_per_camera = ssim(a, b)
     return {**extra,
-        "psnr": float(kornia.metrics.psnr(a, b, max_val=1.0)),
-        "ssim": float(ssim_map.mean()),
-        "psnr_per_camera": [float(kornia.metrics.psnr(a[i], b[i], max_val=1.0)) for i in range(a.shape[0])],
-        "ssim_per_camera": [float(ssim_map[i].mean()) for i in range(a.shape[0])],
+        "psnr": float(psnr(side_by_side(a), side_by_side(b))),
+        "ssim": float(ssim_per_camera.mean()),
+        "psnr_per_camera": [float(v) for v in psnr(a, b)],
+        "ssim_per_camera": [float(v) for v in ssim_per_camera],
     }
 
 

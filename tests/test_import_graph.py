@@ -3,10 +3,12 @@ benchmarks, at module level or lazily, and no project modules import each other 
 
 Read from the source with ``ast`` (every ``import``, inside functions too, and literal
 ``importlib.import_module`` names), and checked once more at run time in a fresh interpreter
-that imports every engine module."""
+that imports every engine module. Every package folder is also listed in setup.cfg's
+``packages`` (a package missing there is silently left out of the wheel)."""
 from __future__ import annotations
 
 import ast
+import configparser
 import subprocess
 import sys
 import textwrap
@@ -146,3 +148,12 @@ def test_the_graph_reader_sees_lazy_and_computed_imports(tmp_path):
     """))
     known = {"clsplat", "clsplat.cli", "clsplat.models.autosplat.demo", "clsplat.bench.stages"}
     assert _imports("clsplat.cli", f, known) == {"clsplat.models.autosplat.demo", "clsplat.bench"}
+
+
+def test_every_package_folder_is_in_setup_cfg():
+    cfg = configparser.ConfigParser()
+    cfg.read(ROOT / "setup.cfg")
+    listed = set(cfg["options"]["packages"].split())
+    folders = {m for m, p in _modules().items() if p.name == "__init__.py"}
+    assert folders <= listed, f"package folders missing from setup.cfg [options] packages: {sorted(folders - listed)}"
+    assert listed <= folders, f"setup.cfg lists packages with no folder: {sorted(listed - folders)}"

@@ -6,7 +6,8 @@ import pytest
 
 from clsplat.data.scene import CAMERA_NAMES, SEMANTIC_CLASSES, Camera, invert_transform, make_transform, \
     project_points, unproject_depth
-from clsplat.data.synthetic import SyntheticConfig, StreetScene, _box_albedo, generate_sequence, make_rig, render_view
+from clsplat.data.synthetic import SyntheticConfig, StreetScene, generate_sequence, make_rig, render_view
+from clsplat.data.synthetic.textures import _box_albedo
 
 H, W = 48, 96
 SKY = SEMANTIC_CLASSES.index("sky")

@@ -57,6 +57,27 @@ def test_the_key_separates_configs_and_generator_versions(tmp_path, monkeypatch)
     assert CFG not in sc.SyntheticCache(tmp_path) and sc.SyntheticCache(tmp_path).get(CFG) is None
 
 
+def test_the_fingerprint_covers_every_file_of_the_generator_package(tmp_path, monkeypatch):
+    """The generator is a package (clsplat/data/synthetic/): a change to any of its files, not only
+    __init__.py, gives a new fingerprint."""
+    import shutil
+    from pathlib import Path
+
+    from clsplat.data import synthetic
+
+    copy = tmp_path / "synthetic"
+    shutil.copytree(Path(synthetic.__file__).parent, copy,
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    monkeypatch.setattr(synthetic, "__file__", str(copy / "__init__.py"))
+    before = sc.generator_fingerprint()
+    assert before == sc.generator_fingerprint() and len(before) == 16
+    for name in ("textures.py", "street.py", "__init__.py"):
+        (copy / name).write_text((copy / name).read_text() + "\n# changed\n")
+        after = sc.generator_fingerprint()
+        assert after != before, name
+        before = after
+
+
 def test_a_damaged_file_is_a_miss_and_is_rewritten(tmp_path):
     cache = sc.SyntheticCache(tmp_path)
     cache.sequence(CFG)

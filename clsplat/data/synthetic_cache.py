@@ -8,7 +8,7 @@ cache never runs code) named by a key that hashes
 
 * every field of its :class:`~clsplat.data.synthetic.SyntheticConfig` (seed, size, frames, dt,
   supersample, cameras, LiDAR, ...): a street is found only for exactly the config that made it;
-* the cache format (:data:`CACHE_FORMAT`) and a fingerprint of the generator's source file
+* the cache format (:data:`CACHE_FORMAT`) and a fingerprint of the generator's source
   (:func:`generator_fingerprint`): a changed generator never serves a stale street.
 
 Files are written atomically (:mod:`clsplat.io.atomic`), so an interrupted fill leaves only whole
@@ -41,11 +41,14 @@ _SUFFIX = ".npz"
 
 
 def generator_fingerprint() -> str:
-    """First 16 hex digits of the SHA-256 of ``clsplat/data/synthetic.py`` (any change to the
-    generator's source invalidates the cache)."""
+    """First 16 hex digits of the SHA-256 of the generator's source, every ``.py`` file of the
+    ``clsplat/data/synthetic/`` package by name (any change to it invalidates the cache)."""
     from . import synthetic
 
-    return hashlib.sha256(Path(synthetic.__file__).read_bytes()).hexdigest()[:16]
+    h = hashlib.sha256()
+    for path in sorted(Path(synthetic.__file__).parent.glob("*.py")):
+        h.update(path.name.encode() + b"\0" + path.read_bytes())
+    return h.hexdigest()[:16]
 
 
 def _config_dict(cfg: SyntheticConfig) -> dict:

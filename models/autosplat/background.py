@@ -4,8 +4,9 @@ Phase 1 renders the road set and the sky set **alone** and supervises each on it
 phase 2 renders all background Gaussians and supervises every pixel that is not foreground
 (a tracked object's instance pixel, or a pixel whose ray hits a tracked box).
 
-``L = (1 - λ) L1 + λ (1 - SSIM) + β C`` with SSIM over an 11x11 Gaussian window (kornia, as 3DGS),
-both photometric terms averaged over the mask.
+``L = (1 - λ) L1 + λ (1 - SSIM) + β C`` with SSIM over an 11x11 Gaussian window, the per-pixel map
+with 'same' padding (:func:`clsplat.image_metrics.ssim_map`, as 3DGS's loss) so that it lines up
+with the mask, both photometric terms averaged over the mask.
 
 Flatness (MODELS.md §3): ``C = mean over road and sky Gaussians of |roll| + |pitch| + |s_z|``,
 angles and the vertical scale expressed in each Gaussian's reference frame (road: the road's
@@ -14,11 +15,11 @@ Roll and pitch are measured modulo π (a disc flipped upside down is still flat)
 """
 from __future__ import annotations
 
-import kornia
 import numpy as np
 import torch
 
 from clsplat.data.scene import DrivingSequence
+from clsplat.image_metrics import ssim_map
 
 from ..common.geometry import quat_to_matrix
 
@@ -31,14 +32,14 @@ def masked_photometric(render: torch.Tensor, target: torch.Tensor, mask: torch.T
     a = render.permute(0, 3, 1, 2)
     b = target.permute(0, 3, 1, 2)
     l1_map = (a - b).abs().mean(1)
-    ssim_map = kornia.metrics.ssim(a, b, window_size=11, max_val=1.0).mean(1)
+    s_map = ssim_map(a, b, padding="same").mean(1)
     if mask is None:
-        l1, dssim = l1_map.mean(), 1 - ssim_map.mean()
+        l1, dssim = l1_map.mean(), 1 - s_map.mean()
     else:
         m = mask.to(a.dtype)
         denom = m.sum().clamp_min(1.0)
         l1 = (l1_map * m).sum() / denom
-        dssim = ((1 - ssim_map) * m).sum() / denom
+        dssim = ((1 - s_map) * m).sum() / denom
     return (1 - lambda_dssim) * l1 + lambda_dssim * dssim, l1, dssim
 
 

@@ -10,6 +10,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from clsplat.image_metrics import check_image_pair  # re-exported: the models' losses share the engine's check
+
 __all__ = [
     "check_image_pair",
     "ssim_map3",
@@ -20,23 +22,6 @@ __all__ = [
 
 SSIM_C1 = 0.01**2
 SSIM_C2 = 0.03**2
-
-
-def check_image_pair(a: Tensor, b: Tensor, name_a: str = "a", name_b: str = "b", channels: int | None = None) -> None:
-    """ValueError unless ``a`` and ``b`` are finite floating [B, C, H, W] tensors of one shape
-    (with ``C == channels`` when given)."""
-    for t, name in ((a, name_a), (b, name_b)):
-        if not isinstance(t, Tensor):
-            raise ValueError(f"{name}: expected a torch.Tensor, got {type(t).__name__}")
-        if t.dim() != 4 or (channels is not None and t.shape[1] != channels):
-            c = "C" if channels is None else str(channels)
-            raise ValueError(f"{name}: expected shape [B, {c}, H, W], got {list(t.shape)}")
-        if not t.is_floating_point():
-            raise ValueError(f"{name}: expected a floating-point tensor, got {t.dtype}")
-        if not torch.isfinite(t).all():
-            raise ValueError(f"{name}: contains NaN or inf")
-    if a.shape != b.shape:
-        raise ValueError(f"{name_a} and {name_b}: shapes differ, {list(a.shape)} vs {list(b.shape)}")
 
 
 def _box3(x: Tensor) -> Tensor:

@@ -1,6 +1,8 @@
-"""Evaluation metrics shared by the model families: PSNR, SSIM (kornia, 11x11 Gaussian window),
-depth errors in metric units, relative-pose errors (translation in m and %, rotation in degrees),
-and LPIPS (VGG-16, v0.1 linear layers) from local weight files only.
+"""Evaluation metrics shared by the model families: PSNR and SSIM (the engine's
+:mod:`clsplat.image_metrics`, re-exported here: 11x11 Gaussian window, 'valid' padding, the same
+definition as the engine's oracle-depth baseline), depth errors in metric units, relative-pose
+errors (translation in m and %, rotation in degrees), and LPIPS (VGG-16, v0.1 linear layers)
+from local weight files only.
 
 LPIPS is computed only from weights the user names; :func:`lpips_or_none` returns ``None`` and a
 message saying the metric is off when there are none. A randomly initialised backbone is never
@@ -14,65 +16,15 @@ from collections.abc import Mapping
 from typing import Optional
 
 import torch
-from kornia.metrics import ssim as _kornia_ssim
 from torch import Tensor, nn
 
-from .backbones import VGG16, load_backbone_weights
-from .losses import check_image_pair
+from clsplat.image_metrics import SSIM_WINDOW, check_image_pair, psnr, ssim
 
-__all__ = ["psnr", "ssim", "depth_metrics", "pose_errors", "LPIPS", "lpips_or_none", "LPIPS_OFF_MESSAGE"]
+from .backbones import VGG16, load_backbone_weights
+
+__all__ = ["psnr", "ssim", "SSIM_WINDOW", "depth_metrics", "pose_errors", "LPIPS", "lpips_or_none", "LPIPS_OFF_MESSAGE"]
 
 LPIPS_OFF_MESSAGE = "LPIPS off: no VGG-16 / LPIPS weights given (nothing is downloaded)"
-
-
-def _mask(mask: Optional[Tensor], like: Tensor, name: str = "mask") -> Optional[Tensor]:
-    """A [B, 1, H, W] or [B, H, W] mask as a float [B, 1, H, W] tensor (non-zero = used)."""
-    if mask is None:
-        return None
-    if not isinstance(mask, Tensor):
-        raise ValueError(f"{name}: expected a torch.Tensor or None, got {type(mask).__name__}")
-    B, _, H, W = like.shape
-    if mask.dim() == 3:
-        mask = mask[:, None]
-    if mask.shape != (B, 1, H, W):
-        raise ValueError(f"{name}: expected shape [{B}, 1, {H}, {W}] or [{B}, {H}, {W}], got {list(mask.shape)}")
-    return (mask != 0).to(like.dtype)
-
-
-def psnr(pred: Tensor, target: Tensor, mask: Optional[Tensor] = None) -> Tensor:
-    """Peak signal-to-noise ratio in dB per image, ``-10 log10(MSE)``, both images clipped to
-    [0, 1] first; with ``mask``, the MSE is over the masked pixels (all channels) only.
-
-    pred, target: [B, C, H, W]; mask: [B, 1, H, W] or [B, H, W] (bool or 0/1) -> [B].
-    Identical images give inf; an image with an empty mask gives NaN.
-    """
-    check_image_pair(pred, target, "pred", "target")
-    m = _mask(mask, pred)
-    err = (pred.clamp(0, 1) - target.clamp(0, 1)) ** 2
-    if m is None:
-        mse = err.mean(dim=(1, 2, 3))
-    else:
-        mse = (err * m).sum(dim=(1, 2, 3)) / (m.sum(dim=(1, 2, 3)) * pred.shape[1])
-    return -10.0 * torch.log10(mse)
-
-
-#: side of SSIM's Gaussian window: images must be at least this high and wide.
-SSIM_WINDOW = 11
-
-
-def ssim(pred: Tensor, target: Tensor) -> Tensor:
-    """Mean SSIM per image: ``kornia.metrics.ssim`` with an 11x11 Gaussian window (sigma 1.5),
-    data range 1, C1 = 0.01², C2 = 0.03², no epsilon, averaged over the "valid" region (the
-    window inside the image) and channels, as scikit-image's ``structural_similarity`` with
-    ``gaussian_weights=True``. Images are clipped to [0, 1] first.
-
-    pred, target: [B, C, H, W] with H, W >= 11 -> [B].
-    """
-    check_image_pair(pred, target, "pred", "target")
-    if min(pred.shape[-2:]) < SSIM_WINDOW:
-        raise ValueError(f"pred: SSIM's 11x11 window needs H, W >= 11, got {list(pred.shape[-2:])}")
-    smap = _kornia_ssim(pred.clamp(0, 1), target.clamp(0, 1), SSIM_WINDOW, max_val=1.0, eps=0.0, padding="valid")
-    return smap.mean(dim=(1, 2, 3))
 
 
 def depth_metrics(

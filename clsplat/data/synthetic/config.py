@@ -1,0 +1,155 @@
+"""Constants and plain data of the synthetic street: :class:`SyntheticConfig` (what
+:func:`~clsplat.data.synthetic.generate_sequence` takes), the street's layout constants (road,
+sidewalk, rig and LiDAR mounts, sun), :class:`VehicleSpec` (a vehicle and its motion),
+``_Box`` (the ray-castable primitive every surface is made of) and :class:`RenderOutput`
+(one view's ground truth). No rendering happens here.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..scene import CAMERA_NAMES, SEMANTIC_CLASSES, make_transform
+
+SEM = {name: i for i, name in enumerate(SEMANTIC_CLASSES)}
+
+#: camera yaw in the ego frame (degrees, counter-clockwise from ego +x), rig order.
+RIG_YAWS_DEG: tuple[float, ...] = (0.0, 55.0, -55.0, 110.0, -110.0, 180.0)
+_RIG_POS = ((1.7, 0.0), (1.5, 0.5), (1.5, -0.5), (0.0, 0.6), (0.0, -0.6), (-1.0, 0.0))
+CAMERA_HEIGHT = 1.6
+LIDAR_MOUNT = np.array([0.0, 0.0, 1.8])
+ROAD_HALF = 7.0
+SIDEWALK_OUT = 10.0
+_SUN = np.array([0.35, 0.45, 0.82]) / np.linalg.norm([0.35, 0.45, 0.82])
+_AMBIENT = 0.55
+
+
+@dataclass
+class SyntheticConfig:
+    """Parameters of :func:`~clsplat.data.synthetic.generate_sequence`.
+
+    Attributes:
+        height, width: image size of every camera (pixels).
+        num_frames: number of frames; frame k is at ``k * dt`` seconds.
+        seed: layout / texture seed; same seed and config -> identical output.
+        dt: frame interval in seconds.
+        speed: ego speed in m/s along +x.
+        lane_change: if True the ego moves from the right lane (y=-1.75) to the left lane
+            (y=+1.75) with a smooth-step profile over ``lane_change_duration`` seconds from t=0.
+        num_parked: parked vehicles.  num_moving: moving vehicles (<= 3).
+        poles, trees: add street furniture.
+        lidar: simulate the LiDAR sweep per frame.
+        supersample: ``s``; RGB is the mean of ``s x s`` sub-pixel rays (depth/semantics
+            always use the pixel centre ray).
+        hfov_deg, back_hfov_deg: horizontal FOV of the five front/side cameras and of CAM_BACK.
+        lateral_shift: shift of the whole camera rig along ego +y (novel-view evaluation).
+        blink_period: period of the hazard lights of vehicle 1, seconds.
+        cameras: names of the cameras to render (a subset of CAMERA_NAMES, in any order); the
+            default renders all six. Cameras left out are never rendered.
+        t0: time of frame 0 in seconds (frame k is at ``t0 + k * dt``).
+    """
+
+    height: int = 176
+    width: int = 320
+    num_frames: int = 10
+    seed: int = 0
+    dt: float = 0.1
+    speed: float = 8.0
+    lane_change: bool = True
+    lane_change_duration: float = 3.0
+    num_parked: int = 6
+    num_moving: int = 2
+    poles: bool = True
+    trees: bool = True
+    lidar: bool = True
+    supersample: int = 1
+    hfov_deg: float = 70.0
+    back_hfov_deg: float = 85.0
+    lateral_shift: float = 0.0
+    blink_period: float = 1.0
+    cameras: tuple[str, ...] | None = None
+    t0: float = 0.0
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first bad field."""
+        for name in ("height", "width", "num_frames", "supersample"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+                raise ValueError(f"SyntheticConfig.{name} must be a positive int, got {v!r}")
+        for name in ("num_parked", "num_moving"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
+                raise ValueError(f"SyntheticConfig.{name} must be a non-negative int, got {v!r}")
+        if self.num_moving > 3:
+            raise ValueError(f"SyntheticConfig.num_moving must be <= 3, got {self.num_moving}")
+        if self.num_parked > 16:
+            raise ValueError(f"SyntheticConfig.num_parked must be <= 16, got {self.num_parked}")
+        for name in ("dt", "lane_change_duration", "blink_period"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"SyntheticConfig.{name} must be a positive number, got {v!r}")
+        if not (isinstance(self.speed, (int, float)) and math.isfinite(self.speed) and self.speed >= 0):
+            raise ValueError(f"SyntheticConfig.speed must be a non-negative number, got {self.speed!r}")
+        for name in ("hfov_deg", "back_hfov_deg"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and 1.0 <= v <= 170.0):
+                raise ValueError(f"SyntheticConfig.{name} must be in [1, 170] degrees, got {v!r}")
+        if self.cameras is not None:
+            names = list(self.cameras) if isinstance(self.cameras, (list, tuple)) else None
+            bad = [c for c in names or [] if c not in CAMERA_NAMES]
+            if names is None or not names or bad or len(set(names)) != len(names):
+                raise ValueError(f"SyntheticConfig.cameras must be distinct names from {list(CAMERA_NAMES)}, "
+                                 f"got {self.cameras!r}")
+        if not (isinstance(self.t0, (int, float)) and math.isfinite(self.t0) and self.t0 >= 0):
+            raise ValueError(f"SyntheticConfig.t0 must be a non-negative number, got {self.t0!r}")
+        if not (isinstance(self.lateral_shift, (int, float)) and abs(self.lateral_shift) <= 5.0):
+            raise ValueError(f"SyntheticConfig.lateral_shift must be a number in [-5, 5] m, got {self.lateral_shift!r}")
+
+
+@dataclass
+class VehicleSpec:
+    """A vehicle: box size (length, width, height), colour, motion along x in lane ``y``."""
+
+    track_id: int
+    size: tuple[float, float, float]
+    color: tuple[float, float, float]
+    x0: float
+    y: float
+    speed: float
+    heading: float  # 0 = +x, pi = -x
+    blink: bool = False
+
+    def pose(self, t: float) -> np.ndarray:
+        """``[4, 4]`` box-centre-to-world transform at time ``t``."""
+        x = self.x0 + self.speed * t * math.cos(self.heading)
+        c, s = math.cos(self.heading), math.sin(self.heading)
+        R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        return make_transform(R=R, t=[x, self.y, self.size[2] / 2])
+
+
+@dataclass
+class _Box:
+    """A ray-castable oriented box primitive."""
+
+    T: np.ndarray  # [4,4] local (centre) -> world
+    half: np.ndarray  # [3]
+    kind: str  # facade, body, cabin, wheel, pole, trunk, canopy
+    sem: int
+    inst: int
+    color: np.ndarray  # [3]
+    key: int = 0  # texture key
+    blink_on: bool = False
+
+
+@dataclass
+class RenderOutput:
+    """Ground truth of one view: ``rgb`` [H,W,3] float32, ``depth`` [H,W] float32 z-depth
+    (inf = sky), ``semantic`` [H,W] uint8, ``instance`` [H,W] int32."""
+
+    rgb: np.ndarray
+    depth: np.ndarray
+    semantic: np.ndarray
+    instance: np.ndarray
+

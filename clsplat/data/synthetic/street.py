@@ -1,0 +1,341 @@
+"""The procedural street and its analytic ray caster: :class:`StreetScene` lays out buildings,
+poles, trees and vehicles deterministically from a seed, casts rays against the ground plane and
+its oriented boxes (numpy, no Gaussian splatting), shades the hits (Lambertian sun + ambient,
+emissive lamps), renders pinhole views with z-depth / semantics / instances and simulates a
+spinning LiDAR sweep.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..scene import Box3D, LidarPoints, invert_transform, make_transform, rotmat_to_quat
+from .config import _AMBIENT, _SUN, LIDAR_MOUNT, ROAD_HALF, SEM, SIDEWALK_OUT, RenderOutput, VehicleSpec, _Box
+from .textures import _box_albedo, _ground_albedo, _sky
+
+class StreetScene:
+    """A procedural street; deterministic from ``seed``.
+
+    Args:
+        seed: layout / texture seed.
+        x_range: ``(xmin, xmax)`` world extent of buildings and street furniture.
+        num_parked, num_moving, poles, trees, blink_period: see
+            :class:`~clsplat.data.synthetic.config.SyntheticConfig`.
+        ego_speed: speed of the ego vehicle; moving vehicles drive at speeds relative to it.
+    """
+
+    def __init__(
+        self,
+        seed: int = 0,
+        x_range: tuple[float, float] = (-80.0, 160.0),
+        num_parked: int = 6,
+        num_moving: int = 2,
+        poles: bool = True,
+        trees: bool = True,
+        blink_period: float = 1.0,
+        ego_speed: float = 8.0,
+    ) -> None:
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise ValueError(f"seed must be a non-negative int, got {seed!r}")
+        if len(x_range) != 2 or not x_range[0] < x_range[1]:
+            raise ValueError(f"x_range must be (xmin, xmax) with xmin < xmax, got {x_range!r}")
+        self.seed = int(seed)
+        self.blink_period = float(blink_period)
+        # one random stream per feature, so that extending x_range only appends content
+        rng = np.random.default_rng([self.seed, 1])
+        self.static: list[_Box] = []
+        xmin, xmax = float(x_range[0]), float(x_range[1])
+        # buildings
+        key = 0
+        for side in (1.0, -1.0):
+            x = xmin + rng.uniform(0, 6)
+            while x < xmax:
+                w = rng.uniform(8, 20)
+                if rng.uniform() < 0.85:
+                    d = rng.uniform(8, 14)
+                    hgt = rng.uniform(6, 22)
+                    col = np.array([0.55, 0.45, 0.38]) + rng.uniform(-0.18, 0.25, 3)
+                    c = [x + w / 2, side * (SIDEWALK_OUT + rng.uniform(0.0, 1.5) + d / 2), hgt / 2]
+                    key += 1
+                    self.static.append(_Box(make_transform(t=c), np.array([w / 2, d / 2, hgt / 2]), "facade",
+                                            SEM["building"], 0, np.clip(col, 0.1, 0.95), key))
+                x += w + rng.uniform(0.5, 4.0)
+        rng = np.random.default_rng([self.seed, 2])
+        if poles:
+            for side in (1.0, -1.0):
+                for x in np.arange(xmin + rng.uniform(0, 25), xmax, 25.0):
+                    self.static.append(_Box(make_transform(t=[x, side * (ROAD_HALF + 0.6), 3.0]),
+                                            np.array([0.08, 0.08, 3.0]), "pole", SEM["other"], 0,
+                                            np.array([0.45, 0.47, 0.5])))
+        rng = np.random.default_rng([self.seed, 3])
+        key = 1000
+        if trees:
+            for side in (1.0, -1.0):
+                for x in np.arange(xmin + rng.uniform(5, 30), xmax, 30.0):
+                    key += 1
+                    yy = side * (ROAD_HALF + 1.8)
+                    self.static.append(_Box(make_transform(t=[x, yy, 1.5]), np.array([0.15, 0.15, 1.5]), "trunk",
+                                            SEM["other"], 0, np.array([0.35, 0.24, 0.14])))
+                    self.static.append(_Box(make_transform(t=[x, yy, 4.2]), np.array([1.3, 1.3, 1.2]), "canopy",
+                                            SEM["other"], 0, np.array([0.2, 0.45, 0.15]) * rng.uniform(0.8, 1.2), key))
+        # vehicles: track ids 1..
+        rng = np.random.default_rng([self.seed, 4])
+        self.vehicles: list[VehicleSpec] = []
+        tid = 1
+        moving = [(-1.75, 14.0, 0.0, True), (1.75, 25.0, 1.0, False), (-1.75, -12.0, 0.0, False)]
+        for y, dx, dv, blink in moving[:num_moving]:
+            size = (rng.uniform(4.2, 4.8), rng.uniform(1.8, 2.0), rng.uniform(1.45, 1.6))
+            self.vehicles.append(VehicleSpec(tid, size, tuple(rng.uniform(0.1, 0.9, 3)), dx, y, ego_speed + dv, 0.0,
+                                             blink=blink))
+            tid += 1
+        slots = rng.permutation(np.arange(-30.0, 60.0, 7.0))
+        for i in range(num_parked):
+            side = 1.0 if i % 2 == 0 else -1.0
+            x = float(slots[i // 2 + (0 if side > 0 else len(slots) // 2)] + rng.uniform(-1, 1))
+            size = (rng.uniform(4.0, 4.9), rng.uniform(1.75, 2.0), rng.uniform(1.4, 1.7))
+            heading = 0.0 if rng.uniform() < 0.5 else math.pi
+            self.vehicles.append(VehicleSpec(tid, size, tuple(rng.uniform(0.1, 0.9, 3)), x, side * 5.25, 0.0, heading))
+            tid += 1
+
+    # ----------------------------------------------------------------------------------
+    def vehicle_parts(self, v: VehicleSpec, t: float) -> list[_Box]:
+        """Box primitives of vehicle ``v`` at time ``t``, all inside its tracked box."""
+        L, W, H = v.size
+        T = v.pose(t)
+        on = v.blink and (math.floor(t / (self.blink_period / 2) + 1e-9) % 2 == 0)
+        col = np.asarray(v.color)
+        parts = []
+        body_h = 0.58 * H
+        clearance = 0.2
+        body_c = [0.0, 0.0, -H / 2 + clearance + body_h / 2]
+        parts.append(("body", body_c, [L / 2, W / 2, body_h / 2], col))
+        cab_h = H - clearance - body_h
+        parts.append(("cabin", [-0.06 * L, 0.0, H / 2 - cab_h / 2], [0.27 * L, W / 2 - 0.1, cab_h / 2], col))
+        for sx in (-1, 1):
+            for sy in (-1, 1):
+                parts.append(("wheel", [sx * 0.32 * L, sy * (W / 2 - 0.12), -H / 2 + 0.32], [0.32, 0.12, 0.32],
+                              np.array([0.05, 0.05, 0.05])))
+        out = []
+        for kind, c, half, colr in parts:
+            Tl = T @ make_transform(t=c)
+            out.append(_Box(Tl, np.asarray(half, dtype=np.float64), kind, SEM["vehicle"], v.track_id,
+                            np.asarray(colr, dtype=np.float64), v.track_id, on))
+        return out
+
+    def primitives(self, t: float) -> list[_Box]:
+        """All box primitives at time ``t``."""
+        prims = list(self.static)
+        for v in self.vehicles:
+            prims.extend(self.vehicle_parts(v, t))
+        return prims
+
+    def boxes(self, t: float) -> list[Box3D]:
+        """Tracked vehicle boxes at time ``t`` (world frame)."""
+        out = []
+        for v in self.vehicles:
+            T = v.pose(t)
+            out.append(Box3D(v.track_id, "car", np.array(v.size), T[:3, 3].copy(), rotmat_to_quat(T[:3, :3]),
+                             uuid=f"synthetic-{self.seed}-{v.track_id}"))
+        return out
+
+    # ----------------------------------------------------------------------------------
+    def trace(self, origin: np.ndarray, dirs: np.ndarray, t: float, rects=None, prims=None):
+        """Cast rays ``origin + s * dirs``.
+
+        Args:
+            origin: ``[3]`` world ray origin.
+            dirs: ``[H, W, 3]`` world directions (any length; returned ``s`` is in units of it).
+            t: scene time (vehicle poses).
+            rects: optional callable ``box -> (y0, y1, x0, x1) or None`` restricting the rays
+                tested against that box (``None`` = box cannot be hit).
+            prims: primitives (default :meth:`primitives` at ``t``).
+        Returns:
+            ``(s, pid)``: ``[H, W]`` hit parameter (inf = none) and primitive index
+            (-1 ground, -2 sky).
+        """
+        if prims is None:
+            prims = self.primitives(t)
+        Hh, Ww = dirs.shape[:2]
+        s = np.full((Hh, Ww), np.inf)
+        pid = np.full((Hh, Ww), -2, dtype=np.int32)
+        dz = dirs[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sg = -origin[2] / dz
+        g = (dz < 0) & (sg > 0)
+        s[g] = sg[g]
+        pid[g] = -1
+        for i, b in enumerate(prims):
+            if rects is None:
+                r = (0, Hh, 0, Ww)
+            else:
+                r = rects(b)
+                if r is None:
+                    continue
+            y0, y1, x0, x1 = r
+            d = dirs[y0:y1, x0:x1]
+            R = b.T[:3, :3]
+            ol = R.T @ (origin - b.T[:3, 3])
+            dl = d @ R
+            with np.errstate(divide="ignore", invalid="ignore"):
+                inv = 1.0 / dl
+                t1 = (-b.half - ol) * inv
+                t2 = (b.half - ol) * inv
+            tn = np.nanmax(np.minimum(t1, t2), axis=-1)
+            tf = np.nanmin(np.maximum(t1, t2), axis=-1)
+            hit = (tn <= tf) & (tn > 1e-6)
+            cur = s[y0:y1, x0:x1]
+            upd = hit & (tn < cur)
+            if np.any(upd):
+                cur[upd] = tn[upd]
+                pid[y0:y1, x0:x1][upd] = i
+        return s, pid
+
+    def shade(self, origin, dirs, s, pid, t, prims=None, lighting: bool = True):
+        """Colour, semantics, instance ids and (unlit) albedo of traced rays.
+
+        Returns ``(rgb [H,W,3], sem [H,W] uint8, inst [H,W] int32, albedo [H,W,3], emissive [H,W])``.
+        """
+        if prims is None:
+            prims = self.primitives(t)
+        shape = s.shape
+        d = dirs.reshape(-1, 3)
+        sf = s.reshape(-1)
+        pf = pid.reshape(-1)
+        n = sf.shape[0]
+        rgb = np.zeros((n, 3))
+        alb = np.zeros((n, 3))
+        emis = np.zeros(n, dtype=bool)
+        sem = np.full(n, SEM["sky"], dtype=np.uint8)
+        inst = np.zeros(n, dtype=np.int32)
+        sky = pf == -2
+        rgb[sky] = _sky(d[sky])
+        alb[sky] = rgb[sky]
+        gi = np.nonzero(pf == -1)[0]
+        if gi.size:
+            p = origin + sf[gi, None] * d[gi]
+            a, sm = _ground_albedo(p[:, 0], p[:, 1], self.seed)
+            alb[gi] = a
+            sem[gi] = sm
+            rgb[gi] = a * (_AMBIENT + (1 - _AMBIENT) * _SUN[2] if lighting else 1.0)
+        hit = np.nonzero(pf >= 0)[0]
+        if hit.size:
+            order = hit[np.argsort(pf[hit], kind="stable")]
+            ids, starts = np.unique(pf[order], return_index=True)
+            bounds = list(starts[1:]) + [order.size]
+            for k, i0, i1 in zip(ids, starts, bounds):
+                idx = order[i0:i1]
+                b = prims[k]
+                p = origin + sf[idx, None] * d[idx]
+                Tinv = invert_transform(b.T)
+                pl = p @ Tinv[:3, :3].T + Tinv[:3, 3]
+                a, em = _box_albedo(b, pl, self.seed)
+                alb[idx] = a
+                emis[idx] = em
+                sem[idx] = b.sem
+                inst[idx] = b.inst
+                if lighting:
+                    axis = np.argmax(np.abs(pl) / b.half, axis=1)
+                    nl = np.zeros_like(pl)
+                    nl[np.arange(idx.size), axis] = np.sign(pl[np.arange(idx.size), axis])
+                    nw = nl @ b.T[:3, :3].T
+                    lam = _AMBIENT + (1 - _AMBIENT) * np.clip(nw @ _SUN, 0, None)
+                    c = a * lam[:, None]
+                    c[em] = a[em]
+                    rgb[idx] = c
+                else:
+                    rgb[idx] = a
+        if not lighting:
+            rgb[pf == -1] = alb[pf == -1]
+        return (np.clip(rgb, 0, 1).reshape(shape + (3,)), sem.reshape(shape), inst.reshape(shape),
+                alb.reshape(shape + (3,)), emis.reshape(shape))
+
+    # ----------------------------------------------------------------------------------
+    def render(self, K, cam_to_world, width: int, height: int, t: float, supersample: int = 1,
+               lighting: bool = True) -> RenderOutput:
+        """Render a pinhole view.
+
+        Args:
+            K: ``[3, 3]`` intrinsics.  cam_to_world: ``[4, 4]`` OpenCV camera pose.
+            width, height: image size.  t: scene time in seconds.
+            supersample: ``s``, RGB averaged over ``s x s`` sub-pixel rays.
+            lighting: False renders unlit albedo (used by symmetry tests).
+        """
+        K = np.asarray(K, dtype=np.float64)
+        T = np.asarray(cam_to_world, dtype=np.float64)
+        if K.shape != (3, 3):
+            raise ValueError(f"K must have shape [3, 3], got {list(K.shape)}")
+        if T.shape != (4, 4):
+            raise ValueError(f"cam_to_world must have shape [4, 4], got {list(T.shape)}")
+        for name, v in (("width", width), ("height", height), ("supersample", supersample)):
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+                raise ValueError(f"{name} must be a positive int, got {v!r}")
+        prims = self.primitives(t)
+        origin = T[:3, 3].copy()
+        w2c = invert_transform(T)
+        corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
+
+        def rects(b: _Box):
+            pw = (corners * b.half) @ b.T[:3, :3].T + b.T[:3, 3]
+            pc = pw @ w2c[:3, :3].T + w2c[:3, 3]
+            z = pc[:, 2]
+            if np.all(z <= 0):
+                return None
+            if np.any(z <= 0.05):
+                return (0, height, 0, width)
+            u = K[0, 0] * pc[:, 0] / z + K[0, 2]
+            v = K[1, 1] * pc[:, 1] / z + K[1, 2]
+            x0 = max(int(math.floor(u.min())) - 1, 0)
+            x1 = min(int(math.ceil(u.max())) + 1, width)
+            y0 = max(int(math.floor(v.min())) - 1, 0)
+            y1 = min(int(math.ceil(v.max())) + 1, height)
+            if x0 >= x1 or y0 >= y1:
+                return None
+            return (y0, y1, x0, x1)
+
+        def dirs_at(offx: float, offy: float) -> np.ndarray:
+            u, v = np.meshgrid(np.arange(width) + offx, np.arange(height) + offy)
+            dc = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+            return dc @ T[:3, :3].T  # camera z component is 1 -> s is z-depth
+
+        d = dirs_at(0.5, 0.5)
+        s, pid = self.trace(origin, d, t, rects, prims)
+        rgb, sem, inst, _, _ = self.shade(origin, d, s, pid, t, prims, lighting)
+        if supersample > 1:
+            acc = np.zeros_like(rgb)
+            for j in range(supersample):
+                for i in range(supersample):
+                    dj = dirs_at((i + 0.5) / supersample, (j + 0.5) / supersample)
+                    sj, pj = self.trace(origin, dj, t, rects, prims)
+                    acc += self.shade(origin, dj, sj, pj, t, prims, lighting)[0]
+            rgb = acc / supersample**2
+        depth = np.where(pid == -2, np.inf, s).astype(np.float32)
+        return RenderOutput(rgb.astype(np.float32), depth, sem.astype(np.uint8), inst.astype(np.int32))
+
+    def lidar(self, ego_to_world, t: float, n_beams: int = 32, az_step_deg: float = 0.5,
+              max_range: float = 80.0) -> LidarPoints:
+        """Simulated spinning LiDAR sweep at time ``t``; points in the ego frame.
+
+        Beams are evenly spaced in elevation over [-25, +10] degrees; azimuth steps by
+        ``az_step_deg``.  Returns points whose range from the sensor is below ``max_range``,
+        intensity = unlit albedo luminance (1 for lamps), ring = beam index.
+        """
+        E = np.asarray(ego_to_world, dtype=np.float64)
+        if E.shape != (4, 4):
+            raise ValueError(f"ego_to_world must have shape [4, 4], got {list(E.shape)}")
+        el = np.radians(np.linspace(-25.0, 10.0, n_beams))
+        az = np.radians(np.arange(0.0, 360.0, az_step_deg))
+        ce, se = np.cos(el)[:, None], np.sin(el)[:, None]
+        dl = np.stack([ce * np.cos(az)[None], ce * np.sin(az)[None], np.broadcast_to(se, (n_beams, az.size))], -1)
+        dw = dl @ E[:3, :3].T
+        origin = E[:3, :3] @ LIDAR_MOUNT + E[:3, 3]
+        prims = self.primitives(t)
+        s, pid = self.trace(origin, dw, t, None, prims)
+        _, _, _, alb, em = self.shade(origin, dw, s, pid, t, prims, lighting=False)
+        keep = (pid != -2) & (s < max_range)
+        pts = LIDAR_MOUNT + s[keep, None] * dl[keep]
+        inten = alb[keep] @ np.array([0.2126, 0.7152, 0.0722])
+        inten[em[keep]] = 1.0
+        ring = np.broadcast_to(np.arange(n_beams)[:, None], s.shape)[keep]
+        return LidarPoints(pts.astype(np.float32), inten.astype(np.float32), "ego", ring.astype(np.int32))
+

@@ -1,0 +1,146 @@
+"""Procedural textures of the synthetic street, in world space (every view sees the same surface
+colour): integer-lattice hash and value noise, the ground's albedo and class (road with lane
+markings, paved sidewalk, grass), the sky gradient, and the albedo / emissive flags of box
+primitives (façades with windows and shop fronts, vehicle bodies with lamps and hazard lights,
+cabins with glass, tree canopies).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .config import ROAD_HALF, SEM, SIDEWALK_OUT, _Box
+
+def _hash2(ix: np.ndarray, iy: np.ndarray, seed: int) -> np.ndarray:
+    """Deterministic hash of integer lattice points -> float64 in [0, 1)."""
+    h = (ix.astype(np.int64) * 374761393 + iy.astype(np.int64) * 668265263 + int(seed) * 982451653) & 0xFFFFFFFF
+    h = ((h ^ (h >> 13)) * 1274126177) & 0xFFFFFFFF
+    h = h ^ (h >> 16)
+    return h.astype(np.float64) / 4294967296.0
+
+
+def _value_noise(x: np.ndarray, y: np.ndarray, seed: int) -> np.ndarray:
+    """Bilinear value noise in [0, 1) with unit lattice spacing."""
+    x0 = np.floor(x)
+    y0 = np.floor(y)
+    fx = x - x0
+    fy = y - y0
+    fx = fx * fx * (3 - 2 * fx)
+    fy = fy * fy * (3 - 2 * fy)
+    a = _hash2(x0, y0, seed)
+    b = _hash2(x0 + 1, y0, seed)
+    c = _hash2(x0, y0 + 1, seed)
+    d = _hash2(x0 + 1, y0 + 1, seed)
+    return (a * (1 - fx) + b * fx) * (1 - fy) + (c * (1 - fx) + d * fx) * fy
+
+
+def _ground_albedo(x: np.ndarray, y: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Albedo ``[N,3]`` and semantic ``[N]`` of ground points."""
+    n = x.shape[0]
+    alb = np.empty((n, 3))
+    sem = np.empty(n, dtype=np.uint8)
+    ay = np.abs(y)
+    road = ay <= ROAD_HALF
+    side = (ay > ROAD_HALF) & (ay <= SIDEWALK_OUT)
+    grass = ay > SIDEWALK_OUT
+    noise = 0.6 * _value_noise(x * 2.0, y * 2.0, seed + 11) + 0.4 * _value_noise(x * 0.3, y * 0.3, seed + 12)
+    # road
+    g = 0.22 + 0.12 * noise[road]
+    alb[road] = np.stack([g, g, g * 1.04], -1)
+    sem[road] = SEM["road"]
+    xr, yr = x[road], y[road]
+    mark = (np.abs(yr) < 0.08) & (np.mod(xr, 6.0) < 3.0)  # dashed centre line
+    mark |= np.abs(np.abs(yr) - 3.5) < 0.075  # parking-lane lines
+    mark |= np.abs(np.abs(yr) - (ROAD_HALF - 0.15)) < 0.075  # edge lines
+    sub = alb[road]
+    sub[mark] = [0.92, 0.92, 0.88]
+    alb[road] = sub
+    # sidewalk: 1 m tiles with joints
+    xs, ys = x[side], y[side]
+    tile = 0.55 + 0.1 * _hash2(np.floor(xs), np.floor(ys), seed + 13) + 0.08 * noise[side]
+    joint = (np.mod(xs, 1.0) < 0.04) | (np.mod(ys, 1.0) < 0.04)
+    tile = np.where(joint, tile * 0.7, tile)
+    alb[side] = np.stack([tile, tile * 0.98, tile * 0.93], -1)
+    sem[side] = SEM["sidewalk"]
+    # grass
+    gn = noise[grass]
+    alb[grass] = np.stack([0.18 + 0.1 * gn, 0.38 + 0.15 * gn, 0.12 + 0.05 * gn], -1)
+    sem[grass] = SEM["other"]
+    return alb, sem
+
+
+def _sky(d: np.ndarray) -> np.ndarray:
+    """Sky colour ``[N,3]`` for world ray directions ``[N,3]`` (gradient in elevation)."""
+    e = d[:, 2] / np.linalg.norm(d, axis=1)
+    s = np.clip(e, 0.0, 1.0)[:, None] ** 0.6
+    horizon = np.array([0.86, 0.90, 0.95])
+    zenith = np.array([0.30, 0.50, 0.85])
+    return horizon * (1 - s) + zenith * s
+
+
+_LIGHT_HEAD = np.array([1.0, 0.96, 0.82])
+_LIGHT_TAIL = np.array([0.95, 0.08, 0.06])
+_BLINK_ON = np.array([1.0, 0.6, 0.05])
+_BLINK_OFF = np.array([0.35, 0.22, 0.08])
+_GLASS = np.array([0.10, 0.13, 0.17])
+
+
+def _box_albedo(b: _Box, pl: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Albedo ``[N,3]`` and emissive flag ``[N]`` for local hit points ``pl`` [N,3] on box ``b``.
+
+    Vehicle parts depend on ``|y|`` only (left-right symmetry in the vehicle frame).
+    """
+    n = pl.shape[0]
+    h = b.half
+    axis = np.argmax(np.abs(pl) / h, axis=1)
+    sign = np.sign(pl[np.arange(n), axis])
+    alb = np.tile(b.color, (n, 1))
+    emis = np.zeros(n, dtype=bool)
+    x, y, z = pl[:, 0], pl[:, 1], pl[:, 2]
+    ay = np.abs(y)
+    zr = z + h[2]  # height above the part's bottom
+    if b.kind == "facade":
+        wx = b.T[:3, 3] + b.T[:3, :3] @ np.zeros(3)
+        # u: horizontal coordinate along the face (world x on +-y faces, world y on +-x faces)
+        u = np.where(axis == 1, x + wx[0], y + wx[1])
+        vert = axis != 2
+        zr_w = zr
+        floor = np.floor(zr_w / 3.2)
+        fz = zr_w - floor * 3.2
+        fu = np.mod(u, 2.6)
+        win = vert & (floor >= 1) & (fz > 0.9) & (fz < 2.3) & (fu > 0.6) & (fu < 2.0)
+        shop = vert & (floor == 0) & (fz > 0.4) & (fz < 2.6) & (np.mod(u, 6.0) > 0.8)
+        tone = 0.85 + 0.3 * _value_noise(u * 0.7, zr_w * 0.7, seed + b.key)
+        alb = alb * tone[:, None]
+        wv = _hash2(np.floor(u / 2.6), floor, seed + 100 + b.key)
+        alb[win] = np.stack([0.12 + 0.25 * wv[win], 0.16 + 0.25 * wv[win], 0.22 + 0.28 * wv[win]], -1)
+        alb[shop] = [0.2, 0.24, 0.28]
+        roof = axis == 2
+        alb[roof] = [0.35, 0.33, 0.32]
+    elif b.kind == "body":
+        W = h[1]
+        band = (zr > 0.25) & (zr < 0.45)
+        front = (axis == 0) & (sign > 0)
+        back = (axis == 0) & (sign < 0)
+        lamp = band & (ay > W - 0.45) & (ay < W - 0.15)
+        blink = band & (ay >= W - 0.15) & (ay < W - 0.02)
+        plate = (ay < 0.26) & (zr > 0.1) & (zr < 0.24)
+        alb[front & lamp] = _LIGHT_HEAD
+        alb[back & lamp] = _LIGHT_TAIL
+        emis |= (front | back) & lamp
+        bl = (front | back) & blink
+        alb[bl] = _BLINK_ON if b.blink_on else _BLINK_OFF
+        emis |= bl & b.blink_on
+        alb[(front | back) & plate] = [0.92, 0.92, 0.9]
+        side = axis == 1
+        stripe = side & (zr > 0.32) & (zr < 0.38)
+        alb[stripe] = b.color * 0.55
+    elif b.kind == "cabin":
+        vert = axis != 2
+        glass = vert & (zr > 0.08) & (zr < 2 * h[2] - 0.06)
+        glass &= np.where(axis == 1, np.abs(x) < h[0] - 0.1, ay < h[1] - 0.1)
+        alb[glass] = _GLASS
+    elif b.kind == "canopy":
+        nz = _value_noise(pl[:, 0] * 3 + b.key, pl[:, 1] * 3 + pl[:, 2] * 3, seed + 7)
+        alb = alb * (0.7 + 0.6 * nz)[:, None]
+    return np.clip(alb, 0.0, 1.0), emis
+
