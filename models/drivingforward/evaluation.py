@@ -30,6 +30,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from clsplat.io.atomic import write_text_atomic
+
 from ..common.metrics import depth_metrics, pose_errors, psnr, ssim
 from .data import gt_ego_motion, load_triplet
 
@@ -188,7 +190,7 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
     if out_dir is not None:
         od = Path(out_dir)
         od.mkdir(parents=True, exist_ok=True)
-        (od / "metrics.json").write_text(json.dumps(out, indent=2))
+        write_text_atomic(od / "metrics.json", json.dumps(out, indent=2))  # a failed write names the file
         r, s, d = first
         t = s["images"][ti]
         make_contact_sheet(r.clamp(0, 1).permute(0, 2, 3, 1), t.permute(0, 2, 3, 1), od / "contact_sheet.png",

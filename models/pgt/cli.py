@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
 from clsplat.models.common.cli import add_common_args, add_eval_args, add_lpips_args, lpips_from_args
 from clsplat.models.common.data import parse_data
@@ -110,13 +109,14 @@ def evaluate(argv: list[str]) -> int:
         if any(k.startswith("budget.") for k in ck["model"]):
             model.enable_budget()
         model.load_state_dict(ck["model"])
+        from clsplat.io.atomic import staged_group
         from .evaluate import evaluate_model, write_results
-        Path(args.out).mkdir(parents=True, exist_ok=True)
-        res = evaluate_model(model, source, preset, budgets, args.num_scenes, args.seed, args.repeats,
-                             sheet=Path(args.out) / "contact_sheet.png")
-        res["metrics"]["checkpoint"] = str(args.checkpoint)
-        res["metrics"]["step"] = int(ck["step"])
-        write_results(res, args.out, f"PGT {preset.name} (step {ck['step']}) on held-out {source.name}")
+        with staged_group(args.out) as stage:  # the four files replace an earlier evaluation's together
+            res = evaluate_model(model, source, preset, budgets, args.num_scenes, args.seed, args.repeats,
+                                 sheet=stage / "contact_sheet.png")
+            res["metrics"]["checkpoint"] = str(args.checkpoint)
+            res["metrics"]["step"] = int(ck["step"])
+            write_results(res, stage, f"PGT {preset.name} (step {ck['step']}) on held-out {source.name}")
         m = res["metrics"]
         print(f"full set: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.3f}; depth AbsRel "
               f"{m['depth_without_residual'].get('abs_rel', float('nan')):.3f} (coarse) -> "

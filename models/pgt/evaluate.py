@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from clsplat.io.atomic import atomic_write, write_text_atomic
 from clsplat.models.common.metrics import depth_metrics, psnr, ssim
 
 from .budget import per_view_budgets, random_mask, topk_mask, view_weights
@@ -150,17 +151,18 @@ def plot_budget(rows: list[dict], png: str | Path, title: str = "PGT budget curv
         ax.legend(fontsize=8)
     fig.suptitle(title)
     fig.tight_layout()
-    png = Path(png)
-    fig.savefig(png)
-    plt.close(fig)
-    return png
+    try:
+        return atomic_write(png, lambda tmp: fig.savefig(tmp, format="png"))
+    finally:
+        plt.close(fig)
 
 
 def write_results(result: dict, out_dir: str | Path, title: str) -> None:
-    """out_dir/budget.json (rows), budget.png, metrics.json."""
+    """out_dir/budget.json (rows), budget.png, metrics.json (each written atomically; a failed
+    write is an OSError naming the file)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "budget.json").write_text(json.dumps(result["rows"], indent=1))
-    (out / "metrics.json").write_text(json.dumps(result["metrics"], indent=1))
+    write_text_atomic(out / "budget.json", json.dumps(result["rows"], indent=1))
+    write_text_atomic(out / "metrics.json", json.dumps(result["metrics"], indent=1))
     plot_budget(result["rows"], out / "budget.png", title)
 
