@@ -20,8 +20,10 @@ from .trainer import Trainer, prepare_data
 __all__ = ["checkpoint_scene", "autosplat_scene"]
 
 
-def checkpoint_scene(ck: dict, ck_path: Path, run: Path, data: str | None, sample: int = 0, device=None) -> ViewScene:
-    """The scene of an AutoSplat checkpoint (``sample`` and ``device`` are unused: the model is the scene)."""
+def checkpoint_scene(ck: dict, ck_path: Path, run: Path, data: str | None, sample: int = 0, device=None,
+                     safe_pickle: bool = True) -> ViewScene:
+    """The scene of an AutoSplat checkpoint (``sample`` and ``device`` are unused: the model is the scene;
+    ``safe_pickle=False`` trusts the data's pickles)."""
 
     preset = preset_from_saved("autosplat", ck["preset"])
     spec, scale = "synthetic", preset.scale
@@ -33,7 +35,7 @@ def checkpoint_scene(ck: dict, ck_path: Path, run: Path, data: str | None, sampl
     want = list(ck.get("train_frames") or [0])
     # the run's frame range is not stored: the first cut of the sequence whose split gives its training frames
     seq = load_sequence(spec, ck.get("cameras"), (0, max(want) + 1 + preset.holdout) if spec == "synthetic" else None,
-                        scale, seed=preset.seed)
+                        scale, seed=preset.seed, safe_pickle=safe_pickle)
     for n in range(max(want) + 1, len(seq.frames) + 1):
         d = prepare_data(DrivingSequence(seq.cameras, seq.frames[:n], seq.name, seq.metadata), ck.get("cameras"),
                          preset.holdout)
