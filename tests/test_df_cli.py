@@ -202,3 +202,38 @@ def test_eval_on_a_pandaset_sequence_scores_depth_against_projected_lidar(runs, 
     m = json.loads((tmp_path / "train" / "metrics.json").read_text())
     assert KEYS <= set(m["all"]) and POSE_KEYS <= set(m["all"]) and 0.7 < m["all"]["pose_t_true_m"] < 0.9
     assert m["protocol"]["depth_gt"].startswith("projected LiDAR")
+
+
+def test_eval_on_a_full_disk_is_one_line_and_keeps_the_earlier_evaluation(runs, tmp_path, monkeypatch, capsys):
+    """The contact sheet (written after metrics.json) hits a full disk: one line naming the file,
+    and the earlier evaluation's files stay as they were (not a new metrics.json beside old sheets)."""
+    import errno
+    import os
+    import re
+
+    from matplotlib.figure import Figure
+
+    from clsplat.cli import console
+
+    out = tmp_path / "eval"
+    args = ["eval", "drivingforward", "--checkpoint", str(runs / "straight" / "checkpoint.pt"), "--num-scenes", "1",
+            "--no-oracle", "--out", str(out)]
+    assert console(args) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert {"metrics.json", "contact_sheet.png"} <= set(before)
+    savefig = Figure.savefig
+
+    def full_disk(self, fname, *a, **k):
+        if "contact_sheet" not in str(fname):
+            return savefig(self, fname, *a, **k)
+        with open(fname, "wb") as fh:
+            fh.write(b"\x89PNG")
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(Figure, "savefig", full_disk)
+    capsys.readouterr()
+    assert console(args + ["--seed", "1"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert re.fullmatch(rf"clsplat eval drivingforward: writing '{re.escape(str(out))}/\.staging-[^/]+/"
+                        r"contact_sheet\.png' failed \(No space left on device\); no partial file is left", err), err
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before

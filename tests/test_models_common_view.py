@@ -81,6 +81,46 @@ def test_not_a_checkpoint_and_unknown_family(tmp_path):
         scene_from_checkpoint(ck)
 
 
+class _Payload:
+    """A pickle that runs ``touch MARKER`` when loaded."""
+
+    def __init__(self, marker):
+        self.marker = marker
+
+    def __reduce__(self):
+        import os
+        return os.system, (f"touch {self.marker}",)
+
+
+def test_view_runs_no_code_from_data_unless_told_to_trust_it(tmp_path, capsys):
+    """``clsplat view CHECKPOINT --data pandaset:DIR``, DIR's LiDAR a pickle payload: refused by
+    default naming the file; only ``--trust-pickle`` runs it (then it is no DataFrame)."""
+    import gzip
+    import pickle
+
+    from clsplat.cli import console
+    from clsplat.data.pandaset import write_pandaset
+    from clsplat.data.synthetic import generate_sequence
+    from clsplat.models.common.presets import get_preset
+    from clsplat.models.drivingforward.cli import build_model
+
+    preset = get_preset("drivingforward", "tiny")
+    run = _untrained(tmp_path, "drivingforward", build_model(preset), preset)
+    root = write_pandaset(generate_sequence(height=16, width=24, num_frames=3, seed=1), tmp_path / "seq")
+    marker = tmp_path / "ran"
+    with gzip.open(root / "lidar" / "00.pkl.gz", "wb") as fh:
+        pickle.dump(_Payload(marker), fh)
+    args = ["view", str(run), "--data", f"pandaset:{root}", "--port", "0"]
+    capsys.readouterr()
+    assert console(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("clsplat view: ") and "lidar/00.pkl.gz" in err and "safe mode refuses this pickle" in err
+    assert not marker.exists()
+    assert console(args + ["--trust-pickle"]) == 2
+    assert marker.exists()                                 # the explicit opt-out trusted the file
+    assert "holds a int, not a pandas DataFrame" in capsys.readouterr().err
+
+
 def test_train_view_costs_nothing_without_a_browser_and_refreshes_with_one(two_colour_ply):
     """TrainView: no browser, no refresh (the <10% overhead); a headless Chromium connected: the
     Gaussians and the loss plot are refreshed every N steps and the exact render runs in the

@@ -7,14 +7,21 @@ when every file of the group is complete are they renamed into place (``os.repla
 on POSIX within one file system). If a write fails -- a full disk, a file-size limit, an
 interrupt -- the temporary files are removed, the earlier files keep their content, and an
 ``OSError`` names the file that failed.
+
+:func:`staged_group` does the same for a group of files that different code writes (an
+evaluation's metrics and sheets): they are written into a hidden folder beside their final
+place and moved in together only when all of them are written.
 """
 from __future__ import annotations
 
 import os
+import shutil
+import tempfile
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Iterator
 
-__all__ = ["write_atomically", "atomic_write", "write_text_atomic", "temp_path"]
+__all__ = ["write_atomically", "atomic_write", "write_text_atomic", "temp_path", "staged_group"]
 
 
 def temp_path(path: Path) -> Path:
@@ -65,3 +72,36 @@ def atomic_write(path: str | Path, write_fn: Callable[[Path], object]) -> Path:
 def write_text_atomic(path: str | Path, text: str) -> Path:
     """``Path.write_text`` through :func:`atomic_write` (JSON tables, metrics)."""
     return atomic_write(path, lambda tmp: tmp.write_text(text))
+
+
+@contextmanager
+def staged_group(folder: str | Path, arg: str = "--out") -> Iterator[Path]:
+    """Write a group of files into ``folder`` all or nothing.
+
+    Yields a hidden staging folder inside ``folder`` (created, with ``folder`` if missing); the
+    body writes the group's files there. When the body finishes, each file is renamed into
+    ``folder`` (replacing a file of the same name, leaving other files alone); when it raises,
+    the staging folder is removed and ``folder`` keeps its earlier files unchanged. Only plain
+    files are moved (names starting with a dot, writers' temporaries, are not; a sub-folder is
+    refused before anything moves). The renames take microseconds each; a process killed among
+    them leaves the group partly moved, and one killed before them leaves a ``.staging-*``
+    folder behind, which nothing reads.
+
+    Args:
+        folder: the output folder; arg: its argument name for error messages.
+    """
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise ValueError(f"{arg}: {str(folder)!r} exists and is not a folder")
+    folder.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=".staging-", dir=folder))
+    try:
+        yield stage
+        files = sorted(p for p in stage.iterdir() if not p.name.startswith("."))  # not a writer's temporary
+        for p in files:
+            if not p.is_file() or p.is_symlink():
+                raise ValueError(f"staged_group: {str(p)!r} is not a plain file; only files are published")
+        for p in files:
+            os.replace(p, folder / p.name)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)

@@ -21,6 +21,7 @@ __all__ = ["view_main", "render_main", "load_scene"]
 
 #: the entry-point group of checkpoint readers: ``NAME = module:function``, where
 #: ``function(path, data=, device=, sample=)`` returns a :class:`ViewScene` or raises ValueError
+#: (and with ``--trust-pickle``, ``trust_pickle=True`` too: the reader may unpickle its data trusting it)
 SCENE_READERS = "clsplat.scene_readers"
 
 _NOT_A_SCENE = "expected an INRIA .ply, a checkpoint.pt written by clsplat train, or a run folder holding one"
@@ -35,8 +36,10 @@ def _is_ply(p: Path) -> bool:
         return False
 
 
-def load_scene(path: str, data: str | None = None, device=None, sample: int = 0) -> ViewScene:
-    """The :class:`ViewScene` of PATH; ValueError naming PATH when it is not a scene."""
+def load_scene(path: str, data: str | None = None, device=None, sample: int = 0,
+               trust_pickle: bool = False) -> ViewScene:
+    """The :class:`ViewScene` of PATH; ValueError naming PATH when it is not a scene.
+    ``trust_pickle``: the explicit opt-out of allow-listed unpickling of ``data`` (PandaSet)."""
     p = Path(path)
     if not p.exists():
         raise ValueError(f"PATH {path!r}: no such file or folder")
@@ -56,7 +59,8 @@ def load_scene(path: str, data: str | None = None, device=None, sample: int = 0)
     error: ValueError | None = None
     for ep in readers:  # the first reader that takes the checkpoint
         try:
-            return ep.load()(p, data=data, device=device, sample=sample)
+            opt_out = {"trust_pickle": True} if trust_pickle else {}  # readers that never unpickle need not know it
+            return ep.load()(p, data=data, device=device, sample=sample, **opt_out)
         except ValueError as e:
             error = e
     raise error
@@ -69,6 +73,9 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", default=None, help="for a DrivingForward/PGT/AutoSplat checkpoint: the data to run it on "
                    "(synthetic | pandaset:PATH | nuscenes:PATH; default: the run's own, else synthetic)")
     p.add_argument("--sample", type=int, default=0, help="for DrivingForward/PGT: which held-out sample (default 0)")
+    p.add_argument("--trust-pickle", action="store_true",
+                   help="trust --data's pickled files (PandaSet): unpickle them without the allow-list, which can "
+                        "run code they carry (default: allow-listed, safe)")
 
 
 def _fail(prog: str, e: Exception) -> int:
@@ -92,7 +99,7 @@ def view_main(argv: list[str]) -> int:
         check_port_free(a.host, a.port)   # before a possibly slow model load
         from ..runtime import get_runtime
         get_runtime(a.device)             # an unknown --device now, not at the first exact render
-        scene = load_scene(a.path, a.data, a.device, a.sample)
+        scene = load_scene(a.path, a.data, a.device, a.sample, a.trust_pickle)
         viewer = Viewer(scene, host=a.host, port=a.port, device=a.device, render_width=a.render_width, up=a.up)
     except ValueError as e:
         return _fail("clsplat view", e)
@@ -129,7 +136,7 @@ def render_main(argv: list[str]) -> int:
         out = Path(a.out)
         if out.exists() and not out.is_dir():
             raise ValueError(f"--out {a.out!r}: exists and is not a folder")
-        scene = load_scene(a.path, a.data, a.device, a.sample)
+        scene = load_scene(a.path, a.data, a.device, a.sample, a.trust_pickle)
         rows = render_cameras(scene, cams, out, ext=f".{a.format}", device=a.device, background=bg)
     except (ValueError, FileNotFoundError) as e:
         return _fail("clsplat render", e)

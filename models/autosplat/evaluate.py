@@ -133,11 +133,12 @@ def _lateral(trainer: Trainer, show: int, make_sheet) -> dict:
 
 
 def trainer_from_checkpoint(ck: dict, ck_path: Path, run: Path, data: str | None, out_dir: Path | None = None,
-                            device=None, arg: str = "PATH") -> Trainer:
+                            device=None, arg: str = "PATH", safe_pickle: bool = True) -> Trainer:
     """The :class:`Trainer` of a run rebuilt from its checkpoint ``ck`` (read from ``ck_path`` in
     the run folder ``run``) on the run's data: ``--data``, ``--scale`` and ``--frames`` recorded in
     the run's ``metrics.json`` (else the built-in street at the preset's scale, cut to the run's
-    training frames), or ``data`` when given.
+    training frames), or ``data`` when given (PandaSet's pickles allow-listed unless
+    ``safe_pickle=False``).
     Its sheets go to ``out_dir`` (default the run folder). ValueError naming ``arg`` when the data
     does not give the run's training frames or tracked objects."""
     preset = preset_from_saved("autosplat", ck["preset"])
@@ -152,11 +153,12 @@ def trainer_from_checkpoint(ck: dict, ck_path: Path, run: Path, data: str | None
         spec, frames = data, None
     want = list(ex.get("train_frames") or [0])
     if frames is not None:      # the run's recorded frame range: the same sequence
-        d = prepare_data(load_sequence(spec, ex.get("cameras"), tuple(frames), scale, seed=preset.seed),
+        d = prepare_data(load_sequence(spec, ex.get("cameras"), tuple(frames), scale, seed=preset.seed,
+                                       safe_pickle=safe_pickle),
                          ex.get("cameras"), preset.holdout)
     else:   # not recorded (an unfinished run, or --data named): the first cut whose split gives the frames
         d = None
-        seq = load_sequence(spec, ex.get("cameras"), None, scale, seed=preset.seed)
+        seq = load_sequence(spec, ex.get("cameras"), None, scale, seed=preset.seed, safe_pickle=safe_pickle)
         for n in range(max(want) + 1, len(seq.frames) + 1):
             d = prepare_data(DrivingSequence(seq.cameras, seq.frames[:n], seq.name, seq.metadata),
                              ex.get("cameras"), preset.holdout)

@@ -16,9 +16,11 @@ from .evaluate import trainer_from_checkpoint
 __all__ = ["checkpoint_scene", "autosplat_scene"]
 
 
-def checkpoint_scene(ck: dict, ck_path: Path, run: Path, data: str | None, sample: int = 0, device=None) -> ViewScene:
-    """The scene of an AutoSplat checkpoint (``sample`` is unused: the model is the scene)."""
-    tr = trainer_from_checkpoint(ck, ck_path, run, data, device=device)
+def checkpoint_scene(ck: dict, ck_path: Path, run: Path, data: str | None, sample: int = 0, device=None,
+                     safe_pickle: bool = True) -> ViewScene:
+    """The scene of an AutoSplat checkpoint (``sample`` is unused: the model is the scene;
+    ``safe_pickle=False`` trusts the data's pickles)."""
+    tr = trainer_from_checkpoint(ck, ck_path, run, data, device=device, safe_pickle=safe_pickle)
     return autosplat_scene(tr.model, tr.data.seq, tr.data, f"AutoSplat {tr.preset.name} ({run.name})")
 
 

@@ -32,7 +32,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from clsplat.io.atomic import atomic_write
+from clsplat.io.atomic import write_text_atomic
 
 from .metrics import psnr, ssim
 
@@ -100,5 +100,4 @@ def write_metrics(out_dir: str | Path, report: Mapping[str, Any], name: str = "m
     check_report(report)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    text = json.dumps(report, indent=2, default=float)
-    return atomic_write(out / name, lambda p: p.write_text(text))
+    return write_text_atomic(out / name, json.dumps(report, indent=2, default=float))

@@ -45,8 +45,10 @@ def depth_colour(d: np.ndarray, far: float = 80.0) -> np.ndarray:
 VARIANT_SAMPLES = 4
 
 
-def scene_from_checkpoint(path: str | Path, data: str | None = None, device=None, sample: int = 0) -> ViewScene:
-    """The scene of a checkpoint file or run folder (see the module docstring)."""
+def scene_from_checkpoint(path: str | Path, data: str | None = None, device=None, sample: int = 0,
+                          trust_pickle: bool = False) -> ViewScene:
+    """The scene of a checkpoint file or run folder (see the module docstring); ``trust_pickle``
+    (``--trust-pickle``) unpickles ``data``'s PandaSet files without the allow-list."""
     from .. import FAMILIES
     from .train import load_checkpoint
 
@@ -77,7 +79,8 @@ def scene_from_checkpoint(path: str | Path, data: str | None = None, device=None
     if not isinstance(sample, int) or sample < 0:
         raise ValueError(f"--sample: expected an integer >= 0, got {sample!r}")
     family = importlib.import_module(f"clsplat.models.{fam}.view")  # each family owns its scene
-    return family.checkpoint_scene(ck, ck_path, run, data, sample=sample, device=device)
+    return family.checkpoint_scene(ck, ck_path, run, data, sample=sample, device=device,
+                                   safe_pickle=not trust_pickle)
 
 
 class TrainView:

@@ -167,9 +167,11 @@ def evaluate(argv: list[str]) -> int:
         model, preset = load_model(args.checkpoint, args.device, args.preset)
         source = parse_data(args.data, seed=args.seed, safe_pickle=not args.trust_pickle)
         lpips = lpips_from_args(args)
-        m = evaluate_model(model, source, args.num_scenes, args.cameras, args.offsets, args.target, lpips,
-                           out_dir=args.out, oracle=not args.no_oracle, progress=not args.no_progress,
-                           step=model.trained_steps)
+        from clsplat.io.atomic import staged_group
+        with staged_group(args.out) as stage:  # the three files replace an earlier evaluation's together
+            m = evaluate_model(model, source, args.num_scenes, args.cameras, args.offsets, args.target, lpips,
+                               out_dir=stage, oracle=not args.no_oracle, progress=not args.no_progress,
+                               step=model.trained_steps)
         print(_summary(m))
         print(f"wrote {args.out}/metrics.json, contact_sheet.png, depth_sheet.png")
     except ValueError as e:

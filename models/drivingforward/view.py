@@ -18,14 +18,15 @@ from .evaluation import OFFSETS
 __all__ = ["checkpoint_scene"]
 
 
-def checkpoint_scene(ck: dict, ck_path: Path, run: Path, data: str | None, sample: int = 0, device=None) -> ViewScene:
+def checkpoint_scene(ck: dict, ck_path: Path, run: Path, data: str | None, sample: int = 0, device=None,
+                     safe_pickle: bool = True) -> ViewScene:
     """The scene of a DrivingForward checkpoint run on held-out sample ``sample`` of ``data``, with
     a variant per sample, frame set and camera set."""
     data = data or "synthetic"
 
     model, preset = load_model(str(ck_path), device)
     model.eval()
-    source = parse_data(data)
+    source = parse_data(data, safe_pickle=safe_pickle)
     default_frames = (0,) if preset.mode == "SF" else (-1, 1)
 
     def run(k: int, frames: tuple[int, ...], front_only: bool) -> ViewScene:

@@ -16,7 +16,6 @@ depth with and without the residual head, seconds per prediction) and contact_sh
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
 from clsplat.argparser import ArgumentParser
 from clsplat.models.common.cli import (add_common_args, add_eval_args, add_eval_scenes_arg, lpips_from_args,
@@ -135,12 +134,13 @@ def evaluate(argv: list[str]) -> int:
         if any(k.startswith("budget.") for k in ck["model"]):
             model.enable_budget()
         model.load_state_dict(ck["model"])
+        from clsplat.io.atomic import staged_group
         from .evaluate import evaluate_model, write_results
-        Path(args.out).mkdir(parents=True, exist_ok=True)
-        res = evaluate_model(model, source, preset, budgets, args.num_scenes, args.seed, args.repeats,
-                             sheet=Path(args.out) / "contact_sheet.png", lpips=lpips, step=int(ck["step"]))
-        res["metrics"]["checkpoint"] = str(args.checkpoint)
-        write_results(res, args.out, f"PGT {preset.name} (step {ck['step']}) on held-out {source.name}")
+        with staged_group(args.out) as stage:  # the four files replace an earlier evaluation's together
+            res = evaluate_model(model, source, preset, budgets, args.num_scenes, args.seed, args.repeats,
+                                 sheet=stage / "contact_sheet.png", lpips=lpips, step=int(ck["step"]))
+            res["metrics"]["checkpoint"] = str(args.checkpoint)
+            write_results(res, stage, f"PGT {preset.name} (step {ck['step']}) on held-out {source.name}")
         print(_summary(res["metrics"]))
         for r in res["rows"]:
             print(f"  {r['method']:>9} kappa={r['budget']:<5g} n={r['n_gaussians']:>8.0f} PSNR {r['psnr']:.2f} "

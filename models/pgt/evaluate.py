@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from clsplat.io.atomic import atomic_write
+from clsplat.io.atomic import atomic_write, write_text_atomic
 from clsplat.models.common.metrics import depth_metrics, psnr, ssim
 from clsplat.models.common.report import camera_blocks, image_scores, metrics_report, write_metrics
 
@@ -160,18 +160,18 @@ def plot_budget(rows: list[dict], png: str | Path, title: str = "PGT budget curv
         ax.legend(fontsize=8)
     fig.suptitle(title)
     fig.tight_layout()
-    png = Path(png)
-    atomic_write(Path(png), lambda p: fig.savefig(p, format="png"))
-    plt.close(fig)
-    return png
+    try:
+        return atomic_write(Path(png), lambda tmp: fig.savefig(tmp, format="png"))
+    finally:
+        plt.close(fig)
 
 
 def write_results(result: dict, out_dir: str | Path, title: str) -> None:
-    """out_dir/budget.json (rows), budget.png, metrics.json, each written atomically."""
+    """out_dir/budget.json (rows), budget.png, metrics.json (each written atomically; a failed
+    write is an OSError naming the file)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    text = json.dumps(result["rows"], indent=1)
-    atomic_write(out / "budget.json", lambda p: p.write_text(text))
+    write_text_atomic(out / "budget.json", json.dumps(result["rows"], indent=1))
     write_metrics(out, result["metrics"])
     plot_budget(result["rows"], out / "budget.png", title)
 

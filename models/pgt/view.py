@@ -18,7 +18,8 @@ from .model import PGT
 __all__ = ["checkpoint_scene"]
 
 
-def checkpoint_scene(ck: dict, ck_path: Path, run: Path, data: str | None, sample: int = 0, device=None) -> ViewScene:
+def checkpoint_scene(ck: dict, ck_path: Path, run: Path, data: str | None, sample: int = 0, device=None,
+                     safe_pickle: bool = True) -> ViewScene:
     """The scene of a PGT checkpoint run on held-out sample ``sample`` of ``data`` (input and
     target cameras, predicted depth), with a variant per sample."""
     data = data or "synthetic"
@@ -30,7 +31,7 @@ def checkpoint_scene(ck: dict, ck_path: Path, run: Path, data: str | None, sampl
         model.enable_budget()
     model.load_state_dict(ck["model"])
     model.eval()
-    source = parse_data(data)
+    source = parse_data(data, safe_pickle=safe_pickle)
 
     def run(k: int) -> ViewScene:
         s = make_sample(source, preset, k, "test", None)
