@@ -2,7 +2,7 @@
 
 Figure: the "Safe by default (issue 23)" table in bench/RESULTS.md. Command:
 
-    nice -n 10 .venv/bin/python -m clsplat.bench.pickle_safety --frames 80 --points 100000 --repeats 3
+    nice -n 10 .venv/bin/python bench/experiments/pickle_safety.py --frames 80 --points 100000 --repeats 3
 
 Writes ``--frames`` LiDAR sweeps of ``--points`` points each in PandaSet's format (a gzip-pickled
 DataFrame with float64 x, y, z, i, t and int64 d, as :func:`clsplat.data.write_pandaset` writes
