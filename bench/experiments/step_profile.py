@@ -17,6 +17,8 @@ line: the medians, over the steps after the first ``--skip``, of
 * ``optim``: inside the optimiser's ``step`` (global step hooks);
 * ``nets_fwd``: the rest (networks' forward, losses, bookkeeping);
 
+(AutoSplat: also per stage of its schedule, ``median_s_by_stage``)
+
 with ``torch_threads`` (what the command chose), the thread environment and the 1-minute load
 average at the start and the end. ``clsplat`` is imported first, as every clsplat command does,
 so the package's thread defaults apply unless ``CLSPLAT_THREAD_DEFAULTS=0`` is set.
@@ -49,9 +51,11 @@ class _Clock:
     def add(self, key: str, seconds: float) -> None:
         self.acc[key] += seconds
 
-    def close(self, end: float | None = None) -> None:
+    def close(self, end: float | None = None, stage: str | None = None) -> None:
         end = time.perf_counter() if end is None else end
         rec = dict(self.acc, step=end - self.start)
+        if stage is not None:
+            rec["stage"] = stage
         rec["nets_bwd"] = rec["backward"] - rec["render_bwd"]
         rec["nets_fwd"] = rec["step"] - rec["data"] - rec["render_fwd"] - rec["backward"] - rec["optim"]
         self.steps.append(rec)
@@ -115,7 +119,7 @@ def _install(clock: _Clock, family: str) -> None:
             clock.close()  # drops what ran before this step (start-up, the previous step's log)
             clock.steps.pop()
             out = step(self, i)
-            clock.close()
+            clock.close(stage=self.stage_of(i)[0])
             return out
         Trainer.train_step = train_step
     else:
@@ -151,12 +155,20 @@ def main(argv: list[str] | None = None) -> int:
     if not kept:
         print(f"step_profile: {len(clock.steps)} steps ran, none left after --skip {a.skip}", file=sys.stderr)
         return 1
-    med = {k: statistics.median(s[k] for s in kept) for k in kept[0]}
+    def medians(rows: list[dict]) -> dict:
+        return {k: round(statistics.median(s[k] for s in rows), 4) for k in rows[0] if k != "stage"}
+
+    by_stage: dict[str, list[dict]] = {}
+    for s in kept:
+        if "stage" in s:
+            by_stage.setdefault(s["stage"], []).append(s)
     out = {"label": a.label, "family": cmd[1], "cmd": " ".join(cmd), "rc": rc, "steps": len(kept),
            "torch_threads": torch.get_num_threads(),
            "env": {k: os.environ.get(k) for k in ("OMP_WAIT_POLICY", "KMP_BLOCKTIME", "CLSPLAT_THREAD_DEFAULTS")},
            "load_start": load0, "load_end": os.getloadavg()[0], "wall_s": wall,
-           "median_s": {k: round(v, 4) for k, v in med.items()},
+           "median_s": medians(kept),
+           **({"median_s_by_stage": {k: dict(medians(v), steps=len(v)) for k, v in by_stage.items()}}
+              if by_stage else {}),
            "per_step_s": [round(s["step"], 4) for s in kept]}
     line = json.dumps(out)
     print(line, flush=True)
