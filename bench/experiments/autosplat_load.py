@@ -30,8 +30,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--holdout", type=int, default=8)
     p.add_argument("--profile", type=int, default=0, help="print this many cProfile entries")
     a = p.parse_args(argv)
-    from clsplat.models.autosplat.data import load_sequence, parse_frames
-    from clsplat.models.autosplat.data import prepare_data
+    try:
+        from clsplat.models.autosplat.data import load_sequence, parse_frames, prepare_data
+    except ImportError:  # trees before the loaders moved to data.py (to time the branch point)
+        from clsplat.models.autosplat.cli import load_sequence, parse_frames
+        from clsplat.models.autosplat.trainer import prepare_data
 
     prof = cProfile.Profile() if a.profile else None
     if prof is not None:
