@@ -2,6 +2,7 @@
 registered as the ``bench`` command through the ``clsplat.commands`` entry point).
 
     clsplat bench {stages,precision,stability,all} [--out DIR] [--device DEV] [--quick] [--repeats N]
+    clsplat bench percall [--scenes ...] [--repeats N] [--layout ...] [--profile] [--json FILE]
 
 Each report writes ``<name>.json`` and ``<name>.md`` into ``--out`` (precision also a PNG);
 ``all`` runs the three and writes ``report.md`` with the device description and the command.
@@ -19,7 +20,11 @@ __all__ = ["main"]
 
 
 def main(argv: list[str] | None = None) -> int:
-    """benchmark reports: clsplat bench {stages,precision,stability,all} --out DIR"""
+    """benchmark reports: clsplat bench {stages,precision,stability,all,percall} --out DIR"""
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["percall"]:   # the per-call cost of rasterization(): its own options
+        from . import percall
+        return percall.main(argv[1:])
     p = ArgumentParser(prog="clsplat bench", description=__doc__.split("\n")[0])
     p.add_argument("report", choices=("stages", "precision", "stability", "all"))
     p.add_argument("--out", default="bench_out", help="output folder (created)")

@@ -1,6 +1,6 @@
 """Per-call cost of :func:`clsplat.rasterization`: forward and backward, small to large scenes.
 
-    python -m clsplat.bench.percall [--scenes tiny,small,medium,large] [--repeats 30]
+    clsplat bench percall [--scenes tiny,small,medium,large] [--repeats 30]
         [--layout packed|unpacked|both] [--profile] [--json FILE]
 
 For each scene and layout it times ``repeats`` forward passes and ``repeats`` backward passes
@@ -21,7 +21,6 @@ colours (no SH), one camera, drawn by :func:`clsplat.bench.scenes.random_frustum
 """
 from __future__ import annotations
 
-import argparse
 import cProfile
 import io
 import json
@@ -32,8 +31,10 @@ import time
 import torch
 
 import clsplat
+from clsplat.argparser import ArgumentParser
 
 from .scenes import random_frustum_scene, render_args
+from .timing import event_ms
 
 __all__ = ["SCENES", "time_calls", "main"]
 
@@ -67,7 +68,7 @@ def time_calls(name: str, packed: bool, repeats: int, profile: bool = False) -> 
             fwd.append(t1 - t0)
             bwd.append(t2 - t1)
             cpu.append(c1 - c0)
-            kern.append(sum(_event_ms(e) for _, e in events))
+            kern.append(sum(event_ms(e) for _, e in events))
         for k in ("means", "quats", "scales", "opacities", "colors"):
             args[k].grad = None
 
@@ -91,14 +92,8 @@ def time_calls(name: str, packed: bool, repeats: int, profile: bool = False) -> 
     return out
 
 
-def _event_ms(ev) -> float:
-    if hasattr(ev, "events"):  # pyopencl's scan returns an Array holding its pending events
-        return sum(_event_ms(e) for e in ev.events)
-    return (ev.profile.end - ev.profile.start) * 1e-6
-
-
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m clsplat.bench.percall", description=__doc__.split("\n")[0])
+    p = ArgumentParser(prog="clsplat bench percall", description=__doc__.split("\n")[0])
     p.add_argument("--scenes", default="tiny,small,medium", help=f"comma-separated, of {sorted(SCENES)}")
     p.add_argument("--repeats", type=int, default=30)
     p.add_argument("--layout", choices=("packed", "unpacked", "both"), default="packed")

@@ -99,3 +99,19 @@ def test_stability_schema(out):
             assert row["nonfinite_f32"] == 0 and row["nonfinite_f64"] == 0
             assert {"grad_rel_l2", "grad_rel_l2_extreme", "grad_nonfinite_f32", "grad_nonfinite_f64"} <= set(row), row
             assert row["grad_rel_l2"] >= 0
+
+
+def test_percall_report(tmp_path, capsys):
+    """``clsplat bench percall`` times forward and backward of the tiny scene and writes one JSON
+    line per scene and layout; a bad scene is one line naming --scenes."""
+    js = tmp_path / "percall.jsonl"
+    assert main(["percall", "--scenes", "tiny", "--repeats", "2", "--layout", "both", "--json", str(js)]) == 0
+    rows = [json.loads(line) for line in js.read_text().splitlines()]
+    assert len(rows) == 2 and {r["packed"] for r in rows} == {True, False}
+    for r in rows:
+        assert r["fwd_ms"] > 0 and r["bwd_ms"] > 0 and r["kernel_ms"] > 0
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as e:
+        main(["percall", "--scenes", "huge"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and len(err) == 1 and "--scenes" in err[0]
