@@ -117,3 +117,31 @@ def test_train_view_costs_nothing_without_a_browser_and_refreshes_with_one(two_c
             assert len(tv.plot.data[0]) == len(tv.plot.data[1]) > 5
     finally:
         tv.close()
+
+
+def test_model_snapshot_leaves_the_run_unchanged():
+    """What --view shows of a training model is built in eval mode, without gradients, and leaves
+    torch's RNG and the model's mode as they were: a watched run is the run unwatched."""
+    from clsplat.models.common.view import model_snapshot
+    from clsplat.viewer.scene import ViewScene
+
+    net = torch.nn.Sequential(torch.nn.Linear(3, 3), torch.nn.Dropout(0.5))
+    net.train()
+    torch.manual_seed(1)
+    expected = torch.rand(4)
+    torch.manual_seed(1)
+    seen = {}
+
+    def build():
+        seen["training"], seen["grad"] = net.training, torch.is_grad_enabled()
+        x = torch.randn(5, 3)                      # draws from the global RNG
+        y = net(x)
+        seen["deterministic"] = torch.equal(y, net(x))   # dropout off in eval mode
+        n = 5
+        return ViewScene(y.detach(), torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1), torch.full((n, 3), 0.1),
+                         torch.full((n,), 0.5), torch.zeros(n, 1, 3))
+
+    sc = model_snapshot(net, build)
+    assert len(sc) == 5 and seen == {"training": False, "grad": False, "deterministic": True}
+    assert net.training and torch.is_grad_enabled()
+    assert torch.equal(torch.rand(4), expected)      # the RNG stream continues as if nothing ran

@@ -105,3 +105,16 @@ def test_bad_arguments_are_clear_errors(runs, tmp_path, capsys):
     assert train(["--preset", "huge", "--steps", "1", "--out", str(tmp_path / "c")]) == 2
     assert "unknown preset 'huge'" in capsys.readouterr().err
     assert evaluate(["--checkpoint", str(tmp_path / "missing.pt"), "--out", str(tmp_path / "e")]) == 2
+
+
+def test_view_serves_the_run_and_leaves_it_unchanged(runs, tmp_path, capsys):
+    """``--view`` (no browser connected): the viewer starts at the first step, showing the model run
+    on a held-out sample, and the run's weights are bitwise those of the same run unwatched."""
+    pytest.importorskip("viser", reason="the view extra is not installed")
+    out = tmp_path / "viewed"
+    assert train(["--stage", "base", "--preset", "tiny", "--steps", "2", "--out", str(out), "--view",
+                  "--view-port", "0"]) == 0
+    assert "clsplat train --view: watch the run at http://127.0.0.1:" in capsys.readouterr().out
+    a = torch.load(out / "checkpoint.pt", weights_only=True)["model"]
+    b = torch.load(runs / "base" / "checkpoint.pt", weights_only=True)["model"]
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in b)

@@ -34,14 +34,15 @@ from .scene import ViewCamera, ViewScene, covariances, default_camera
 __all__ = ["Viewer", "check_port_free"]
 
 
-def check_port_free(host: str, port: int) -> None:
-    """ValueError naming ``--port`` (or ``--host``) when nothing can listen on (host, port)."""
+def check_port_free(host: str, port: int, args: tuple[str, str] = ("--host", "--port")) -> None:
+    """ValueError naming the port argument (or the host's) when nothing can listen on (host, port);
+    ``args``: the two arguments' names on the command line (``clsplat train --view``: --view-host, --view-port)."""
     if not (isinstance(port, int) and 0 <= port <= 65535):
-        raise ValueError(f"--port: expected 0..65535, got {port!r}")
+        raise ValueError(f"{args[1]}: expected 0..65535, got {port!r}")
     try:
         infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
     except socket.gaierror as e:
-        raise ValueError(f"--host {host!r}: cannot be resolved ({e.strerror})") from None
+        raise ValueError(f"{args[0]} {host!r}: cannot be resolved ({e.strerror})") from None
     fam, _, _, _, addr = infos[0]
     s = socket.socket(fam, socket.SOCK_STREAM)
     # as the server will (asyncio's default on POSIX): connections of a stopped viewer in TIME_WAIT do
@@ -52,7 +53,7 @@ def check_port_free(host: str, port: int) -> None:
         s.listen(1)
     except OSError as e:
         what = "in use" if e.errno in (98, 48) else e.strerror
-        raise ValueError(f"--port {port}: cannot listen on {host}:{port} ({what})") from None
+        raise ValueError(f"{args[1]} {port}: cannot listen on {host}:{port} ({what})") from None
     finally:
         s.close()
 

@@ -26,8 +26,8 @@ import torch
 
 from clsplat.viewer.scene import ViewScene, scene_from_ply
 
-__all__ = ["scene_from_checkpoint", "TrainView", "preset_from_saved", "gaussians_scene", "depth_colour",
-           "VARIANT_SAMPLES"]
+__all__ = ["scene_from_checkpoint", "TrainView", "train_watcher", "model_snapshot", "preset_from_saved",
+           "gaussians_scene", "depth_colour", "VARIANT_SAMPLES"]
 
 
 def preset_from_saved(family: str, saved: dict):
@@ -57,6 +57,19 @@ def depth_colour(d: np.ndarray, far: float = 80.0) -> np.ndarray:
     rgb = np.stack([1 - t, 1 - np.abs(2 * t - 1), t], -1)
     rgb[~ok] = 0
     return rgb.astype(np.float32)
+
+
+def model_snapshot(model: torch.nn.Module, build):
+    """``build()`` (-> a :class:`ViewScene` of ``model``'s output) run with ``model`` in eval mode,
+    without gradients and with torch's CPU RNG state restored afterwards; the model's mode is
+    restored too. A training run watched with ``--view`` is thereby the same run unwatched."""
+    was = model.training
+    with torch.random.fork_rng(devices=[]), torch.no_grad():
+        model.eval()
+        try:
+            return build()
+        finally:
+            model.train(was)
 
 
 #: samples of the held-out split a feed-forward checkpoint's viewer offers
@@ -118,7 +131,7 @@ class TrainView:
 
         if isinstance(every, bool) or not isinstance(every, int) or every < 1:
             raise ValueError(f"--view-every: expected a positive number of steps, got {every!r}")
-        check_port_free(host, port)
+        check_port_free(host, port, ("--view-host", "--view-port"))
         self.scene_fn, self.host, self.port, self.every, self.device = scene_fn, host, port, every, device
         self.viewer = None
         self.plot = None
@@ -158,3 +171,15 @@ class TrainView:
     def close(self) -> None:
         if self.viewer is not None:
             self.viewer.stop()
+
+
+def train_watcher(args, scene_fn, device=None) -> TrainView | None:
+    """The :class:`TrainView` of a ``clsplat train FAMILY`` run given :func:`~.cli.add_view_args`'
+    arguments (None without ``--view``, and on ranks other than 0 under torchrun). A taken port is
+    a ValueError now, before the run starts."""
+    if not getattr(args, "view", False):
+        return None
+    from .train import distributed_info
+    if distributed_info()[0] != 0:
+        return None
+    return TrainView(scene_fn, host=args.view_host, port=args.view_port, every=args.view_every, device=device)

@@ -4,6 +4,7 @@
                                  --steps N --out DIR [--resume] [--weights RESNET18.pth]
                                  [--lpips-vgg VGG.pth --lpips-lin LIN.pth] [--eval-scenes K]
                                  [--pose network|dataset] [--set FIELD=VALUE ...]
+                                 [--view [--view-port P] [--view-every N]]
     clsplat eval drivingforward --checkpoint FILE --data ... [--cameras ...] [--frames ...] --out DIR
 
 Training uses the shared loop (``clsplat.models.common.train``): Adam at the preset's learning
@@ -24,28 +25,18 @@ import sys
 
 import torch
 
-from ..common.cli import add_common_args, add_eval_args, add_lpips_args, lpips_from_args
+from ..common.cli import add_common_args, add_eval_args, add_lpips_args, add_view_args, lpips_from_args
 from ..common.data import parse_data
 from ..common.presets import get_preset
+from .checkpoint import FAMILY, build_model, load_model
 
-__all__ = ["train", "evaluate", "build_model", "make_sample_loss"]
-
-FAMILY = "drivingforward"
+__all__ = ["train", "evaluate", "build_model", "load_model", "make_sample_loss"]
 
 
 def _add_model_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--weights", default=None, help="local torchvision ResNet-18 state dict for both encoders")
     add_lpips_args(p)
     p.add_argument("--cameras", nargs="+", default=None, help="camera names (default: all, rig order)")
-
-
-def build_model(preset, weights=None, device=None):
-    """A :class:`DrivingForward` for ``preset``; prints which backbone initialisation it used."""
-    from .model import DrivingForward
-
-    model = DrivingForward(preset, weights=weights, device=device)
-    print(model.init_message, flush=True)
-    return model
 
 
 def preset_overrides(preset, pose: str | None, sets: list[str] | None):
@@ -132,6 +123,7 @@ def train(argv: list[str]) -> int:
                         "preset's) or the data's ego poses (the pose network is not trained)")
     p.add_argument("--set", action="append", default=None, metavar="FIELD=VALUE",
                    help="change one preset field for this run (repeatable; stored in the checkpoint)")
+    add_view_args(p)
     args = p.parse_args(argv)
     try:
         preset = preset_overrides(get_preset(FAMILY, args.preset), args.pose, args.set)
@@ -141,6 +133,11 @@ def train(argv: list[str]) -> int:
         model = build_model(preset, args.weights, args.device)
         lpips = lpips_from_args(args)
         opt = make_optimizer(model, preset)
+        from ..common.view import train_watcher
+        from .view import model_scene
+        # --view: the model run on held-out sample 0 (input cameras, depth maps), refreshed as it trains
+        watcher = train_watcher(args, lambda: model_scene(model, preset, source, args.data, cameras=args.cameras,
+                                                          title="DrivingForward (training)"), args.device)
         from ..common.runfolder import RunFolder
         from ..common.train import distributed_info
         distributed_info()
@@ -150,7 +147,12 @@ def train(argv: list[str]) -> int:
                              grad_clip=preset.grad_clip, seed=args.seed, resume=args.resume,
                              progress=not args.no_progress)
             print(f"data {source.name}, torch threads {threads}", flush=True)
-            run(model, opt, spec, preset, FAMILY, make_sample_loss(source, preset, args.seed, args.cameras, lpips))
+            try:
+                run(model, opt, spec, preset, FAMILY, make_sample_loss(source, preset, args.seed, args.cameras, lpips),
+                    on_step=None if watcher is None else watcher.on_step)
+            finally:
+                if watcher is not None:
+                    watcher.close()
             if args.eval_scenes > 0 and distributed_info()[0] == 0:
                 m = evaluate_model(model, source, args.eval_scenes, args.cameras, lpips=lpips, out_dir=rf.stage)
                 print(_summary(m), flush=True)
@@ -165,27 +167,6 @@ def _summary(m: dict) -> str:
     keys = ("psnr", "ssim", "lpips", "abs_rel", "sq_rel", "rmse", "delta1", "scale_ratio", "oracle_psnr",
             "pose_t_err_m", "pose_t_err_pct", "pose_r_err_deg")
     return "eval all: " + ", ".join(f"{k} {m[k]:.4g}" for k in keys if k in m)
-
-
-def load_model(path: str, device=None, preset_name: str | None = None):
-    """(model, preset) from a checkpoint written by ``clsplat train drivingforward``."""
-    from ..common.train import load_checkpoint
-
-    ck = load_checkpoint(path, FAMILY)
-    saved = ck.get("preset") or {}
-    preset = get_preset(FAMILY, preset_name or saved.get("name", "?"))
-    # a run's --pose / --set changes travel in the checkpoint; the registered preset's other
-    # fields must match it
-    import dataclasses
-    fields = {f.name for f in dataclasses.fields(preset)}
-    changed = {k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()
-               if k in fields and k != "name" and v != preset.to_dict().get(k)}
-    if changed and (preset_name is None or preset_name == saved.get("name")):
-        preset = preset.replace(**changed)
-    load_checkpoint(path, FAMILY, preset)  # refuses a checkpoint of another preset
-    model = build_model(preset, None, device)
-    model.load_state_dict(ck["model"])
-    return model, preset
 
 
 def evaluate(argv: list[str]) -> int:

@@ -6,7 +6,8 @@
     clsplat eval pgt --checkpoint runs/pgt-budget/checkpoint.pt --data synthetic \\
                      --budgets 1,0.5,0.2,0.1,0.05 --out runs/pgt-eval
 
-``train`` writes the run folder of :func:`clsplat.models.common.train.train` (checkpoint.pt,
+``train`` (``--view``: watch it in the browser, clsplat view) writes the run folder of
+:func:`clsplat.models.common.train.train` (checkpoint.pt,
 log.jsonl, loss.png). ``eval`` writes budget.json (rows: method, budget, n_gaussians, psnr, ssim,
 render_ms), budget.png (quality against Gaussian count and render time, Pareto front),
 metrics.json (full-set quality, depth AbsRel with and without the residual head, seconds per
@@ -18,7 +19,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from clsplat.models.common.cli import add_common_args, add_eval_args, add_lpips_args, lpips_from_args
+from clsplat.models.common.cli import add_common_args, add_eval_args, add_lpips_args, add_view_args, lpips_from_args
 from clsplat.models.common.data import parse_data
 from clsplat.models.common.presets import check_preset_matches, get_preset
 from clsplat.models.common.train import TrainSpec, load_checkpoint, seed_everything, set_threads
@@ -56,6 +57,7 @@ def train(argv: list[str]) -> int:
                    help="base: the pixel-aligned predictor; budget: EcoSplat stage 2 from --init")
     p.add_argument("--init", default=None, help="base checkpoint to start the budget stage from")
     add_lpips_args(p)
+    add_view_args(p)
     args = p.parse_args(argv)
     try:
         preset = get_preset(FAMILY, args.preset)
@@ -75,6 +77,11 @@ def train(argv: list[str]) -> int:
         from .training import make_optimizer, make_sample_loss
         opt, sched = make_optimizer(model, preset, steps, args.stage)
         lpips = lpips_from_args(args) if preset.w_lpips else None
+        from ..common.view import train_watcher
+        from .view import model_scene
+        # --view: the model run on held-out sample 0 (input/target cameras, depth), refreshed as it trains
+        watcher = train_watcher(args, lambda: model_scene(model, preset, source, args.data,
+                                                          title=f"PGT {args.stage} (training)"), args.device)
         from ..common.runfolder import RunFolder
         from ..common.train import distributed_info
         distributed_info()
@@ -82,9 +89,14 @@ def train(argv: list[str]) -> int:
             spec = TrainSpec(out_dir=rf.stage, steps=steps, batch_size=args.batch_size or preset.batch_size,
                              checkpoint_every=args.checkpoint_every, seed=args.seed, grad_clip=preset.grad_clip,
                              resume=args.resume)
-            run_train(model, opt, spec, preset, FAMILY,
-                      make_sample_loss(source, preset, args.stage, args.seed, lpips),
-                      scheduler=sched, extra_state={"stage": args.stage})
+            try:
+                run_train(model, opt, spec, preset, FAMILY,
+                          make_sample_loss(source, preset, args.stage, args.seed, lpips),
+                          scheduler=sched, extra_state={"stage": args.stage},
+                          on_step=None if watcher is None else watcher.on_step)
+            finally:
+                if watcher is not None:
+                    watcher.close()
             rf.publish()
     except ValueError as e:
         print(f"clsplat train pgt: {e}", file=sys.stderr)
