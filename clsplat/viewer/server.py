@@ -90,6 +90,7 @@ class Viewer:
         if not (16 <= render_width <= 4096):
             raise ValueError(f"--render-width: expected 16..4096, got {render_width}")
         self.scene = scene
+        self._base = scene                     # the scene as loaded: its time slider and model inputs
         self.device = device
         self.render_width = render_width
         self.rest_s = rest_s
@@ -289,14 +290,10 @@ class Viewer:
                        f"{len(sc.cameras)} cameras")
         if self._lidar is not None:
             cb = g.add_checkbox("LiDAR points", initial_value=False)
-            cb.on_update(lambda _: setattr(self._lidar, "visible", cb.value))
+            cb.on_update(lambda _: self.show_lidar(cb.value))
         if sc.boxes:
             bb = g.add_checkbox("Tracked boxes", initial_value=True)
-
-            def _boxes(_) -> None:
-                self._boxes_visible = bb.value
-                self._add_boxes(self.scene)
-            bb.on_update(_boxes)
+            bb.on_update(lambda _: self.show_boxes(bb.value))
         if sc.variants and sc.variant is not None:
             with g.add_folder("Model input"):
                 dd = g.add_dropdown("Input", options=tuple(sc.variants))
@@ -305,23 +302,48 @@ class Viewer:
 
             def _run(_) -> None:
                 status.content = f"running the model on {dd.value} ..."
-                t0 = time.perf_counter()
-                try:
-                    self.set_scene(sc.variant(dd.value))
-                    status.content = f"{dd.value}: {len(self.scene)} Gaussians in {time.perf_counter() - t0:.1f} s"
-                except ValueError as e:
-                    status.content = f"{dd.value}: {e}"
+                status.content = self.run_variant(dd.value)
             run.on_click(_run)
         self._add_depths(sc)
         if sc.times and sc.at_time is not None:
             sl = g.add_slider("Time (s)", min=float(min(sc.times)), max=float(max(sc.times)),
                               step=float(np.min(np.diff(sorted(sc.times)))) if len(sc.times) > 1 else 1.0,
                               initial_value=float(sc.times[0]))
+            sl.on_update(lambda _: self.set_time(sl.value))
 
-            def _time(_) -> None:
-                self._time = sl.value
-                self.set_gaussians(sc.at_time(sl.value))
-            sl.on_update(_time)
+    # ------------------------------------------------------------------ what the shared controls do
+    def show_lidar(self, on: bool) -> None:
+        """The "LiDAR points" toggle."""
+        if self._lidar is not None:
+            self._lidar.visible = bool(on)
+
+    def show_boxes(self, on: bool) -> None:
+        """The "Tracked boxes" toggle."""
+        self._boxes_visible = bool(on)
+        self._add_boxes(self.scene)
+
+    def set_time(self, t: float) -> None:
+        """The time slider: the Gaussians and boxes of the scene at time ``t`` (AutoSplat's moving
+        objects placed, with their residual SH); the recorded cameras and depth maps stay."""
+        if self._base.at_time is None:
+            raise ValueError("this scene has no time slider (it is static)")
+        new = self._base.at_time(float(t))
+        if not new.cameras:
+            new.cameras = self._base.cameras
+        self._time = float(t)
+        self.set_gaussians(new)
+
+    def run_variant(self, name: str) -> str:
+        """The "Model input" dropdown's "Run the model": rerun a feed-forward model on another input
+        and show its scene; returns the status line shown under the button."""
+        if self._base.variant is None or name not in self._base.variants:
+            return f"{name}: not an input this scene offers"
+        t0 = time.perf_counter()
+        try:
+            self.set_scene(self._base.variant(name))
+        except ValueError as e:
+            return f"{name}: {e}"
+        return f"{name}: {len(self.scene)} Gaussians in {time.perf_counter() - t0:.1f} s"
 
     # ------------------------------------------------------------------ per client
     def _on_connect(self, client) -> None:
@@ -344,7 +366,8 @@ class Viewer:
             with g.add_folder("Views"):
                 dd = g.add_dropdown("Camera", options=tuple(views))
                 go = g.add_button("Go to camera")
-                go.on_click(lambda _: self.set_client_camera(client, views[dd.value]))
+                # the views of the scene now (the far side of a car at the slider's time)
+                go.on_click(lambda _: self.set_client_camera(client, self.views().get(dd.value, views[dd.value])))
         with self._lock:
             self._clients[client.client_id] = {"image": image, "text": text, "background": bg}
             self._moved[client.client_id] = time.time()  # its first camera message may have come already
