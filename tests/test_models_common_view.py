@@ -40,6 +40,11 @@ def test_drivingforward_checkpoint(tmp_path):
     # another input, picked in the viewer: the front camera alone, three frames -> 3 x 1 x H x W Gaussians
     other = sc.variant("sample 1, frames [-1, 0, 1], front camera")
     assert len(other.cameras) == 1 and len(other) == 3 * preset.height * preset.width
+    # without --data the run's own data (its metrics.json) is used; --data wins over it
+    (run / "metrics.json").write_text('{"data": "pandaset:/no/such/folder"}')
+    with pytest.raises(ValueError, match="/no/such/folder"):
+        scene_from_checkpoint(run / "checkpoint.pt")
+    assert len(scene_from_checkpoint(run / "checkpoint.pt", data="synthetic")) == len(sc)
 
 
 def test_pgt_checkpoint(tmp_path):

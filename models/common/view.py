@@ -9,7 +9,7 @@ its scene:
   recording's cameras with their images, the ego trajectory, the LiDAR points, the tracked boxes
   and a time slider that places the moving objects (with their residual SH) at each frame.
 * DrivingForward and PGT (feed-forward): the network runs on held-out sample ``sample`` of
-  ``data``; the scene is its predicted Gaussians with the input cameras (and their images) and
+  ``data`` (default: the run's, where its ``metrics.json`` records it, else synthetic); the scene is its predicted Gaussians with the input cameras (and their images) and
   the predicted depth maps.
 * A run folder without a checkpoint but with ``scene.ply`` shows the ``.ply``.
 
@@ -26,7 +26,7 @@ import torch
 
 from clsplat.viewer.scene import ViewScene, scene_from_ply
 
-__all__ = ["scene_from_checkpoint", "TrainView", "train_watcher", "model_snapshot", "preset_from_saved",
+__all__ = ["scene_from_checkpoint", "TrainView", "train_watcher", "model_snapshot", "run_data", "preset_from_saved",
            "gaussians_scene", "depth_colour", "VARIANT_SAMPLES"]
 
 
@@ -70,6 +70,18 @@ def model_snapshot(model: torch.nn.Module, build):
             return build()
         finally:
             model.train(was)
+
+
+def run_data(run: Path) -> str | None:
+    """The data a run trained on as its folder records it (``metrics.json``'s ``data``), else None."""
+    import json
+
+    m = Path(run) / "metrics.json"
+    try:
+        d = json.loads(m.read_text()).get("data") if m.is_file() else None
+    except (OSError, ValueError, AttributeError):
+        return None
+    return d if isinstance(d, str) and d else None
 
 
 #: samples of the held-out split a feed-forward checkpoint's viewer offers

@@ -12,7 +12,7 @@ import torch
 from clsplat.viewer.scene import ViewCamera, ViewScene
 
 from ..common.data import parse_data
-from ..common.view import VARIANT_SAMPLES, depth_colour, gaussians_scene, model_snapshot
+from ..common.view import VARIANT_SAMPLES, depth_colour, gaussians_scene, model_snapshot, run_data
 from .checkpoint import load_model
 from .data import gt_ego_motion, load_triplet
 from .evaluation import OFFSETS
@@ -59,8 +59,8 @@ def model_scene(model, preset, source, data_name: str, k: int = 0, frames: tuple
 
 def checkpoint_scene(ck: dict, ck_path: Path, run: Path, data: str | None, sample: int = 0, device=None) -> ViewScene:
     """The scene of a DrivingForward checkpoint run on held-out sample ``sample`` of ``data``, with
-    a variant per sample, frame set and camera set."""
-    data = data or "synthetic"
+    a variant per sample, frame set and camera set (``data``: default the run's, else synthetic)."""
+    data = data or run_data(run) or "synthetic"
 
     model, preset = load_model(str(ck_path), device)
     model.eval()
