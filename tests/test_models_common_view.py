@@ -99,7 +99,9 @@ def test_train_view_costs_nothing_without_a_browser_and_refreshes_with_one(two_c
 
     def scene_fn():
         calls.append(1)
-        return scene_from_ply(two_colour_ply[0])
+        sc = scene_from_ply(two_colour_ply[0])
+        sc.depths = {"front": np.full((8, 8, 3), min(len(calls), 255) / 255, np.float32)}  # as DF/PGT predict
+        return sc
 
     tv = TrainView(scene_fn, port=0, every=2)
     try:
@@ -119,6 +121,9 @@ def test_train_view_costs_nothing_without_a_browser_and_refreshes_with_one(two_c
                 tv.on_step(step, {"loss": 1.0 / step})
                 time.sleep(0.1)
             assert tv.refreshes >= 2 and tv.viewer.renders >= 1
+            # the depth panel shows the latest prediction (updated in place, one image)
+            assert len(tv.viewer._depth_handles) == 1
+            assert int(tv.viewer._depth_handles[0].image[0, 0, 0]) == min(len(calls), 255)
             assert len(tv.plot.data[0]) == len(tv.plot.data[1]) > 5
     finally:
         tv.close()

@@ -112,6 +112,11 @@ def test_viewer_without_a_browser(two_colour_ply):
         other.depths = {"front": np.zeros((48, 64, 3), np.float32)}
         v.set_scene(other)
         assert len(v._camera_handles) == 2 and len(v._depth_handles) == 1 and v.scene is other
+        # a training run's refresh: the same depth map names update the images in place
+        h = v._depth_handles[0]
+        other.depths = {"front": np.ones((48, 64, 3), np.float32)}
+        v.set_depths(other)
+        assert v._depth_handles == [h] and (h.image == 255).all()
         v.set_scene(scene_from_ply(ply))
         assert v._camera_handles == [] and v._depth_handles == []
     finally:

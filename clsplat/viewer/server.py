@@ -237,7 +237,18 @@ class Viewer:
                 image=img, wxyz=_wxyz(c2w[:3, :3]), position=c2w[:3, 3], color=(40, 90, 200), thickness=2.0,
                 thickness_units="screen"))
 
+    def set_depths(self, scene: ViewScene) -> None:
+        """Show ``scene``'s depth maps: the images are replaced in place when the names are those
+        shown (a training run's refresh), else the panel is rebuilt."""
+        handles = getattr(self, "_depth_handles", [])
+        if list(scene.depths) == getattr(self, "_depth_names", None) and len(handles) == len(scene.depths):
+            for h, d in zip(handles, scene.depths.values()):
+                h.image = (np.clip(d, 0, 1) * 255).astype(np.uint8)
+        else:
+            self._add_depths(scene)
+
     def _add_depths(self, scene: ViewScene) -> None:
+        self._depth_names = list(scene.depths)
         for h in getattr(self, "_depth_handles", []):
             h.remove()
         self._depth_handles = []

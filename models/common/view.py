@@ -127,8 +127,9 @@ class TrainView:
     """``clsplat train ... --view``: serve a run's scene while it trains.
 
     The viewer starts at the first step (once the model has Gaussians). While a browser is
-    connected, every ``every`` steps (and when a browser connects) the Gaussians shown are
-    replaced by the model's current ones and the loss plot is updated; the exact renders run in
+    connected, every ``every`` steps (and when a browser connects) the Gaussians shown (and the
+    depth maps, where the scene has them) are replaced by the model's current ones and the loss
+    plot is updated; the exact renders run in
     the training thread between steps (one thread uses the OpenCL device). With no browser a step
     costs a list append and a look at the client table.
 
@@ -175,7 +176,10 @@ class TrainView:
             return
         if set(clients) - self._seen or step % self.every == 0:
             self._seen = set(clients)
-            self.viewer.set_gaussians(self.scene_fn())
+            scene = self.scene_fn()
+            self.viewer.set_gaussians(scene)
+            if scene.depths:   # DrivingForward's and PGT's predicted depth, as it learns
+                self.viewer.set_depths(scene)
             self.plot.data = (np.asarray(self.steps, np.float64), np.asarray(self.losses, np.float64))
             self.refreshes += 1
         self.viewer.render_due()
