@@ -109,7 +109,11 @@ class Viewer:
             raise ValueError(f"--port {port}: cannot listen on {host}:{port} (in use)")
         self.host = host
         self.server.gui.configure_theme(control_width="large")
+        if up not in ("+x", "-x", "+y", "-y", "+z", "-z"):
+            self.server.stop()
+            raise ValueError(f"--up: expected one of +x -x +y -y +z -z, got {up!r}")
         self.server.scene.set_up_direction(up)
+        self._up = up
         self._time = scene.times[0] if scene.times else None
         self._build_scene(scene)
         self._build_gui()
@@ -287,8 +291,13 @@ class Viewer:
         self._add_boxes(scene)
         init = default_camera(scene)
         c2w = init.cam_to_world
-        # start just behind and above the first camera, so that its frustum is in view, not around it
-        eye = c2w[:3, 3] - c2w[:3, 2] * 0.15 * r - c2w[:3, 1] * 0.05 * r
+        # start behind and above the first camera, looking where it looks: the recorded cameras'
+        # frusta (with their images) are then small ahead of the view, not filling it
+        ax = "xyz".index(self._up[1])
+        up = np.zeros(3)
+        up[ax] = 1.0 if self._up[0] == "+" else -1.0
+        eye = c2w[:3, 3] - c2w[:3, 2] * (0.5 * r if scene.cameras else 0.15 * r) + up * (0.2 * r if scene.cameras else 0.0) \
+            - c2w[:3, 1] * 0.05 * r
         self.server.initial_camera.position = eye
         self.server.initial_camera.look_at = c2w[:3, 3] + c2w[:3, 2] * r
         self.server.initial_camera.fov = init.fov_y
