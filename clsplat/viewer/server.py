@@ -296,8 +296,8 @@ class Viewer:
         ax = "xyz".index(self._up[1])
         up = np.zeros(3)
         up[ax] = 1.0 if self._up[0] == "+" else -1.0
-        eye = c2w[:3, 3] - c2w[:3, 2] * (0.5 * r if scene.cameras else 0.15 * r) + up * (0.2 * r if scene.cameras else 0.0) \
-            - c2w[:3, 1] * 0.05 * r
+        back, lift = (0.5, 0.2) if scene.cameras else (0.15, 0.0)
+        eye = c2w[:3, 3] - c2w[:3, 2] * back * r + up * lift * r - c2w[:3, 1] * 0.05 * r
         self.server.initial_camera.position = eye
         self.server.initial_camera.look_at = c2w[:3, 3] + c2w[:3, 2] * r
         self.server.initial_camera.fov = init.fov_y

@@ -9,8 +9,10 @@ its scene:
   recording's cameras with their images, the ego trajectory, the LiDAR points, the tracked boxes
   and a time slider that places the moving objects (with their residual SH) at each frame.
 * DrivingForward and PGT (feed-forward): the network runs on held-out sample ``sample`` of
-  ``data`` (default: the run's, where its ``metrics.json`` records it, else synthetic); the scene is its predicted Gaussians with the input cameras (and their images) and
-  the predicted depth maps.
+  ``data`` (default: the run's, where its ``metrics.json`` records it, else synthetic); the
+  scene is its predicted Gaussians with the input cameras (and their images) and the predicted
+  depth maps. :func:`model_snapshot` builds it in eval mode with the RNG restored, which is also
+  how ``clsplat train FAMILY --view`` shows a model as it trains.
 * A run folder without a checkpoint but with ``scene.ply`` shows the ``.ply``.
 
 Every failure is a ValueError naming PATH (unknown family, not a checkpoint, mismatched data).
