@@ -120,3 +120,24 @@ def test_pickles_are_safe_by_default_and_trusted_only_on_request(tmp_path, capsy
     assert main(args + ["--trust-pickle"]) == 2  # trusted: the payload runs (then is no DataFrame)
     assert marker.exists()
     assert "holds a int, not a pandas DataFrame" in capsys.readouterr().err
+
+
+def test_view_serves_the_run_and_leaves_it_unchanged(earlier_run, tmp_path, capsys):
+    """``--view`` (no browser connected): the viewer's address is printed at the first step and
+    the run's scene is the unwatched run's to the byte; a port in use is one line naming
+    --view-port, before the data loads."""
+    pytest.importorskip("viser", reason="the view extra is not installed")
+    import socket
+    out = tmp_path / "viewed"
+    capsys.readouterr()
+    assert main(ARGS + ["--out", str(out), "--view", "--view-port", "0"]) == 0
+    assert "clsplat train --view: watch the run at http://127.0.0.1:" in capsys.readouterr().out
+    assert (out / "scene.ply").read_bytes() == (earlier_run / "scene.ply").read_bytes()
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen(1)
+        port = s.getsockname()[1]
+        assert main(ARGS + ["--out", str(tmp_path / "taken"), "--view", "--view-port", str(port)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"--view-port {port}: cannot listen" in err[0]
+    assert not (tmp_path / "taken").exists()

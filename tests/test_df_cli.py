@@ -237,3 +237,24 @@ def test_eval_on_a_full_disk_is_one_line_and_keeps_the_earlier_evaluation(runs, 
     assert re.fullmatch(rf"clsplat eval drivingforward: writing '{re.escape(str(out))}/\.staging-[^/]+/"
                         r"contact_sheet\.png' failed \(No space left on device\); no partial file is left", err), err
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+def test_view_serves_the_run_and_leaves_it_unchanged(runs, tmp_path, capsys):
+    """``--view`` (no browser connected): the viewer starts at the first step, showing the model run
+    on a held-out sample, and the run's weights are bitwise those of the same run unwatched; a
+    port in use is a one-line error naming --view-port before the run starts."""
+    pytest.importorskip("viser", reason="the view extra is not installed")
+    import socket
+    assert _train(tmp_path / "viewed", 2, "--eval-scenes", "0", "--view", "--view-port", "0") == 0
+    assert "clsplat train --view: watch the run at http://127.0.0.1:" in capsys.readouterr().out
+    a = torch.load(runs / "straight" / "checkpoint.pt", weights_only=True)["model"]
+    b = torch.load(tmp_path / "viewed" / "checkpoint.pt", weights_only=True)["model"]
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen(1)
+        port = s.getsockname()[1]
+        assert _train(tmp_path / "taken", 1, "--view", "--view-port", str(port)) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"--view-port {port}: cannot listen" in err[0]
+    assert not (tmp_path / "taken" / "checkpoint.pt").exists()

@@ -284,3 +284,18 @@ def test_checkpoints_and_weight_files_never_run_code(tmp_path):
     with pytest.raises(ValueError, match=r"bad\.pt"):
         LPIPS(str(bad), str(bad))
     assert not marker.exists()
+
+
+def test_on_step_sees_every_step_and_its_logged_record(toy, tmp_path):
+    """The hook ``clsplat train FAMILY --view`` hangs on: called once per step, in order, with the
+    record the log gets."""
+    t, _ = toy
+    seen = []
+    torch.manual_seed(0)
+    model = t.Toy(8).double()
+    opt = torch.optim.Adam(model.parameters(), lr=1e-2)
+    spec = TrainSpec(out_dir=tmp_path, steps=4, batch_size=2, checkpoint_every=2, progress=False)
+    train(model, opt, spec, t.ToyPreset(), "toy", t.sample_loss, on_step=lambda s, r: seen.append((s, dict(r))))
+    logged = [json.loads(x) for x in (tmp_path / "log.jsonl").read_text().splitlines()]
+    assert [s for s, _ in seen] == [1, 2, 3, 4]
+    assert [r["loss"] for _, r in seen] == [r["loss"] for r in logged]

@@ -40,6 +40,11 @@ def test_drivingforward_checkpoint(tmp_path):
     # another input, picked in the viewer: the front camera alone, three frames -> 3 x 1 x H x W Gaussians
     other = sc.variant("sample 1, frames [-1, 0, 1], front camera")
     assert len(other.cameras) == 1 and len(other) == 3 * preset.height * preset.width
+    # without --data the run's own data (its metrics.json) is used; --data wins over it
+    (run / "metrics.json").write_text('{"data": "pandaset:/no/such/folder"}')
+    with pytest.raises(ValueError, match="/no/such/folder"):
+        scene_from_checkpoint(run / "checkpoint.pt")
+    assert len(scene_from_checkpoint(run / "checkpoint.pt", data="synthetic")) == len(sc)
 
 
 def test_pgt_checkpoint(tmp_path):
@@ -134,7 +139,9 @@ def test_train_view_costs_nothing_without_a_browser_and_refreshes_with_one(two_c
 
     def scene_fn():
         calls.append(1)
-        return scene_from_ply(two_colour_ply[0])
+        sc = scene_from_ply(two_colour_ply[0])
+        sc.depths = {"front": np.full((8, 8, 3), min(len(calls), 255) / 255, np.float32)}  # as DF/PGT predict
+        return sc
 
     tv = TrainView(scene_fn, port=0, every=2)
     try:
@@ -154,6 +161,37 @@ def test_train_view_costs_nothing_without_a_browser_and_refreshes_with_one(two_c
                 tv.on_step(step, {"loss": 1.0 / step})
                 time.sleep(0.1)
             assert tv.refreshes >= 2 and tv.viewer.renders >= 1
+            # the depth panel shows the latest prediction (updated in place, one image)
+            assert len(tv.viewer._depth_handles) == 1
+            assert int(tv.viewer._depth_handles[0].image[0, 0, 0]) == min(len(calls), 255)
             assert len(tv.plot.data[0]) == len(tv.plot.data[1]) > 5
     finally:
         tv.close()
+
+
+def test_model_snapshot_leaves_the_run_unchanged():
+    """What --view shows of a training model is built in eval mode, without gradients, and leaves
+    torch's RNG and the model's mode as they were: a watched run is the run unwatched."""
+    from clsplat.models.common.view import model_snapshot
+    from clsplat.viewer.scene import ViewScene
+
+    net = torch.nn.Sequential(torch.nn.Linear(3, 3), torch.nn.Dropout(0.5))
+    net.train()
+    torch.manual_seed(1)
+    expected = torch.rand(4)
+    torch.manual_seed(1)
+    seen = {}
+
+    def build():
+        seen["training"], seen["grad"] = net.training, torch.is_grad_enabled()
+        x = torch.randn(5, 3)                      # draws from the global RNG
+        y = net(x)
+        seen["deterministic"] = torch.equal(y, net(x))   # dropout off in eval mode
+        n = 5
+        return ViewScene(y.detach(), torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1), torch.full((n, 3), 0.1),
+                         torch.full((n,), 0.5), torch.zeros(n, 1, 3))
+
+    sc = model_snapshot(net, build)
+    assert len(sc) == 5 and seen == {"training": False, "grad": False, "deterministic": True}
+    assert net.training and torch.is_grad_enabled()
+    assert torch.equal(torch.rand(4), expected)      # the RNG stream continues as if nothing ran

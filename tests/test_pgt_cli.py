@@ -141,3 +141,16 @@ def test_eval_on_a_full_disk_is_one_line_and_keeps_the_earlier_evaluation(runs, 
     assert re.fullmatch(rf"clsplat eval pgt: writing '{re.escape(str(out))}/\.staging-[^/]+/budget\.png' failed "
                         r"\(No space left on device\); no partial file is left", err), err
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+def test_view_serves_the_run_and_leaves_it_unchanged(runs, tmp_path, capsys):
+    """``--view`` (no browser connected): the viewer starts at the first step, showing the model run
+    on a held-out sample, and the run's weights are bitwise those of the same run unwatched."""
+    pytest.importorskip("viser", reason="the view extra is not installed")
+    out = tmp_path / "viewed"
+    assert train(["--stage", "base", "--preset", "tiny", "--steps", "2", "--out", str(out), "--view",
+                  "--view-port", "0"]) == 0
+    assert "clsplat train --view: watch the run at http://127.0.0.1:" in capsys.readouterr().out
+    a = torch.load(out / "checkpoint.pt", weights_only=True)["model"]
+    b = torch.load(runs / "base" / "checkpoint.pt", weights_only=True)["model"]
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in b)

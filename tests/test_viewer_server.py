@@ -13,6 +13,7 @@ import urllib.request
 
 import numpy as np
 import pytest
+import torch
 
 pytest.importorskip("viser", reason="the view extra (pip install 'clsplat[view]') is not installed")
 
@@ -111,6 +112,11 @@ def test_viewer_without_a_browser(two_colour_ply):
         other.depths = {"front": np.zeros((48, 64, 3), np.float32)}
         v.set_scene(other)
         assert len(v._camera_handles) == 2 and len(v._depth_handles) == 1 and v.scene is other
+        # a training run's refresh: the same depth map names update the images in place
+        h = v._depth_handles[0]
+        other.depths = {"front": np.ones((48, 64, 3), np.float32)}
+        v.set_depths(other)
+        assert v._depth_handles == [h] and (h.image == 255).all()
         v.set_scene(scene_from_ply(ply))
         assert v._camera_handles == [] and v._depth_handles == []
     finally:
@@ -118,3 +124,50 @@ def test_viewer_without_a_browser(two_colour_ply):
     # the port is free again once stopped (for a restart: connections in TIME_WAIT do not count)
     from clsplat.viewer.server import check_port_free
     check_port_free("127.0.0.1", v.port)
+
+
+def test_driving_controls_without_a_browser(two_colour_ply):
+    """The shared controls' actions: LiDAR and box toggles, the time slider (a moving object and its
+    box placed at t, recorded cameras kept), the far side of the first box at the slider's time, and
+    the model-input dropdown rerunning a model."""
+    from clsplat.viewer.scene import ViewBox
+
+    ply, cam = two_colour_ply
+
+    def at(t: float, extras: bool = True):
+        sc = scene_from_ply(ply)
+        sc.means[:200, 0] += t        # the red cluster drives along +x at 1 m/s
+        sc.boxes = [ViewBox("car 7", np.array([-0.8 + t, 0, 0]), np.array([1.0, 0.8, 0.6]), np.array([1.0, 0, 0, 0]), t)]
+        if extras:
+            sc.cameras = [cam]
+            sc.lidar = np.random.default_rng(0).normal(size=(50, 3))
+            sc.times = [0.0, 1.0, 2.0]
+            sc.at_time = lambda t: at(t, False)
+            sc.variants = ["sample 1"]
+            sc.variant = lambda name: scene_from_ply(ply)
+        return sc
+
+    v = Viewer(at(0.0), port=0)
+    try:
+        assert v._lidar is not None and not v._lidar.visible
+        v.show_lidar(True)
+        assert v._lidar.visible
+        v.show_boxes(False)
+        assert len(v._box_handles) == 1 and not v._box_handles[0].visible
+        v.show_boxes(True)
+        far0 = v.views()["far side of car 7"]
+        v.set_time(2.0)
+        assert torch.allclose(v.scene.means[:200, 0], scene_from_ply(ply).means[:200, 0] + 2.0)
+        np.testing.assert_allclose(v.scene.boxes[0].center, [1.2, 0, 0])
+        assert v.scene.cameras == [cam] and "lane change 2 m (front)" in v.views()
+        far = v.views()["far side of car 7"]
+        # the far side: beyond the box as the first camera sees it, looking at the box where it is at t
+        eye0, eye, centre = cam.cam_to_world[:3, 3], far.cam_to_world[:3, 3], np.array([1.2, 0, 0])
+        assert np.dot(eye - centre, centre - eye0) > 0
+        p = far.K @ (far.viewmat[:3, :3] @ centre + far.viewmat[:3, 3])
+        np.testing.assert_allclose(p[:2] / p[2], [far.width / 2, far.height / 2], atol=1e-6)
+        assert not np.allclose(far.viewmat, far0.viewmat)
+        assert v.run_variant("no such input").startswith("no such input: not an input")
+        assert "Gaussians in" in v.run_variant("sample 1") and v.scene.boxes == []
+    finally:
+        v.stop()

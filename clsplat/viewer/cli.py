@@ -71,7 +71,8 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default=None, help="OpenCL device of the exact render (default: CLSPLAT_DEVICE, "
                    "else GPU, else PoCL)")
     p.add_argument("--data", default=None, help="for a DrivingForward/PGT/AutoSplat checkpoint: the data to run it on "
-                   "(synthetic | pandaset:PATH | nuscenes:PATH; default: the run's own, else synthetic)")
+                   "(synthetic | pandaset:PATH | nuscenes:PATH; default: the run's own where its metrics.json "
+                   "records it, else synthetic)")
     p.add_argument("--sample", type=int, default=0, help="for DrivingForward/PGT: which held-out sample (default 0)")
     p.add_argument("--trust-pickle", action="store_true",
                    help="trust --data's pickled files (PandaSet): unpickle them without the allow-list, which can "

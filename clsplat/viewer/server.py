@@ -34,14 +34,15 @@ from .scene import ViewCamera, ViewScene, covariances, default_camera
 __all__ = ["Viewer", "check_port_free"]
 
 
-def check_port_free(host: str, port: int) -> None:
-    """ValueError naming ``--port`` (or ``--host``) when nothing can listen on (host, port)."""
+def check_port_free(host: str, port: int, args: tuple[str, str] = ("--host", "--port")) -> None:
+    """ValueError naming the port argument (or the host's) when nothing can listen on (host, port);
+    ``args``: the two arguments' names on the command line (``clsplat train --view``: --view-host, --view-port)."""
     if not (isinstance(port, int) and 0 <= port <= 65535):
-        raise ValueError(f"--port: expected 0..65535, got {port!r}")
+        raise ValueError(f"{args[1]}: expected 0..65535, got {port!r}")
     try:
         infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
     except socket.gaierror as e:
-        raise ValueError(f"--host {host!r}: cannot be resolved ({e.strerror})") from None
+        raise ValueError(f"{args[0]} {host!r}: cannot be resolved ({e.strerror})") from None
     fam, _, _, _, addr = infos[0]
     s = socket.socket(fam, socket.SOCK_STREAM)
     # as the server will (asyncio's default on POSIX): connections of a stopped viewer in TIME_WAIT do
@@ -52,7 +53,7 @@ def check_port_free(host: str, port: int) -> None:
         s.listen(1)
     except OSError as e:
         what = "in use" if e.errno in (98, 48) else e.strerror
-        raise ValueError(f"--port {port}: cannot listen on {host}:{port} ({what})") from None
+        raise ValueError(f"{args[1]} {port}: cannot listen on {host}:{port} ({what})") from None
     finally:
         s.close()
 
@@ -89,6 +90,7 @@ class Viewer:
         if not (16 <= render_width <= 4096):
             raise ValueError(f"--render-width: expected 16..4096, got {render_width}")
         self.scene = scene
+        self._base = scene                     # the scene as loaded: its time slider and model inputs
         self.device = device
         self.render_width = render_width
         self.rest_s = rest_s
@@ -107,7 +109,11 @@ class Viewer:
             raise ValueError(f"--port {port}: cannot listen on {host}:{port} (in use)")
         self.host = host
         self.server.gui.configure_theme(control_width="large")
+        if up not in ("+x", "-x", "+y", "-y", "+z", "-z"):
+            self.server.stop()
+            raise ValueError(f"--up: expected one of +x -x +y -y +z -z, got {up!r}")
         self.server.scene.set_up_direction(up)
+        self._up = up
         self._time = scene.times[0] if scene.times else None
         self._build_scene(scene)
         self._build_gui()
@@ -235,7 +241,18 @@ class Viewer:
                 image=img, wxyz=_wxyz(c2w[:3, :3]), position=c2w[:3, 3], color=(40, 90, 200), thickness=2.0,
                 thickness_units="screen"))
 
+    def set_depths(self, scene: ViewScene) -> None:
+        """Show ``scene``'s depth maps: the images are replaced in place when the names are those
+        shown (a training run's refresh), else the panel is rebuilt."""
+        handles = getattr(self, "_depth_handles", [])
+        if list(scene.depths) == getattr(self, "_depth_names", None) and len(handles) == len(scene.depths):
+            for h, d in zip(handles, scene.depths.values()):
+                h.image = (np.clip(d, 0, 1) * 255).astype(np.uint8)
+        else:
+            self._add_depths(scene)
+
     def _add_depths(self, scene: ViewScene) -> None:
+        self._depth_names = list(scene.depths)
         for h in getattr(self, "_depth_handles", []):
             h.remove()
         self._depth_handles = []
@@ -274,8 +291,13 @@ class Viewer:
         self._add_boxes(scene)
         init = default_camera(scene)
         c2w = init.cam_to_world
-        # start just behind and above the first camera, so that its frustum is in view, not around it
-        eye = c2w[:3, 3] - c2w[:3, 2] * 0.15 * r - c2w[:3, 1] * 0.05 * r
+        # start behind and above the first camera, looking where it looks: the recorded cameras'
+        # frusta (with their images) are then small ahead of the view, not filling it
+        ax = "xyz".index(self._up[1])
+        up = np.zeros(3)
+        up[ax] = 1.0 if self._up[0] == "+" else -1.0
+        back, lift = (0.5, 0.2) if scene.cameras else (0.15, 0.0)
+        eye = c2w[:3, 3] - c2w[:3, 2] * back * r + up * lift * r - c2w[:3, 1] * 0.05 * r
         self.server.initial_camera.position = eye
         self.server.initial_camera.look_at = c2w[:3, 3] + c2w[:3, 2] * r
         self.server.initial_camera.fov = init.fov_y
@@ -288,14 +310,10 @@ class Viewer:
                        f"{len(sc.cameras)} cameras")
         if self._lidar is not None:
             cb = g.add_checkbox("LiDAR points", initial_value=False)
-            cb.on_update(lambda _: setattr(self._lidar, "visible", cb.value))
+            cb.on_update(lambda _: self.show_lidar(cb.value))
         if sc.boxes:
             bb = g.add_checkbox("Tracked boxes", initial_value=True)
-
-            def _boxes(_) -> None:
-                self._boxes_visible = bb.value
-                self._add_boxes(self.scene)
-            bb.on_update(_boxes)
+            bb.on_update(lambda _: self.show_boxes(bb.value))
         if sc.variants and sc.variant is not None:
             with g.add_folder("Model input"):
                 dd = g.add_dropdown("Input", options=tuple(sc.variants))
@@ -304,23 +322,48 @@ class Viewer:
 
             def _run(_) -> None:
                 status.content = f"running the model on {dd.value} ..."
-                t0 = time.perf_counter()
-                try:
-                    self.set_scene(sc.variant(dd.value))
-                    status.content = f"{dd.value}: {len(self.scene)} Gaussians in {time.perf_counter() - t0:.1f} s"
-                except ValueError as e:
-                    status.content = f"{dd.value}: {e}"
+                status.content = self.run_variant(dd.value)
             run.on_click(_run)
         self._add_depths(sc)
         if sc.times and sc.at_time is not None:
             sl = g.add_slider("Time (s)", min=float(min(sc.times)), max=float(max(sc.times)),
                               step=float(np.min(np.diff(sorted(sc.times)))) if len(sc.times) > 1 else 1.0,
                               initial_value=float(sc.times[0]))
+            sl.on_update(lambda _: self.set_time(sl.value))
 
-            def _time(_) -> None:
-                self._time = sl.value
-                self.set_gaussians(sc.at_time(sl.value))
-            sl.on_update(_time)
+    # ------------------------------------------------------------------ what the shared controls do
+    def show_lidar(self, on: bool) -> None:
+        """The "LiDAR points" toggle."""
+        if self._lidar is not None:
+            self._lidar.visible = bool(on)
+
+    def show_boxes(self, on: bool) -> None:
+        """The "Tracked boxes" toggle."""
+        self._boxes_visible = bool(on)
+        self._add_boxes(self.scene)
+
+    def set_time(self, t: float) -> None:
+        """The time slider: the Gaussians and boxes of the scene at time ``t`` (AutoSplat's moving
+        objects placed, with their residual SH); the recorded cameras and depth maps stay."""
+        if self._base.at_time is None:
+            raise ValueError("this scene has no time slider (it is static)")
+        new = self._base.at_time(float(t))
+        if not new.cameras:
+            new.cameras = self._base.cameras
+        self._time = float(t)
+        self.set_gaussians(new)
+
+    def run_variant(self, name: str) -> str:
+        """The "Model input" dropdown's "Run the model": rerun a feed-forward model on another input
+        and show its scene; returns the status line shown under the button."""
+        if self._base.variant is None or name not in self._base.variants:
+            return f"{name}: not an input this scene offers"
+        t0 = time.perf_counter()
+        try:
+            self.set_scene(self._base.variant(name))
+        except ValueError as e:
+            return f"{name}: {e}"
+        return f"{name}: {len(self.scene)} Gaussians in {time.perf_counter() - t0:.1f} s"
 
     # ------------------------------------------------------------------ per client
     def _on_connect(self, client) -> None:
@@ -343,7 +386,8 @@ class Viewer:
             with g.add_folder("Views"):
                 dd = g.add_dropdown("Camera", options=tuple(views))
                 go = g.add_button("Go to camera")
-                go.on_click(lambda _: self.set_client_camera(client, views[dd.value]))
+                # the views of the scene now (the far side of a car at the slider's time)
+                go.on_click(lambda _: self.set_client_camera(client, self.views().get(dd.value, views[dd.value])))
         with self._lock:
             self._clients[client.client_id] = {"image": image, "text": text, "background": bg}
             self._moved[client.client_id] = time.time()  # its first camera message may have come already

@@ -139,7 +139,7 @@ def train(argv: list[str]) -> int:
     frames = parse_frames(a.frames)
     if a.view:  # before the data loads: a taken port is a one-line error now, not after minutes
         from clsplat.viewer.server import check_port_free
-        check_port_free(a.view_host, a.view_port)
+        check_port_free(a.view_host, a.view_port, ("--view-host", "--view-port"))
     t0 = time.perf_counter()
     seq = load_sequence(a.data, a.cameras, frames, scale, seed=a.seed, safe_pickle=not a.trust_pickle)
     if a.masks:

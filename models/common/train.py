@@ -331,7 +331,8 @@ def _progress(enabled: bool, total: int, initial: int) -> Iterator:
 def train(model: torch.nn.Module, optimizer: torch.optim.Optimizer, spec: TrainSpec, preset: Preset,
           family: str, sample_loss: Callable[[torch.nn.Module, int, int], dict[str, torch.Tensor]],
           scheduler=None, extra_state: dict | None = None,
-          on_checkpoint: Callable[[int], None] | None = None) -> dict:
+          on_checkpoint: Callable[[int], None] | None = None,
+          on_step: Callable[[int, dict], None] | None = None) -> dict:
     """Train ``model`` for ``spec.steps`` steps (see the module docstring).
 
     Args:
@@ -346,6 +347,7 @@ def train(model: torch.nn.Module, optimizer: torch.optim.Optimizer, spec: TrainS
         extra_state: a dict of tensors/plain values the family wants checkpointed (updated in
             place on resume).
         on_checkpoint: called with the step after each checkpoint is written (rank 0).
+        on_step: called with (step, log record) after each step (rank 0; e.g. ``--view``).
     Returns:
         {"step": final step, "skipped": skipped steps, "last": last logged record,
          "resumed_from": step or None}.
@@ -444,6 +446,8 @@ def train(model: torch.nn.Module, optimizer: torch.optim.Optimizer, spec: TrainS
             last = rec
             if log is not None and ((step + 1) % spec.log_every == 0 or step + 1 == spec.steps):
                 log.write(rec)
+            if on_step is not None and rank == 0:
+                on_step(step + 1, rec)
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(loss=f"{rec.get('loss', float('nan')):.4g}")

@@ -9,8 +9,10 @@ its scene:
   recording's cameras with their images, the ego trajectory, the LiDAR points, the tracked boxes
   and a time slider that places the moving objects (with their residual SH) at each frame.
 * DrivingForward and PGT (feed-forward): the network runs on held-out sample ``sample`` of
-  ``data``; the scene is its predicted Gaussians with the input cameras (and their images) and
-  the predicted depth maps.
+  ``data`` (default: the run's, where its ``metrics.json`` records it, else synthetic); the
+  scene is its predicted Gaussians with the input cameras (and their images) and the predicted
+  depth maps. :func:`model_snapshot` builds it in eval mode with the RNG restored, which is also
+  how ``clsplat train FAMILY --view`` shows a model as it trains.
 * A run folder without a checkpoint but with ``scene.ply`` shows the ``.ply``.
 
 Every failure is a ValueError naming PATH (unknown family, not a checkpoint, mismatched data).
@@ -21,11 +23,12 @@ import importlib
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from clsplat.viewer.scene import ViewScene, scene_from_ply
 
-__all__ = ["scene_from_checkpoint", "TrainView", "gaussians_scene", "depth_colour",
-           "VARIANT_SAMPLES"]
+__all__ = ["scene_from_checkpoint", "TrainView", "train_watcher", "model_snapshot", "run_data", "gaussians_scene",
+           "depth_colour", "VARIANT_SAMPLES"]
 
 
 def gaussians_scene(g, title: str) -> ViewScene:
@@ -39,6 +42,33 @@ def depth_colour(d: np.ndarray, far: float = 80.0) -> np.ndarray:
     rgb = np.stack([1 - t, 1 - np.abs(2 * t - 1), t], -1)
     rgb[~ok] = 0
     return rgb.astype(np.float32)
+
+
+def model_snapshot(model: torch.nn.Module, build):
+    """``build()`` (-> a :class:`ViewScene` of ``model``'s output) run with ``model`` in eval mode,
+    without gradients and with torch's CPU RNG state restored afterwards; the model's mode is
+    restored too. A training run watched with ``--view`` is thereby the same run unwatched."""
+    was = model.training
+    with torch.random.fork_rng(devices=[]), torch.no_grad():
+        model.eval()
+        try:
+            return build()
+        finally:
+            model.train(was)
+
+
+def run_data(run: Path) -> str | None:
+    """The data a run trained on as its folder records it (``metrics.json``'s ``protocol.data``;
+    runs before the shared schema kept it at the top level), else None."""
+    import json
+
+    m = Path(run) / "metrics.json"
+    try:
+        rec = json.loads(m.read_text()) if m.is_file() else {}
+        d = rec.get("protocol", {}).get("data") or rec.get("data")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return d if isinstance(d, str) and d else None
 
 
 #: samples of the held-out split a feed-forward checkpoint's viewer offers
@@ -87,8 +117,9 @@ class TrainView:
     """``clsplat train ... --view``: serve a run's scene while it trains.
 
     The viewer starts at the first step (once the model has Gaussians). While a browser is
-    connected, every ``every`` steps (and when a browser connects) the Gaussians shown are
-    replaced by the model's current ones and the loss plot is updated; the exact renders run in
+    connected, every ``every`` steps (and when a browser connects) the Gaussians shown (and the
+    depth maps, where the scene has them) are replaced by the model's current ones and the loss
+    plot is updated; the exact renders run in
     the training thread between steps (one thread uses the OpenCL device). With no browser a step
     costs a list append and a look at the client table.
 
@@ -103,7 +134,7 @@ class TrainView:
 
         if isinstance(every, bool) or not isinstance(every, int) or every < 1:
             raise ValueError(f"--view-every: expected a positive number of steps, got {every!r}")
-        check_port_free(host, port)
+        check_port_free(host, port, ("--view-host", "--view-port"))
         self.scene_fn, self.host, self.port, self.every, self.device = scene_fn, host, port, every, device
         self.viewer = None
         self.plot = None
@@ -135,7 +166,10 @@ class TrainView:
             return
         if set(clients) - self._seen or step % self.every == 0:
             self._seen = set(clients)
-            self.viewer.set_gaussians(self.scene_fn())
+            scene = self.scene_fn()
+            self.viewer.set_gaussians(scene)
+            if scene.depths:   # DrivingForward's and PGT's predicted depth, as it learns
+                self.viewer.set_depths(scene)
             self.plot.data = (np.asarray(self.steps, np.float64), np.asarray(self.losses, np.float64))
             self.refreshes += 1
         self.viewer.render_due()
@@ -143,3 +177,15 @@ class TrainView:
     def close(self) -> None:
         if self.viewer is not None:
             self.viewer.stop()
+
+
+def train_watcher(args, scene_fn, device=None) -> TrainView | None:
+    """The :class:`TrainView` of a ``clsplat train FAMILY`` run given :func:`~.cli.add_view_args`'
+    arguments (None without ``--view``, and on ranks other than 0 under torchrun). A taken port is
+    a ValueError now, before the run starts."""
+    if not getattr(args, "view", False):
+        return None
+    from .train import distributed_info
+    if distributed_info()[0] != 0:
+        return None
+    return TrainView(scene_fn, host=args.view_host, port=args.view_port, every=args.view_every, device=device)

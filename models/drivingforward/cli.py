@@ -4,6 +4,7 @@
                                  --steps N --out DIR [--resume] [--weights RESNET18.pth]
                                  [--lpips-vgg VGG.pth --lpips-lin LIN.pth] [--eval-scenes K]
                                  [--pose network|dataset] [--set FIELD=VALUE ...]
+                                 [--view [--view-port P] [--view-every N]]
     clsplat eval drivingforward --checkpoint FILE --data ... [--cameras ...] [--offsets ...] --out DIR
 
 Training uses the shared loop (``clsplat.models.common.train``): Adam at the preset's learning
@@ -26,26 +27,16 @@ import torch
 
 from clsplat.argparser import ArgumentParser
 
-from ..common.cli import add_common_args, add_eval_args, add_eval_scenes_arg, lpips_from_args
+from ..common.cli import add_common_args, add_eval_args, add_eval_scenes_arg, add_view_args, lpips_from_args
 from ..common.data import parse_data
-from ..common.presets import apply_sets, get_preset, preset_from_saved
+from ..common.presets import apply_sets, get_preset
+from .checkpoint import FAMILY, build_model, load_model
 
-__all__ = ["train", "evaluate", "build_model", "make_sample_loss"]
-
-FAMILY = "drivingforward"
+__all__ = ["train", "evaluate", "build_model", "load_model", "make_sample_loss"]
 
 
 def _add_cameras_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cameras", nargs="+", default=None, help="camera names (default: all, rig order)")
-
-
-def build_model(preset, weights=None, device=None):
-    """A :class:`DrivingForward` for ``preset``; prints which backbone initialisation it used."""
-    from .model import DrivingForward
-
-    model = DrivingForward(preset, weights=weights, device=device)
-    print(model.init_message, flush=True)
-    return model
 
 
 def preset_overrides(preset, pose: str | None, sets: list[str] | None):
@@ -90,13 +81,14 @@ def train(argv: list[str]) -> int:
     from .evaluation import evaluate_model
 
     p = ArgumentParser(prog="clsplat train drivingforward", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+                        formatter_class=argparse.RawDescriptionHelpFormatter)
     add_common_args(p, default_preset="small")
     _add_cameras_arg(p)
     add_eval_scenes_arg(p)
     p.add_argument("--pose", choices=("network", "dataset"), default=None,
                    help="ego motion of the temporal warps: the pose network (the paper; default: the "
                         "preset's) or the data's ego poses (the pose network is not trained)")
+    add_view_args(p)
     args = p.parse_args(argv)
     try:
         preset = preset_overrides(get_preset(FAMILY, args.preset), args.pose, args.set)
@@ -106,6 +98,11 @@ def train(argv: list[str]) -> int:
         model = build_model(preset, args.weights, args.device)
         lpips = lpips_from_args(args)
         opt = make_optimizer(model, preset)
+        from ..common.view import train_watcher
+        from .view import model_scene
+        # --view: the model run on held-out sample 0 (input cameras, depth maps), refreshed as it trains
+        watcher = train_watcher(args, lambda: model_scene(model, preset, source, args.data, cameras=args.cameras,
+                                                          title="DrivingForward (training)"), args.device)
         from ..common.runfolder import RunFolder
         from ..common.train import distributed_info
         distributed_info()
@@ -115,7 +112,12 @@ def train(argv: list[str]) -> int:
                              grad_clip=preset.grad_clip, seed=args.seed, resume=args.resume,
                              progress=not args.no_progress)
             print(f"data {source.name}, torch threads {threads}", flush=True)
-            run(model, opt, spec, preset, FAMILY, make_sample_loss(source, preset, args.seed, args.cameras, lpips))
+            try:
+                run(model, opt, spec, preset, FAMILY, make_sample_loss(source, preset, args.seed, args.cameras, lpips),
+                    on_step=None if watcher is None else watcher.on_step)
+            finally:
+                if watcher is not None:
+                    watcher.close()
             if args.eval_scenes > 0 and distributed_info()[0] == 0:
                 m = evaluate_model(model, source, args.eval_scenes, args.cameras, lpips=lpips, out_dir=rf.stage,
                                    step=spec.steps)
@@ -131,21 +133,6 @@ def _summary(m: dict) -> str:
     keys = ("psnr", "ssim", "lpips", "abs_rel", "sq_rel", "rmse", "delta1", "scale_ratio", "oracle_psnr",
             "pose_t_err_m", "pose_t_err_pct", "pose_r_err_deg")
     return "eval all: " + ", ".join(f"{k} {m['all'][k]:.4g}" for k in keys if k in m["all"])
-
-
-def load_model(path: str, device=None, preset_name: str | None = None):
-    """(model, preset) from a checkpoint written by ``clsplat train drivingforward``."""
-    from ..common.train import load_checkpoint
-
-    ck = load_checkpoint(path, FAMILY)
-    # a run's --pose / --set changes travel in the checkpoint; the registered preset's other
-    # fields must match it
-    preset = preset_from_saved(FAMILY, ck.get("preset"), preset_name)
-    load_checkpoint(path, FAMILY, preset)  # refuses a checkpoint of another preset
-    model = build_model(preset, None, device)
-    model.load_state_dict(ck["model"])
-    model.trained_steps = int(ck.get("step", 0))   # recorded in metrics.json by eval
-    return model, preset
 
 
 def evaluate(argv: list[str]) -> int:

@@ -1,48 +1,52 @@
 """DrivingForward in the viewer: the network run on a held-out sample, its predicted Gaussians with
 the input cameras, their images and the predicted depth maps; other samples, frame sets and
-camera sets offered as variants that rerun the model."""
+camera sets offered as variants that rerun the model. :func:`model_scene` is also what
+``clsplat train drivingforward --view`` shows of the model being trained."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Sequence
 
 import torch
 
 from clsplat.viewer.scene import ViewCamera, ViewScene
 
 from ..common.data import parse_data
-from ..common.view import VARIANT_SAMPLES, depth_colour, gaussians_scene
-from .cli import load_model
+from ..common.view import VARIANT_SAMPLES, depth_colour, gaussians_scene, model_snapshot, run_data
+from .checkpoint import load_model
 from .data import gt_ego_motion, load_triplet
 from .evaluation import OFFSETS
 
-__all__ = ["checkpoint_scene"]
+__all__ = ["checkpoint_scene", "model_scene"]
 
 
-def checkpoint_scene(ck: dict, ck_path: Path, run: Path, data: str | None, sample: int = 0, device=None,
-                     safe_pickle: bool = True) -> ViewScene:
-    """The scene of a DrivingForward checkpoint run on held-out sample ``sample`` of ``data``, with
-    a variant per sample, frame set and camera set."""
-    data = data or "synthetic"
+def model_scene(model, preset, source, data_name: str, k: int = 0, frames: tuple[int, ...] | None = None,
+                front_only: bool = False, cameras: Sequence[str] | None = None, title: str = "DrivingForward",
+                split: str = "test") -> ViewScene:
+    """The scene of ``model`` run on sample ``k`` of ``split``: its Gaussians (ego frame at t),
+    the input cameras with their images at t and the predicted depth maps.
 
-    model, preset = load_model(str(ck_path), device)
-    model.eval()
-    source = parse_data(data, safe_pickle=safe_pickle)
-    default_frames = (0,) if preset.mode == "SF" else (-1, 1)
+    Args:
+        frames: input frame offsets in {-1, 0, 1} (default: the preset's mode, SF (0,), MF (-1, 1)).
+        front_only: the first camera alone; cameras: camera names (default all, rig order).
+    The model runs in eval mode without gradients and leaves the RNG as it found it
+    (:func:`~..common.view.model_snapshot`), so that a training run watched is the run unwatched.
+    """
+    frames = frames or ((0,) if preset.mode == "SF" else (-1, 1))
 
-    def run(k: int, frames: tuple[int, ...], front_only: bool) -> ViewScene:
-        s = load_triplet(source, k, preset, split="test")
+    def build() -> ViewScene:
+        s = load_triplet(source, k, preset, split=split, cameras=cameras)
         cams = slice(0, 1) if front_only else slice(None)
         fi = [OFFSETS[f] for f in frames]
         M = gt_ego_motion(s)
         to_ref = torch.stack([torch.linalg.inv(M[f].double()).float() for f in fi])
         Ks, E = s["Ks"][cams], s["cam_to_ego"][cams]
-        with torch.no_grad():
-            g = model.reconstruct(s["images"][fi][:, cams], Ks, E, frame_to_ref=to_ref,
-                                  ref=0 if 1 not in fi else fi.index(1))
-            depth = model.depth_net(s["images"][1][cams], Ks, E)["depth"][:, 0].numpy()
+        g = model.reconstruct(s["images"][fi][:, cams], Ks, E, frame_to_ref=to_ref,
+                              ref=0 if 1 not in fi else fi.index(1))
+        depth = model.depth_net(s["images"][1][cams], Ks, E)["depth"][:, 0].numpy()
         names = s["names"][cams]
-        sc = gaussians_scene(g, f"DrivingForward {preset.name} on {data} sample {k}, frames {list(frames)} "
-                                 f"(ego frame)")
+        sc = gaussians_scene(g, f"{title} {preset.name} on {data_name} sample {k}, frames {list(frames)} "
+                                f"(ego frame)")
         V = (s["viewmats"][1][cams] @ s["ego_to_world"][1]).double().numpy()   # ego(t) -> camera
         imgs = s["images"][1][cams].permute(0, 2, 3, 1).numpy()
         sc.cameras = [ViewCamera(n, Ks[i].numpy(), V[i], preset.width, preset.height, imgs[i])
@@ -50,10 +54,23 @@ def checkpoint_scene(ck: dict, ck_path: Path, run: Path, data: str | None, sampl
         sc.depths = {n: depth_colour(depth[i]) for i, n in enumerate(names)}
         return sc
 
+    return model_snapshot(model, build)
+
+
+def checkpoint_scene(ck: dict, ck_path: Path, run: Path, data: str | None, sample: int = 0, device=None,
+                     safe_pickle: bool = True) -> ViewScene:
+    """The scene of a DrivingForward checkpoint run on held-out sample ``sample`` of ``data``, with
+    a variant per sample, frame set and camera set (``data``: default the run's, else synthetic;
+    ``safe_pickle=False`` trusts the data's pickles)."""
+    data = data or run_data(run) or "synthetic"
+
+    model, preset = load_model(str(ck_path), device)
+    model.eval()
+    source = parse_data(data, safe_pickle=safe_pickle)
     options = {f"sample {k}, frames {list(fr)}, {'front camera' if fo else 'all cameras'}": (k, fr, fo)
                for k in range(max(VARIANT_SAMPLES, sample + 1)) for fr in ((0,), (-1, 1), (-1, 0, 1))
                for fo in (False, True)}
-    sc = run(sample, default_frames, False)
+    sc = model_scene(model, preset, source, data, sample)
     sc.variants = list(options)
-    sc.variant = lambda name: run(*options[name])
+    sc.variant = lambda name: model_scene(model, preset, source, data, *options[name])
     return sc

@@ -6,9 +6,10 @@
     clsplat eval pgt --checkpoint runs/pgt-budget/checkpoint.pt --data synthetic \\
                      --budgets 1,0.5,0.2,0.1,0.05 --out runs/pgt-eval
 
-``train`` writes the run folder of :func:`clsplat.models.common.train.train` (checkpoint.pt,
-log.jsonl, loss.png) and the evaluation on ``--eval-scenes`` held-out samples (as ``eval`` does, at
-κ = 1 after the base stage). ``eval`` writes budget.json (rows: method, budget, n_gaussians, psnr, ssim,
+``train`` (``--view``: watch it in the browser, clsplat view) writes the run folder of
+:func:`clsplat.models.common.train.train` (checkpoint.pt, log.jsonl, loss.png) and the evaluation
+on ``--eval-scenes`` held-out samples (as ``eval`` does, at κ = 1 after the base stage). ``eval``
+writes budget.json (rows: method, budget, n_gaussians, psnr, ssim,
 render_ms), budget.png (quality against Gaussian count and render time, Pareto front),
 metrics.json (full-set quality in the shared schema of :mod:`clsplat.models.common.report`,
 depth with and without the residual head, seconds per prediction) and contact_sheet.png.
@@ -18,8 +19,8 @@ from __future__ import annotations
 import sys
 
 from clsplat.argparser import ArgumentParser
-from clsplat.models.common.cli import (add_common_args, add_eval_args, add_eval_scenes_arg, lpips_from_args,
-                                      no_weights)
+from clsplat.models.common.cli import (add_common_args, add_eval_args, add_eval_scenes_arg, add_view_args,
+                                      lpips_from_args, no_weights)
 from clsplat.models.common.data import parse_data
 from clsplat.models.common.presets import apply_sets, check_preset_matches, get_preset, preset_from_saved
 from clsplat.models.common.train import TrainSpec, load_checkpoint, seed_everything, set_threads
@@ -69,6 +70,7 @@ def train(argv: list[str]) -> int:
                    help="base: the pixel-aligned predictor; budget: EcoSplat stage 2 from --init")
     p.add_argument("--init", default=None, help="base checkpoint to start the budget stage from")
     add_eval_scenes_arg(p)
+    add_view_args(p)
     args = p.parse_args(argv)
     try:
         no_weights(args, "PGT", "its U-Net encoder and matcher train from random initialisation, as in the paper")
@@ -89,6 +91,11 @@ def train(argv: list[str]) -> int:
         from .training import make_optimizer, make_sample_loss
         opt, sched = make_optimizer(model, preset, steps, args.stage)
         lpips = lpips_from_args(args)   # the loss's LPIPS term (w_lpips) and the final evaluation
+        from ..common.view import train_watcher
+        from .view import model_scene
+        # --view: the model run on held-out sample 0 (input/target cameras, depth), refreshed as it trains
+        watcher = train_watcher(args, lambda: model_scene(model, preset, source, args.data,
+                                                          title=f"PGT {args.stage} (training)"), args.device)
         from ..common.runfolder import RunFolder
         from ..common.train import distributed_info
         distributed_info()
@@ -96,9 +103,14 @@ def train(argv: list[str]) -> int:
             spec = TrainSpec(out_dir=rf.stage, steps=steps, batch_size=args.batch_size or preset.batch_size,
                              checkpoint_every=args.checkpoint_every, seed=args.seed, grad_clip=preset.grad_clip,
                              resume=args.resume, progress=not args.no_progress)
-            run_train(model, opt, spec, preset, FAMILY,
-                      make_sample_loss(source, preset, args.stage, args.seed, lpips if preset.w_lpips else None),
-                      scheduler=sched, extra_state={"stage": args.stage})
+            try:
+                run_train(model, opt, spec, preset, FAMILY,
+                          make_sample_loss(source, preset, args.stage, args.seed, lpips if preset.w_lpips else None),
+                          scheduler=sched, extra_state={"stage": args.stage},
+                          on_step=None if watcher is None else watcher.on_step)
+            finally:
+                if watcher is not None:
+                    watcher.close()
             if args.eval_scenes > 0 and distributed_info()[0] == 0:
                 from .evaluate import evaluate_model, write_results
                 res = evaluate_model(model, source, preset, [1.0] if args.stage == "base" else DEFAULT_BUDGETS,

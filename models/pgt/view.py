@@ -1,44 +1,34 @@
 """PGT in the viewer: the network run on a held-out sample, its predicted Gaussians with the input
-and target cameras and the predicted depth maps; other samples offered as variants."""
+and target cameras and the predicted depth maps; other samples offered as variants.
+:func:`model_scene` is also what ``clsplat train pgt --view`` shows of the model being trained."""
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from clsplat.viewer.scene import ViewCamera, ViewScene
 
 from ..common.data import parse_data
-from ..common.presets import check_preset_matches, get_preset
-from ..common.view import VARIANT_SAMPLES, depth_colour, gaussians_scene
+from ..common.presets import check_preset_matches, preset_from_saved
+from ..common.view import VARIANT_SAMPLES, depth_colour, gaussians_scene, model_snapshot, run_data
 from .data import make_sample
 from .model import PGT
 
-__all__ = ["checkpoint_scene"]
+__all__ = ["checkpoint_scene", "model_scene"]
 
 
-def checkpoint_scene(ck: dict, ck_path: Path, run: Path, data: str | None, sample: int = 0, device=None,
-                     safe_pickle: bool = True) -> ViewScene:
-    """The scene of a PGT checkpoint run on held-out sample ``sample`` of ``data`` (input and
-    target cameras, predicted depth), with a variant per sample."""
-    data = data or "synthetic"
+def model_scene(model, preset, source, data_name: str, k: int = 0, title: str = "PGT",
+                split: str = "test") -> ViewScene:
+    """The scene of ``model`` run on sample ``k`` of ``split``: its Gaussians (after the budget
+    when the model has one), the input and target cameras with their images, and the predicted
+    depth of each input. Runs in eval mode without gradients, the RNG left as found."""
 
-    preset = get_preset("pgt", ck["preset"]["name"])
-    check_preset_matches(ck["preset"], preset, str(ck_path))
-    model = PGT(preset)
-    if any(k.startswith("budget.") for k in ck["model"]):
-        model.enable_budget()
-    model.load_state_dict(ck["model"])
-    model.eval()
-    source = parse_data(data, safe_pickle=safe_pickle)
-
-    def run(k: int) -> ViewScene:
-        s = make_sample(source, preset, k, "test", None)
-        with torch.no_grad():
-            base = model(s.images, s.Ks, s.cam_to_world)
-            g = base.gaussians()
-        sc = gaussians_scene(g, f"PGT {preset.name} on {data} sample {k}")
+    def build() -> ViewScene:
+        s = make_sample(source, preset, k, split, None)
+        base = model(s.images, s.Ks, s.cam_to_world)
+        g = base.gaussians()
+        sc = gaussians_scene(g, f"{title} {preset.name} on {data_name} sample {k}")
         imgs = s.images.permute(0, 2, 3, 1).numpy()
         H, W = imgs.shape[1:3]
         sc.cameras = [ViewCamera(f"input {i}", s.Ks[i].numpy(), np.linalg.inv(s.cam_to_world[i].double().numpy()),
@@ -49,8 +39,26 @@ def checkpoint_scene(ck: dict, ck_path: Path, run: Path, data: str | None, sampl
         sc.depths = {f"input {i}": depth_colour(dep[i], preset.far) for i in range(len(imgs))}
         return sc
 
-    sc = run(sample)
+    return model_snapshot(model, build)
+
+
+def checkpoint_scene(ck: dict, ck_path: Path, run: Path, data: str | None, sample: int = 0, device=None,
+                     safe_pickle: bool = True) -> ViewScene:
+    """The scene of a PGT checkpoint run on held-out sample ``sample`` of ``data`` (input and
+    target cameras, predicted depth), with a variant per sample (``data``: default the run's, else
+    synthetic; ``safe_pickle=False`` trusts the data's pickles)."""
+    data = data or run_data(run) or "synthetic"
+
+    preset = preset_from_saved("pgt", ck["preset"])   # with the run's --set changes
+    check_preset_matches(ck["preset"], preset, str(ck_path))
+    model = PGT(preset)
+    if any(k.startswith("budget.") for k in ck["model"]):
+        model.enable_budget()
+    model.load_state_dict(ck["model"])
+    model.eval()
+    source = parse_data(data, safe_pickle=safe_pickle)
+    sc = model_scene(model, preset, source, data, sample)
     options = {f"sample {k}": k for k in range(max(VARIANT_SAMPLES, sample + 1))}
     sc.variants = list(options)
-    sc.variant = lambda name: run(options[name])
+    sc.variant = lambda name: model_scene(model, preset, source, data, options[name])
     return sc

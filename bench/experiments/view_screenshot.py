@@ -1,6 +1,6 @@
 """Screenshot of ``clsplat view`` in headless Chromium (the README's viewer figure).
 
-    python -m clsplat.bench.view_screenshot /tmp/demo bench/figures/viewer_demo.png --view "CAM_FRONT f00"
+    .venv/bin/python bench/experiments/view_screenshot.py /tmp/demo/scene.ply bench/figures/viewer_demo.png
 
 Serves PATH (a .ply, checkpoint or run folder) like ``clsplat view``, opens it in headless
 Chromium (WebGL through SwiftShader), optionally moves the browser's camera to one of the viewer's
