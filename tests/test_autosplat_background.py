@@ -5,7 +5,7 @@ import torch
 
 from clsplat.models.autosplat.background import flatness, masked_photometric, reference_frames
 from clsplat.models.common.gaussians import GaussianSet, rgb_to_sh
-from clsplat.models.common.geometry import axis_angle_to_matrix, matrix_to_quat, quat_multiply
+from clsplat.models.common.geometry import axis_angle_to_matrix, matrix_to_quat
 
 
 def _tilted_patch(n_side=12, tilt_deg=12.0):

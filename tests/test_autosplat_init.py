@@ -4,7 +4,7 @@ import pytest
 
 from clsplat.data.scene import project_points
 from clsplat.data.synthetic import generate_sequence
-from clsplat.models.autosplat.init import BG_CLASSES, OTHER, ROAD, SKY, _SEM_TO_BG, init_background
+from clsplat.models.autosplat.init import OTHER, ROAD, SKY, _SEM_TO_BG, init_background
 from clsplat.models.common.presets import get_preset
 
 

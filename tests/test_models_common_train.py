@@ -16,7 +16,7 @@ import torch
 
 from clsplat.models.common import presets
 from clsplat.models.common.train import (JsonlLog, TrainSpec, atomic_write, clip_and_measure, load_checkpoint,
-                                         sample_generator, save_checkpoint, train)
+                                         sample_generator, train)
 
 # The toy family lives in a module the DDP subprocess can import too.
 TOY = textwrap.dedent('''

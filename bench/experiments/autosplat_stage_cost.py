@@ -21,7 +21,7 @@ import json
 import statistics
 import time
 
-import clsplat  # first: thread defaults before torch loads
+import clsplat  # noqa: F401  (first: thread defaults before torch loads)
 
 __all__ = ["main"]
 
