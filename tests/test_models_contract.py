@@ -115,3 +115,24 @@ def test_eval_autosplat_reproduces_the_training_evaluation(runs):
     assert b["step"] == a["step"] and b["protocol"]["test_frames"] == a["protocol"]["test_frames"]
     assert b["all"]["psnr"] == pytest.approx(a["all"]["psnr"], abs=1e-4)
     assert b["all"]["ssim"] == pytest.approx(a["all"]["ssim"], abs=1e-5)
+
+
+def test_one_name_for_one_meaning_across_the_presets():
+    """Fields that mean the same thing have the same name in every family (the depth range of the
+    predicted depth, the scale cap in metres, ...); names retired by a rename are gone and a
+    checkpoint's preset record that still uses them reads as the new names."""
+    import dataclasses
+
+    from clsplat.models.common.presets import check_preset_matches, get_preset, preset_from_saved
+
+    fields = {f: {x.name for x in dataclasses.fields(get_preset(f, "tiny"))} for f in FAMILIES}
+    shared = {"min_depth", "max_depth", "scale_cap", "sh_degree", "lr", "steps", "batch_size", "grad_clip", "w_lpips"}
+    assert shared <= fields["drivingforward"] and shared <= fields["pgt"]
+    assert "sh_degree" in fields["autosplat"]
+    retired = {"near", "far", "scale_cap_m"}
+    assert not any(retired & names for names in fields.values())
+    pgt = get_preset("pgt", "tiny")
+    old = {{"min_depth": "near", "max_depth": "far", "scale_cap": "scale_cap_m"}.get(k, k): v
+           for k, v in pgt.to_dict().items()}
+    check_preset_matches(old, pgt, "old.pt")                 # no error: the same preset under old names
+    assert preset_from_saved("pgt", old) == pgt

@@ -49,9 +49,9 @@ def test_losses(sample):
     terms = render_terms(s.images, s.images, TINY)
     assert float(terms["l1"]) == 0 and abs(float(terms["dssim"])) < 1e-5 and float(terms["render"]) < 1e-5
     from clsplat.models.pgt.matching import depth_to_u
-    u = depth_to_u(s.depths, TINY.near, TINY.far)
-    assert float(depth_term(u, u, s.depths, TINY.near, TINY.far)) == 0
-    assert float(depth_term(u + 0.1, u, s.depths, TINY.near, TINY.far)) == pytest.approx(0.1, abs=1e-6)
+    u = depth_to_u(s.depths, TINY.min_depth, TINY.max_depth)
+    assert float(depth_term(u, u, s.depths, TINY.min_depth, TINY.max_depth)) == 0
+    assert float(depth_term(u + 0.1, u, s.depths, TINY.min_depth, TINY.max_depth)) == pytest.approx(0.1, abs=1e-6)
     ij = torch.stack(torch.meshgrid(torch.arange(8.0), torch.arange(8.0), indexing="ij"), -1)
     pts = torch.cat([2 * ij, torch.zeros(8, 8, 1)], -1)[None]  # a 2 m grid: nearest = its own copy
     assert float(chamfer_term(torch.stack([pts[0], pts[0]]), 64)) == 0

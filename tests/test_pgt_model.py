@@ -50,11 +50,11 @@ def test_head_shapes_and_ranges(out):
     assert o.means.shape == (V, H, W, 3) and o.quats.shape == (V, H, W, 4) and o.scales.shape == (V, H, W, 3)
     assert o.opacities.shape == (V, H, W) and o.sh.shape == (V, H, W, 1, 3)
     assert ((o.u >= 0) & (o.u <= 1)).all() and ((o.u0 >= 0) & (o.u0 <= 1)).all()
-    assert (o.depth >= TINY.near * (1 - 1e-5)).all() and (o.depth <= TINY.far * (1 + 1e-5)).all()
+    assert (o.depth >= TINY.min_depth * (1 - 1e-5)).all() and (o.depth <= TINY.max_depth * (1 + 1e-5)).all()
     # the residual is 0.5·tanh(r): at most half the (normalised) depth range, and it is active
     assert (o.u - o.u0).abs().max() <= 0.5 and (o.u - o.u0).abs().max() > 1e-3
     torch.testing.assert_close(o.quats.norm(dim=-1), torch.ones(V, H, W))
-    assert (o.scales > 0).all() and (o.scales <= TINY.scale_cap_m).all()
+    assert (o.scales > 0).all() and (o.scales <= TINY.scale_cap).all()
     assert ((o.opacities >= 0) & (o.opacities <= 1)).all()
     # pixel colour: the DC term reproduces the source pixel
     torch.testing.assert_close(o.sh[..., 0, :] * 0.28209479177387814 + 0.5, images.permute(0, 2, 3, 1))
@@ -79,7 +79,7 @@ def test_unprojection_on_own_ray_at_predicted_depth(out):
     uv, z = project(o.means.reshape(V, -1, 3), Ks, invert_rigid(c2w))
     torch.testing.assert_close(uv.reshape(V, H, W, 2), pixel_centres(H, W).expand(V, H, W, 2), atol=2e-3, rtol=0)
     torch.testing.assert_close(z.reshape(V, H, W), o.depth, rtol=1e-5, atol=1e-5)
-    torch.testing.assert_close(o.depth, u_to_depth(o.u, TINY.near, TINY.far))
+    torch.testing.assert_close(o.depth, u_to_depth(o.u, TINY.min_depth, TINY.max_depth))
 
 
 def test_prediction_moves_with_the_world_frame():

@@ -26,7 +26,19 @@ _REGISTRY: dict[str, dict[str, "Preset"]] = {}  # family -> name -> preset (fill
 
 
 class Preset:
-    """Mixin for ``@dataclass(frozen=True)`` presets; the first field must be ``name: str``."""
+    """Mixin for ``@dataclass(frozen=True)`` presets; the first field must be ``name: str``.
+
+    A class may map fields it renamed to their new names in ``RENAMED`` (a ClassVar): the preset
+    record of a checkpoint written before the rename is read with the new names."""
+
+    RENAMED: dict[str, str] = {}
+
+    @classmethod
+    def upgrade(cls, saved: dict) -> dict:
+        """A checkpoint's preset record with renamed fields under their current names."""
+        if not isinstance(saved, dict) or not cls.RENAMED:
+            return saved
+        return {cls.RENAMED.get(k, k): v for k, v in saved.items()}
 
     def to_dict(self) -> dict[str, Any]:
         """Every field as plain Python values (tuples become lists), for checkpoints and JSON."""
@@ -81,10 +93,11 @@ def check_preset_matches(saved: dict, preset: Preset, where: str) -> None:
         where: the checkpoint path, for the message.
     """
     mine = preset.to_dict()
-    if saved == mine:
-        return
     if not isinstance(saved, dict):
         raise ValueError(f"{where}: checkpoint has no preset record")
+    saved = type(preset).upgrade(saved)
+    if saved == mine:
+        return
     # a field added to the preset class after the checkpoint was written matches while it keeps
     # its default: the run that wrote the checkpoint behaved as that default does
     defaults = json.loads(json.dumps({f.name: f.default for f in dataclasses.fields(preset)  # type: ignore[arg-type]
@@ -143,6 +156,7 @@ def preset_from_saved(family: str, saved: dict, name: str | None = None) -> Pres
     base = get_preset(family, name or saved.get("name", "?"))
     if name is not None and name != saved.get("name"):
         return base     # another preset: check_preset_matches names the difference
+    saved = type(base).upgrade(saved)
     names = {f.name for f in dataclasses.fields(base)}  # type: ignore[arg-type]
     mine = base.to_dict()
     changes = {k: tuple(v) if isinstance(mine.get(k), list) and isinstance(v, list) else v

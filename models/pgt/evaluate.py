@@ -75,8 +75,8 @@ def evaluate_model(model: PGT, source, preset: PGTPreset, budgets: list[float], 
             cams += list(s.target_cameras)
             render_ms.append(ms)
             if s.depths is not None:
-                d_coarse.append(depth_metrics(base.depth0, s.depths, max_depth=preset.far))
-                d_fine.append(depth_metrics(base.depth, s.depths, max_depth=preset.far))
+                d_coarse.append(depth_metrics(base.depth0, s.depths, max_depth=preset.max_depth))
+                d_fine.append(depth_metrics(base.depth, s.depths, max_depth=preset.max_depth))
             weights = view_weights(s.images, preset.hf_temperature)
             sheet_rows = [rgb[0]]
             for kappa in budgets:

@@ -94,7 +94,7 @@ class PlaneSweepMatcher(nn.Module):
     def __init__(self, channels: int, num_depths: int, cost_channels: int, near: float, far: float,
                  norm: str = "group") -> None:
         super().__init__()
-        self.num_depths, self.near, self.far = num_depths, near, far
+        self.num_depths, self.min_depth, self.max_depth = num_depths, near, far
         self.stem = nn.Sequential(nn.Conv2d(num_depths + channels, cost_channels, 3, padding=1), nn.ReLU(inplace=True))
         self.blocks = nn.Sequential(ResidualBlock(cost_channels, cost_channels, 1, norm),
                                     ResidualBlock(cost_channels, cost_channels, 1, norm))
@@ -106,7 +106,7 @@ class PlaneSweepMatcher(nn.Module):
         -> (matched [V, C, h, w], prob [V, D, h, w], u0 [V, h, w])."""
         V, C = feats.shape[:2]
         u_hyp = depth_hypotheses(self.num_depths, feats.device, feats.dtype)
-        samples, valid = sample_along_rays(feats, Ks, cam_to_world, u_hyp, self.near, self.far)
+        samples, valid = sample_along_rays(feats, Ks, cam_to_world, u_hyp, self.min_depth, self.max_depth)
         corr = (samples * feats[:, None, None]).sum(3) / math.sqrt(C)  # [V, V-1, D, h, w]
         cost = (corr * valid).sum(1) / valid.sum(1).clamp_min(1.0)
         x = self.blocks(self.stem(torch.cat([cost, feats], 1)))
@@ -150,7 +150,7 @@ class EpipolarAttentionMatcher(nn.Module):
 
     def __init__(self, channels: int, num_depths: int, layers: int, heads: int, near: float, far: float) -> None:
         super().__init__()
-        self.num_depths, self.near, self.far = num_depths, near, far
+        self.num_depths, self.min_depth, self.max_depth = num_depths, near, far
         self.hyp_embed = nn.Parameter(torch.zeros(num_depths, channels))
         nn.init.normal_(self.hyp_embed, std=0.02)
         self.layers = nn.ModuleList(_EpipolarLayer(channels, heads) for _ in range(layers))
@@ -160,7 +160,7 @@ class EpipolarAttentionMatcher(nn.Module):
         V, C, h, w = feats.shape
         D = self.num_depths
         u_hyp = depth_hypotheses(D, feats.device, feats.dtype)
-        samples, valid = sample_along_rays(feats, Ks, cam_to_world, u_hyp, self.near, self.far)
+        samples, valid = sample_along_rays(feats, Ks, cam_to_world, u_hyp, self.min_depth, self.max_depth)
         # [V, V-1, D, C, h, w] -> [V*h*w, (V-1)*D, C]
         kv = samples.permute(0, 4, 5, 1, 2, 3).reshape(V * h * w, (V - 1) * D, C)
         kv = kv + self.hyp_embed.repeat(V - 1, 1)[None]
@@ -180,5 +180,5 @@ def make_matcher(preset) -> nn.Module:
     """The matcher a :class:`~clsplat.models.pgt.presets.PGTPreset` names."""
     c = preset.channels[2]
     if preset.matching == "plane_sweep":
-        return PlaneSweepMatcher(c, preset.num_depths, preset.cost_channels, preset.near, preset.far, preset.norm)
-    return EpipolarAttentionMatcher(c, preset.num_depths, preset.attn_layers, preset.attn_heads, preset.near, preset.far)
+        return PlaneSweepMatcher(c, preset.num_depths, preset.cost_channels, preset.min_depth, preset.max_depth, preset.norm)
+    return EpipolarAttentionMatcher(c, preset.num_depths, preset.attn_layers, preset.attn_heads, preset.min_depth, preset.max_depth)

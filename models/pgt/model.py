@@ -161,13 +161,13 @@ class PGT(nn.Module):
         u0 = F.interpolate(u0_8[:, None], size=(H, W), mode="bilinear", align_corners=False)[:, 0]
         feat = self.decoder(matched, u0_8, f2, f4, images, u0)
         u = self.depth_head(feat, u0) if self.depth_head is not None else u0
-        depth = u_to_depth(u, p.near, p.far)
+        depth = u_to_depth(u, p.min_depth, p.max_depth)
         keep = budgets = None
         if kappa < 1.0:
             raw = self.budget(feat, kappa)
         else:
             raw = self.heads(feat)
-        g = activate(raw, depth, images, Ks[:, 0, 0], p.scale_cap_m, p.sh_degree if p.colour == "sh" else 0)
+        g = activate(raw, depth, images, Ks[:, 0, 0], p.scale_cap, p.sh_degree if p.colour == "sh" else 0)
         if kappa < 1.0:
             budgets = per_view_budgets(kappa, view_weights(images, p.hf_temperature), H, W)
             keep = topk_mask(g["opacities"], budgets)
@@ -178,10 +178,10 @@ class PGT(nn.Module):
         if sh.shape[-2] > 1:
             Kc = sh.shape[-2]
             sh = torch.stack([rotate_sh(sh[v].reshape(-1, Kc, 3), R[v]) for v in range(V)]).reshape(sh.shape)
-        return PGTOutput(u0=u0, u=u, depth0=u_to_depth(u0, p.near, p.far), depth=depth, prob=prob, means=means,
+        return PGTOutput(u0=u0, u=u, depth0=u_to_depth(u0, p.min_depth, p.max_depth), depth=depth, prob=prob, means=means,
                          quats=quats, scales=g["scales"], opacities=g["opacities"], sh=sh, keep=keep,
                          budgets=budgets, kappa=kappa, footprint=depth / Ks[:, 0, 0, None, None],
-                         fill_window=p.fill_window, scale_cap=p.scale_cap_m)
+                         fill_window=p.fill_window, scale_cap=p.scale_cap)
 
     @staticmethod
     def expected_count(kappa: float, views: int, height: int, width: int) -> int:

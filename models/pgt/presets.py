@@ -4,14 +4,15 @@
 GPS-Gaussian+'s sizes (encoder 32/48/96, 2 attention layers of 96 channels and 8 heads) at
 DrivingForward's 176x320 nuScenes-like resolution. Registered under family ``"pgt"``.
 
-Depth is handled in *normalised inverse depth* u in [0, 1] over ``[near, far]`` metres
-(u = 1 at ``near``, u = 0 at ``far``): the plane sweep's hypotheses are uniform in u, the
+Depth is handled in *normalised inverse depth* u in [0, 1] over ``[min_depth, max_depth]`` metres
+(u = 1 at ``min_depth``, u = 0 at ``max_depth``): the plane sweep's hypotheses are uniform in u, the
 residual head adds 0.5·tanh(r) in u (half the scene's depth range at most), sky (infinite
-depth) is u = 0 clamped, i.e. ``far``.
+depth) is u = 0 clamped, i.e. ``max_depth``.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 from clsplat.models.common.presets import Preset, register
 
@@ -30,7 +31,7 @@ class PGTPreset(Preset):
     ``cameras``; ``views="cameras"``: one frame of adjacent rig cameras, target the next frame.
     Network: encoder ``channels`` at 1/2, 1/4, 1/8; matching at 1/8 with ``num_depths``
     hypotheses; decoder ``decoder_channels`` (1/8, 1/4, 1/2) up to full resolution, heads of
-    ``head_channels``. Gaussians: scale = min(softplus(s)·depth/fx, ``scale_cap_m``) metres;
+    ``head_channels``. Gaussians: scale = min(softplus(s)·depth/fx, ``scale_cap``) metres;
     colour from the source pixel or an SH head of ``sh_degree``.
     Losses: ``w_l1``·L1 + ``w_ssim``·(1-SSIM) (+ ``w_mse``·MSE + ``w_lpips``·LPIPS with weight
     files), ``w_depth``·L1 on u (coarse and refined) when the data has depth, otherwise
@@ -44,6 +45,10 @@ class PGTPreset(Preset):
     method alike; :meth:`~.model.PGTOutput.gaussians`).
     """
 
+    #: fields renamed since checkpoints were first written (issue 20: one name per meaning across
+    #: the families); a checkpoint's old names are read as the new ones
+    RENAMED: ClassVar[dict[str, str]] = {"near": "min_depth", "far": "max_depth", "scale_cap_m": "scale_cap"}
+
     name: str
     height: int
     width: int
@@ -56,8 +61,8 @@ class PGTPreset(Preset):
     norm: str = "group"
     matching: str = "plane_sweep"
     num_depths: int = 32
-    near: float = 1.0
-    far: float = 80.0
+    min_depth: float = 1.0
+    max_depth: float = 80.0
     attn_layers: int = 2
     attn_heads: int = 8
     cost_channels: int = 64
@@ -66,7 +71,7 @@ class PGTPreset(Preset):
     residual: bool = True
     colour: str = "pixel"
     sh_degree: int = 0
-    scale_cap_m: float = 0.5
+    scale_cap: float = 0.5
     w_l1: float = 0.8
     w_ssim: float = 0.2
     w_mse: float = 0.0
@@ -109,8 +114,8 @@ class PGTPreset(Preset):
             raise bad("colour", f"expected one of {COLOURS}")
         if not 0 <= self.sh_degree <= 3 or (self.colour == "pixel" and self.sh_degree):
             raise bad("sh_degree", "expected 0..3, and 0 with colour='pixel'")
-        if not 0 < self.near < self.far:
-            raise bad("near", f"must satisfy 0 < near < far={self.far}")
+        if not 0 < self.min_depth < self.max_depth:
+            raise bad("min_depth", f"must satisfy 0 < min_depth < max_depth={self.max_depth}")
         if self.num_depths < 2:
             raise bad("num_depths", "need at least 2 depth hypotheses")
         if self.channels[2] % self.attn_heads:

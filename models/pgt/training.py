@@ -65,7 +65,7 @@ def make_sample_loss(source, preset: PGTPreset, stage: str, seed: int, lpips=Non
         loss = terms["render"]
         if stage == "base":
             if s.depths is not None and preset.w_depth:
-                terms["depth"] = depth_term(out.u, out.u0, s.depths, preset.near, preset.far)
+                terms["depth"] = depth_term(out.u, out.u0, s.depths, preset.min_depth, preset.max_depth)
                 loss = loss + preset.w_depth * terms["depth"]
             elif preset.w_chamfer:
                 terms["chamfer"] = chamfer_term(out.means, preset.chamfer_points, gen)

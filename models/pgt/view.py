@@ -36,7 +36,7 @@ def model_scene(model, preset, source, data_name: str, k: int = 0, title: str = 
         sc.cameras += [ViewCamera(f"target {i}", s.target_Ks[i].numpy(), s.target_viewmats[i].double().numpy(), W, H,
                                   s.target_images[i].permute(1, 2, 0).numpy()) for i in range(len(s.target_images))]
         dep = base.depth.reshape(len(imgs), H, W).numpy()
-        sc.depths = {f"input {i}": depth_colour(dep[i], preset.far) for i in range(len(imgs))}
+        sc.depths = {f"input {i}": depth_colour(dep[i], preset.max_depth) for i in range(len(imgs))}
         return sc
 
     return model_snapshot(model, build)
