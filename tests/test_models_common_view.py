@@ -40,6 +40,10 @@ def test_drivingforward_checkpoint(tmp_path):
     # another input, picked in the viewer: the front camera alone, three frames -> 3 x 1 x H x W Gaussians
     other = sc.variant("sample 1, frames [-1, 0, 1], front camera")
     assert len(other.cameras) == 1 and len(other) == 3 * preset.height * preset.width
+    names = [c.name for c in sc.cameras]
+    back = sc.variant(f"sample 0, frames [0], camera {names[-1]}")   # any single camera of the rig
+    assert [c.name for c in back.cameras] == [names[-1]] and len(back) == preset.height * preset.width
+    assert [c.name for c in sc.variant("sample 0, frames [0], front three cameras").cameras] == names[:3]
     # without --data the run's own data (its metrics.json) is used; --data wins over it
     (run / "metrics.json").write_text('{"data": "pandaset:/no/such/folder"}')
     with pytest.raises(ValueError, match="/no/such/folder"):
@@ -57,7 +61,10 @@ def test_pgt_checkpoint(tmp_path):
     assert n_in == preset.num_views and len(sc) <= n_in * preset.height * preset.width
     _check_scene(sc, len(sc.cameras))
     assert len(sc.depths) == n_in
-    assert "sample 1" in sc.variants and len(sc.variant("sample 1").cameras) == len(sc.cameras)
+    one = [v for v in sc.variants if v.startswith("sample 1: ")]
+    assert len(one) == 1 and len(sc.variant(one[0]).cameras) == len(sc.cameras)
+    # one sample per camera of the preset: each camera can be picked as the input
+    assert {v.split(": ")[1].split(",")[0].split("+")[0] for v in sc.variants} >= set(preset.cameras)
 
 
 def test_autosplat_run_folder(tmp_path):

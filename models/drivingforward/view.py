@@ -1,6 +1,7 @@
 """DrivingForward in the viewer: the network run on a held-out sample, its predicted Gaussians with
-the input cameras, their images and the predicted depth maps; other samples, frame sets and
-camera sets offered as variants that rerun the model. :func:`model_scene` is also what
+the input cameras, their images and the predicted depth maps; other samples, input frames and
+cameras (all, the front one, the front three, any single one) offered as variants that rerun the
+model. :func:`model_scene` is also what
 ``clsplat train drivingforward --view`` shows of the model being trained."""
 from __future__ import annotations
 
@@ -67,10 +68,15 @@ def checkpoint_scene(ck: dict, ck_path: Path, run: Path, data: str | None, sampl
     model, preset = load_model(str(ck_path), device)
     model.eval()
     source = parse_data(data, safe_pickle=safe_pickle)
-    options = {f"sample {k}, frames {list(fr)}, {'front camera' if fo else 'all cameras'}": (k, fr, fo)
-               for k in range(max(VARIANT_SAMPLES, sample + 1)) for fr in ((0,), (-1, 1), (-1, 0, 1))
-               for fo in (False, True)}
     sc = model_scene(model, preset, source, data, sample)
+    names = [c.name for c in sc.cameras]          # the data's cameras, rig order
+    camera_sets = {"all cameras": None, "front camera": names[:1],
+                   **({"front three cameras": names[:3]} if len(names) > 3 else {}),
+                   **{f"camera {n}": [n] for n in names[1:]}}
+    options = {f"sample {k}, frames {list(fr)}, {cs}": (k, fr, cams)
+               for k in range(max(VARIANT_SAMPLES, sample + 1)) for fr in ((0,), (-1, 1), (-1, 0, 1))
+               for cs, cams in camera_sets.items()}
     sc.variants = list(options)
-    sc.variant = lambda name: model_scene(model, preset, source, data, *options[name])
+    sc.variant = lambda name: model_scene(model, preset, source, data, options[name][0], options[name][1],
+                                          cameras=options[name][2])
     return sc

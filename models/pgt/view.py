@@ -12,7 +12,7 @@ from clsplat.viewer.scene import ViewCamera, ViewScene
 from ..common.data import parse_data
 from ..common.presets import check_preset_matches, preset_from_saved
 from ..common.view import VARIANT_SAMPLES, depth_colour, gaussians_scene, model_snapshot, run_data
-from .data import make_sample
+from .data import RING, make_sample
 from .model import PGT
 
 __all__ = ["checkpoint_scene", "model_scene"]
@@ -42,6 +42,15 @@ def model_scene(model, preset, source, data_name: str, k: int = 0, title: str = 
     return model_snapshot(model, build)
 
 
+def _inputs(preset, k: int) -> str:
+    """The input views of held-out sample ``k`` (as :func:`.data.make_sample` picks them)."""
+    cam = preset.cameras[k % len(preset.cameras)]
+    if preset.views == "frames":
+        return f"{cam}, {preset.num_views} frames"
+    start = RING.index(cam) if cam in RING else 0
+    return "+".join(RING[(start + j) % len(RING)] for j in range(preset.num_views))
+
+
 def checkpoint_scene(ck: dict, ck_path: Path, run: Path, data: str | None, sample: int = 0, device=None,
                      safe_pickle: bool = True) -> ViewScene:
     """The scene of a PGT checkpoint run on held-out sample ``sample`` of ``data`` (input and
@@ -58,7 +67,10 @@ def checkpoint_scene(ck: dict, ck_path: Path, run: Path, data: str | None, sampl
     model.eval()
     source = parse_data(data, safe_pickle=safe_pickle)
     sc = model_scene(model, preset, source, data, sample)
-    options = {f"sample {k}": k for k in range(max(VARIANT_SAMPLES, sample + 1))}
+    # a held-out sample's input cameras follow from its index (make_sample's deterministic pick):
+    # offering one sample per camera of the preset lets the viewer pick the input cameras
+    options = {f"sample {k}: {_inputs(preset, k)}": k
+               for k in range(max(VARIANT_SAMPLES, len(preset.cameras), sample + 1))}
     sc.variants = list(options)
     sc.variant = lambda name: model_scene(model, preset, source, data, options[name])
     return sc
