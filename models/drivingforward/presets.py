@@ -168,11 +168,14 @@ PAPER = register("drivingforward", DFPreset(name="paper", height=352, width=640,
 # within ~90 steps (AbsRel 8.5); started at the data's mean motion it holds it (held-out
 # translation error 1.8 %) and the depth does not collapse (AbsRel 0.48, scale ratio 0.81 after
 # 120 steps). A user whose data moves at another speed sets it with
-# ``--set "pose_translation_init=(0, 0, -SPEED*DT)"``.
+# ``--set "pose_translation_init=(0, 0, -SPEED*DT)"``. Over 640 steps it keeps learning without a
+# collapse (AbsRel 0.43, scale ratio 0.87, delta<1.25 0.64 at step 640). steps = 1000: about 90
+# minutes on an idle 2-core machine (~3.8 s per step plus ~1.5 s to ray-cast a street; far more when
+# the machine is shared).
 SMALL = register("drivingforward", DFPreset(
     name="small", height=64, width=112,
     voxel_origin=(-50.0, -50.0, -5.0), voxel_size=(2.5, 2.5, 2.5), voxel_shape=(40, 40, 6),
-    depth_bins=16, scale_cap=0.25, focal_ref=300.0 * 112 / 640, far_plane=200.0, steps=2000,
+    depth_bins=16, scale_cap=0.25, focal_ref=300.0 * 112 / 640, far_plane=200.0, steps=1000,
     pose_translation_init=(0.0, 0.0, -0.8)))
 
 TINY = register("drivingforward", DFPreset(
