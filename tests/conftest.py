@@ -201,3 +201,28 @@ def two_colour_ply(tmp_path):
     path = write_ply(tmp_path / "two.ply", means, q, torch.full((n, 3), 0.08), torch.full((n,), 0.9), rgb_to_sh(rgb))
     cam = ViewCamera("front", [[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]], look_at_viewmat([0, -4, 0.5], [0, 0, 0]), 64, 48)
     return path, cam
+
+
+@pytest.fixture
+def full_disk_on(monkeypatch):
+    """``full_disk_on(part)``: from then on, matplotlib's ``savefig`` of a file whose name contains
+    ``part`` writes a few bytes and fails with ENOSPC (a disk that fills during the write); other
+    figures save normally."""
+    import errno
+    import os
+
+    from matplotlib.figure import Figure
+
+    savefig = Figure.savefig
+
+    def arm(part: str) -> None:
+        def full_disk(self, fname, *a, **k):
+            if part not in str(fname):
+                return savefig(self, fname, *a, **k)
+            with open(fname, "wb") as fh:
+                fh.write(b"\x89PNG")
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+        monkeypatch.setattr(Figure, "savefig", full_disk)
+
+    return arm

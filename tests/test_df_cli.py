@@ -204,14 +204,10 @@ def test_eval_on_a_pandaset_sequence_scores_depth_against_projected_lidar(runs, 
     assert m["protocol"]["depth_gt"].startswith("projected LiDAR")
 
 
-def test_eval_on_a_full_disk_is_one_line_and_keeps_the_earlier_evaluation(runs, tmp_path, monkeypatch, capsys):
+def test_eval_on_a_full_disk_is_one_line_and_keeps_the_earlier_evaluation(runs, tmp_path, full_disk_on, capsys):
     """The contact sheet (written after metrics.json) hits a full disk: one line naming the file,
     and the earlier evaluation's files stay as they were (not a new metrics.json beside old sheets)."""
-    import errno
-    import os
     import re
-
-    from matplotlib.figure import Figure
 
     from clsplat.cli import console
 
@@ -221,16 +217,7 @@ def test_eval_on_a_full_disk_is_one_line_and_keeps_the_earlier_evaluation(runs, 
     assert console(args) == 0
     before = {p.name: p.read_bytes() for p in out.iterdir()}
     assert {"metrics.json", "contact_sheet.png"} <= set(before)
-    savefig = Figure.savefig
-
-    def full_disk(self, fname, *a, **k):
-        if "contact_sheet" not in str(fname):
-            return savefig(self, fname, *a, **k)
-        with open(fname, "wb") as fh:
-            fh.write(b"\x89PNG")
-        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-
-    monkeypatch.setattr(Figure, "savefig", full_disk)
+    full_disk_on("contact_sheet")
     capsys.readouterr()
     assert console(args + ["--seed", "1"]) == 1
     err = capsys.readouterr().err.strip().splitlines()[-1]

@@ -108,14 +108,10 @@ def test_bad_arguments_are_clear_errors(runs, tmp_path, capsys):
     assert evaluate(["--checkpoint", str(tmp_path / "missing.pt"), "--out", str(tmp_path / "e")]) == 2
 
 
-def test_eval_on_a_full_disk_is_one_line_and_keeps_the_earlier_evaluation(runs, tmp_path, monkeypatch, capsys):
+def test_eval_on_a_full_disk_is_one_line_and_keeps_the_earlier_evaluation(runs, tmp_path, full_disk_on, capsys):
     """The budget plot (the group's last file) hits a full disk: one line naming the file, and the
     earlier evaluation's four files stay as they were (not a new metrics.json beside old plots)."""
-    import errno
-    import os
     import re
-
-    from matplotlib.figure import Figure
 
     from clsplat.cli import console
 
@@ -125,16 +121,7 @@ def test_eval_on_a_full_disk_is_one_line_and_keeps_the_earlier_evaluation(runs, 
     assert console(args) == 0
     before = {p.name: p.read_bytes() for p in out.iterdir()}
     assert set(before) == {"budget.json", "budget.png", "contact_sheet.png", "metrics.json"}
-    savefig = Figure.savefig
-
-    def full_disk(self, fname, *a, **k):
-        if "budget" not in str(fname):
-            return savefig(self, fname, *a, **k)
-        with open(fname, "wb") as fh:
-            fh.write(b"\x89PNG")
-        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-
-    monkeypatch.setattr(Figure, "savefig", full_disk)
+    full_disk_on("budget")
     capsys.readouterr()
     assert console(args + ["--seed", "1"]) == 1
     err = capsys.readouterr().err.strip()
