@@ -45,6 +45,8 @@ _DEVICE_ENV = "CLSPLAT_DEVICE"
 _HOST_MEMORY_ENV = "CLSPLAT_HOST_MEMORY"
 LOCAL_MEM_BUDGET = 48 * 1024  # bytes of local memory a kernel may use: a GPU's, not PoCL's
 INT32_MAX = 2**31 - 1
+_RW = cl.mem_flags.READ_WRITE
+_RW_HOST_PTR = cl.mem_flags.READ_WRITE | cl.mem_flags.USE_HOST_PTR
 HOST_CHECK_BYTES = 16 << 20  # allocations from this size on are checked against free host memory
 
 
@@ -126,7 +128,7 @@ class Runtime:
     _sources: dict = field(default_factory=dict, init=False, repr=False)
     _limits: tuple = field(default=(), init=False, repr=False)  # (max alloc, global mem) bytes
     _in_host_memory: bool | None = field(default=None, init=False, repr=False)
-    _unified: bool | None = field(default=None, init=False, repr=False)  # device query, cached
+    _shares: bool | None = field(default=None, init=False, repr=False)  # shares_host_memory, cached
     # Commands that may write device memory, counted: an array read back (or created) after
     # the last of them needs no wait on the queue to be read again.
     launches: int = field(default=0, init=False, repr=False)
@@ -152,18 +154,21 @@ class Runtime:
     @property
     def shares_host_memory(self) -> bool:
         """True where buffers are created over the tensors' own memory (zero-copy): devices
-        with unified host memory, unless ``CLSPLAT_HOST_MEMORY`` says ``copy`` (or ``share``)."""
-        mode = os.environ.get(_HOST_MEMORY_ENV, "auto").lower()
-        if mode not in ("auto", "copy", "share"):
-            raise DeviceError(f"{_HOST_MEMORY_ENV}: expected 'auto', 'copy' or 'share', got {mode!r}")
-        if mode != "auto":
-            return mode == "share"
-        if self._unified is None:
-            try:
-                self._unified = bool(self.device.host_unified_memory)
-            except cl.Error:  # the query is deprecated in OpenCL 2.0: fall back to the type
-                self._unified = bool(self.device.type & cl.device_type.CPU)
-        return self._unified
+        with unified host memory, unless ``CLSPLAT_HOST_MEMORY`` says ``copy`` (or ``share``).
+        Decided once per runtime, when first asked (every array asks: the environment is not
+        read per array)."""
+        if self._shares is None:
+            mode = os.environ.get(_HOST_MEMORY_ENV, "auto").lower()
+            if mode not in ("auto", "copy", "share"):
+                raise DeviceError(f"{_HOST_MEMORY_ENV}: expected 'auto', 'copy' or 'share', got {mode!r}")
+            if mode != "auto":
+                self._shares = mode == "share"
+            else:
+                try:
+                    self._shares = bool(self.device.host_unified_memory)
+                except cl.Error:  # the query is deprecated in OpenCL 2.0: fall back to the type
+                    self._shares = bool(self.device.type & cl.device_type.CPU)
+        return self._shares
 
     @property
     def computes_in_host_memory(self) -> bool:
@@ -317,8 +322,9 @@ class Runtime:
         n = 1
         for d in shape:
             n *= int(d)
-        self.check_memory(n * torch.empty((), dtype=dtype).element_size(),
-                          f"an intermediate array {list(shape)} {dtype}")
+        nbytes = n * dtype.itemsize
+        if nbytes >= HOST_CHECK_BYTES or nbytes > self.max_alloc:  # the message only when needed
+            self.check_memory(nbytes, f"an intermediate array {list(shape)} {dtype}")
         t = torch.zeros(shape, dtype=dtype) if zero else torch.empty(shape, dtype=dtype)
         return DeviceArray(self, t)
 
@@ -345,21 +351,21 @@ class DeviceArray:
         if tensor.device.type != "cpu":
             raise ValueError(f"DeviceArray: tensor must live on the CPU, got {tensor.device}")
         self.rt = rt
-        self.tensor = tensor.contiguous()
-        self.zero_copy = rt.shares_host_memory and self.tensor.numel() > 0
+        self.tensor = tensor = tensor if tensor.is_contiguous() else tensor.contiguous()
+        numel = tensor.numel()
+        self.zero_copy = numel > 0 and rt.shares_host_memory
         self.synced_at = rt.launches  # the tensor holds the data as of this many launches
         self.read_only = read_only  # no command writes it: the tensor stays the data
-        mf = cl.mem_flags
-        nbytes = self.tensor.numel() * self.tensor.element_size()
+        nbytes = numel * tensor.dtype.itemsize
         if nbytes > rt.max_alloc:
-            raise ValueError(f"DeviceArray: {list(self.tensor.shape)} {self.tensor.dtype} needs "
+            raise ValueError(f"DeviceArray: {list(tensor.shape)} {tensor.dtype} needs "
                              f"{nbytes >> 20} MiB, over the device's "
                              f"{rt.device.max_mem_alloc_size >> 20} MiB allocation limit")
-        if self.tensor.numel() == 0:  # OpenCL has no empty buffers; kernels never read it
-            self.buffer = cl.Buffer(rt.context, mf.READ_WRITE, 16)
+        if numel == 0:  # OpenCL has no empty buffers; kernels never read it
+            self.buffer = cl.Buffer(rt.context, _RW, 16)
         elif self.zero_copy:
-            host = self.tensor.numpy()
-            self.buffer = cl.Buffer(rt.context, mf.READ_WRITE | mf.USE_HOST_PTR, hostbuf=host)
+            host = tensor.numpy()
+            self.buffer = cl.Buffer(rt.context, _RW_HOST_PTR, hostbuf=host)
             if rt.computes_in_host_memory:
                 return
             # Hand the tensor's contents to the device through a map for writing and its
@@ -373,8 +379,8 @@ class DeviceArray:
                 np.copyto(mapped, host)
             mapped.base.release(rt.queue)
         else:
-            self.buffer = cl.Buffer(rt.context, mf.READ_WRITE | mf.COPY_HOST_PTR,
-                                    hostbuf=self.tensor.numpy())
+            self.buffer = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR,
+                                    hostbuf=tensor.numpy())
 
     def host(self) -> torch.Tensor:
         """The tensor, with every queued command finished and the device's data read back

@@ -97,16 +97,31 @@ def sh_colors(rt: Runtime, cfg: RenderConfig, means: DeviceArray, viewmats: Devi
     return colors
 
 
+def _host_scan(rt: Runtime) -> bool:
+    """Whether the tile-offset scan runs on the host: ``CLSPLAT_HOST_SCAN`` 1 (always; for tools
+    that cannot run pyopencl's scan, such as Oclgrind's uninitialised-memory checker) or 0
+    (never), else where the device computes in host memory (PoCL's CPU device). There the
+    counts are in the tensor's own memory once the queue finishes, the offsets are read back
+    right after the scan anyway, and a host prefix sum over one count per tile costs
+    microseconds, against pyopencl's scan: three launches, their wake-ups and its Python glue,
+    a sixth of a small render's fixed cost (bench/RESULTS.md, "Issue 21")."""
+    mode = os.environ.get("CLSPLAT_HOST_SCAN", "")
+    return mode == "1" or (mode != "0" and rt.computes_in_host_memory)
+
+
 def _scan_exclusive(rt: Runtime, src: DeviceArray, dst: DeviceArray, events) -> None:
-    """dst = exclusive prefix sum of src (int32), by pyopencl's scan on the device, or on the
-    host where ``CLSPLAT_HOST_SCAN=1`` (for tools that cannot run pyopencl's scan, such as
-    Oclgrind's uninitialised-memory checker)."""
+    """dst = exclusive prefix sum of src (int32), on the host or by pyopencl's scan on the
+    device (see :func:`_host_scan`). Host scan: dst's tensor holds the result on return."""
     n = src.tensor.numel()
     rt.launches += 1  # writes dst (see Runtime.launches)
-    if os.environ.get("CLSPLAT_HOST_SCAN", "0") == "1":
+    if _host_scan(rt):
         c = src.host().to(torch.int64)
-        ex = (torch.cumsum(c, 0) - c).to(torch.int32).contiguous()
-        cl.enqueue_copy(rt.queue, dst.buffer, ex.numpy(), is_blocking=True)
+        ex = (torch.cumsum(c, 0) - c).to(torch.int32)
+        if dst.zero_copy and rt.computes_in_host_memory:  # the tensor is the device's memory
+            dst.tensor.copy_(ex)
+            dst.synced_at = rt.launches
+        else:
+            cl.enqueue_copy(rt.queue, dst.buffer, ex.contiguous().numpy(), is_blocking=True)
         return
     a = cl_array.Array(rt.queue, (n,), np.int32, data=src.buffer)
     b = cl_array.Array(rt.queue, (n,), np.int32, data=dst.buffer)

@@ -22,9 +22,14 @@ def expected_intersections(rects: torch.Tensor, tiles_x: int, tiles_y: int) -> l
     return out
 
 
+@pytest.mark.parametrize("scan", ["host", "device"])
 @pytest.mark.parametrize("tile_size,precision", [(16, "float64"), (8, "float32"), (32, "float64"), (4, "float32")])
-def test_bin_counts_offsets_and_keys(rt, make_scene, run_project, ref_project, tile_size, precision):
+def test_bin_counts_offsets_and_keys(rt, make_scene, run_project, ref_project, tile_size, precision, scan,
+                                     monkeypatch):
+    """Both prefix scans (the host's, PoCL's default, and pyopencl's on the device) give the
+    exact tile offsets."""
     from clsplat.config import RenderConfig
+    monkeypatch.setenv("CLSPLAT_HOST_SCAN", "1" if scan == "host" else "0")
     cfg = RenderConfig(precision=precision)
     W, H = 40, 56
     scene = make_scene(30 + tile_size, N=120, C=3, width=W, height=H,

@@ -149,5 +149,6 @@ def test_garbage_scan_offsets_raise_instead_of_crashing(monkeypatch, rt):
             return cl.enqueue_copy(queue, b.data, garbage)
         return scan
     monkeypatch.setattr(Runtime, "exclusive_scan_int32", bad_scan)
+    monkeypatch.setenv("CLSPLAT_HOST_SCAN", "0")  # the device's scan, wherever the host's is the default
     with pytest.raises(RuntimeError, match="^bin: the device's prefix scan returned inconsistent"):
         clsplat.rasterization(**_scene(3, torch.float32))

@@ -1,4 +1,5 @@
-"""clsplat.threads: the OpenMP wait policy set once at import, before torch loads."""
+"""clsplat.threads: the OpenMP spin settings set once at import, before torch loads, and the
+default thread count from the cores other processes leave idle."""
 from __future__ import annotations
 
 import json
@@ -22,7 +23,8 @@ print(json.dumps({"env": {k: os.environ.get(k) for k in %r}, "active": thread_de
 
 
 def _child(**env) -> dict:
-    base = {k: v for k, v in os.environ.items() if k not in THREAD_DEFAULTS and k != OPT_OUT_ENV}
+    base = {k: v for k, v in os.environ.items()
+            if k not in THREAD_DEFAULTS and k not in (OPT_OUT_ENV, "OMP_WAIT_POLICY")}
     r = subprocess.run([sys.executable, "-c", _CHILD], capture_output=True, text=True, timeout=120,
                        env={**base, **env})
     assert r.returncode == 0, r.stderr[-2000:]
@@ -43,17 +45,43 @@ def test_opt_out_leaves_the_environment_alone():
 
 
 def test_user_values_win():
-    got = _child(OMP_WAIT_POLICY="ACTIVE")
-    assert got["env"]["OMP_WAIT_POLICY"] == "ACTIVE"
+    got = _child(GOMP_SPINCOUNT="300000")  # libgomp's own default: long spins
+    assert got["env"]["GOMP_SPINCOUNT"] == "300000"
     assert got["env"]["KMP_BLOCKTIME"] == THREAD_DEFAULTS["KMP_BLOCKTIME"]
     assert got["active"] is False  # spinning workers: the single-thread default stays
 
 
+def test_a_users_wait_policy_keeps_its_spin_count():
+    """libgomp lets GOMP_SPINCOUNT override OMP_WAIT_POLICY: setting it beside a user's
+    policy would silently change what the user chose."""
+    active = _child(OMP_WAIT_POLICY="ACTIVE")
+    assert active["env"]["GOMP_SPINCOUNT"] is None and active["active"] is False
+    passive = _child(OMP_WAIT_POLICY="PASSIVE")
+    assert passive["env"]["GOMP_SPINCOUNT"] is None and passive["active"] is True
+
+
 def test_apply_sets_only_what_is_unset():
     env = {"KMP_BLOCKTIME": "200"}
-    assert apply_thread_defaults(env) == {"OMP_WAIT_POLICY": "PASSIVE"}
-    assert env == {"KMP_BLOCKTIME": "200", "OMP_WAIT_POLICY": "PASSIVE"}
+    assert apply_thread_defaults(env) == {"GOMP_SPINCOUNT": THREAD_DEFAULTS["GOMP_SPINCOUNT"]}
+    assert env == {"KMP_BLOCKTIME": "200", "GOMP_SPINCOUNT": THREAD_DEFAULTS["GOMP_SPINCOUNT"]}
     assert apply_thread_defaults({OPT_OUT_ENV: "off"}) == {}
+
+
+def test_busy_cores_sees_a_competing_process():
+    """A CPU-bound process beside us counts as about one busy core; the default then gives
+    torch one core fewer than the machine has."""
+    from clsplat.threads import busy_cores, default_torch_threads
+    hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        import time
+        time.sleep(0.3)
+        busy = busy_cores(0.5)
+        assert busy >= 0.7, busy
+        cores = os.cpu_count()
+        assert default_torch_threads(cores=cores, load=busy, active=True) <= max(1, cores - 1)
+    finally:
+        hog.kill()
+        hog.wait()
 
 
 def test_default_torch_threads_uses_idle_cores_only():

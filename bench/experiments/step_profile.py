@@ -164,7 +164,8 @@ def main(argv: list[str] | None = None) -> int:
             by_stage.setdefault(s["stage"], []).append(s)
     out = {"label": a.label, "family": cmd[1], "cmd": " ".join(cmd), "rc": rc, "steps": len(kept),
            "torch_threads": torch.get_num_threads(),
-           "env": {k: os.environ.get(k) for k in ("OMP_WAIT_POLICY", "KMP_BLOCKTIME", "CLSPLAT_THREAD_DEFAULTS")},
+           "env": {k: os.environ.get(k) for k in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "KMP_BLOCKTIME",
+                                                       "CLSPLAT_THREAD_DEFAULTS")},
            "load_start": load0, "load_end": os.getloadavg()[0], "wall_s": wall,
            "median_s": medians(kept),
            **({"median_s_by_stage": {k: dict(medians(v), steps=len(v)) for k, v in by_stage.items()}}

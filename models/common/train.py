@@ -74,8 +74,9 @@ def set_threads(n: int | None = None, device=None) -> int:
     """Set torch's intra-op threads once, at an entry point; returns the number set.
 
     With ``n`` None on a CPU OpenCL device: :func:`clsplat.threads.default_torch_threads`
-    (the cores other processes leave idle, when idle OpenMP workers sleep; else 1, as PoCL's
-    workers and spinning OpenMP workers fight over the cores); elsewhere torch's default.
+    (the cores other processes leave idle, when idle OpenMP workers let go of the core soon;
+    else 1, as PoCL's workers and spinning OpenMP workers fight over the cores); elsewhere
+    torch's default.
     """
     if n is None:
         from clsplat.runtime import get_runtime
