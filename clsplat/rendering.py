@@ -205,16 +205,20 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
         t.update({k: sparse.wrap(t[k]) for k in ("means", "quats", "scales")})
     t = {k: _host(k, v) for k, v in t.items()}
 
-    # One validated single-batch view per batch element.
-    flat = {k: (None if v is None else v.reshape((B,) + tuple(v.shape[len(batch):])))
-            for k, v in t.items()}
-    infos = [check_rasterization_inputs(
-        *(flat[k][b] for k in ("means", "quats", "scales", "opacities", "colors", "viewmats", "Ks")),
-        width, height, near_plane, far_plane, radius_clip, eps2d, sh_degree, tile_size,
-        None if flat["backgrounds"] is None else flat["backgrounds"][b], render_mode)
-        for b in range(B)] if B else []
     if B == 0:
         raise ValueError(f"means: batch dimensions {list(batch)} hold no elements")
+    # One validated single-batch set of tensors per batch element (without batch dimensions,
+    # the tensors themselves: no view or select nodes in the graph of the common call).
+    if batch:
+        flat = {k: (None if v is None else v.reshape((B,) + tuple(v.shape[len(batch):])))
+                for k, v in t.items()}
+        per = [{k: (None if v is None else v[b]) for k, v in flat.items()} for b in range(B)]
+    else:
+        per = [t]
+    infos = [check_rasterization_inputs(
+        *(e[k] for k in ("means", "quats", "scales", "opacities", "colors", "viewmats", "Ks")),
+        width, height, near_plane, far_plane, radius_clip, eps2d, sh_degree, tile_size,
+        e["backgrounds"], render_mode) for e in per]
     C, D = infos[0]["C"], infos[0]["D"]
 
     if precision is None:
@@ -224,9 +228,9 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
     rt = get_runtime(device)
     if cfg.precision == "float64" and not rt.has_fp64:
         raise ValueError(f"precision: float64 needs cl_khr_fp64, which {rt.name} lacks")
-    flat["quats"] = rescale_large_quats(flat["quats"])
-    for b in range(B):
-        check_screen_extent(flat["means"][b], flat["scales"][b], flat["viewmats"][b], flat["Ks"][b],
+    for e in per:
+        e["quats"] = rescale_large_quats(e["quats"])
+        check_screen_extent(e["means"], e["scales"], e["viewmats"], e["Ks"],
                             float(near_plane), float(far_plane), cfg.precision)
     n_col, depth_col = _channels(render_mode, D)
     CH = n_col + (depth_col >= 0)
@@ -240,16 +244,11 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
     st0 = Settings(rt, cfg, width, height, tile_size, float(near_plane), float(far_plane),
                    float(eps2d), float(radius_clip), rasterize_mode == "antialiased",
                    absgrad=absgrad, sh_degree=sh_degree, bwd_divide=bwd_divide, events=events)
-    means_f, quats_f, scales_f = flat["means"], flat["quats"], flat["scales"]
-
     # Project every batch element, then gather the per-pair tensors gsplat exposes.
-    proj = []
-    for b in range(B):
-        proj.append(ProjectFn.apply(cast(means_f[b]), cast(quats_f[b]), cast(scales_f[b]),
-                                    cast(flat["opacities"][b]), cast(flat["viewmats"][b]),
-                                    cast(flat["Ks"][b]).detach(), st0))
-    means2d, conics, depths, opac, radii, rects, extents = (
-        torch.stack([p[i] for p in proj]) for i in range(7))            # [B, C, N, ...]
+    proj = [ProjectFn.apply(cast(e["means"]), cast(e["quats"]), cast(e["scales"]), cast(e["opacities"]),
+                            cast(e["viewmats"]), cast(e["Ks"]).detach(), st0) for e in per]
+    means2d, conics, depths, opac, radii, rects, extents = (      # [B, C, N, ...]
+        proj[0][i].unsqueeze(0) if B == 1 else torch.stack([p[i] for p in proj]) for i in range(7))
     if sparse is not None:
         sparse.set_visible((radii[0] > 0).all(-1).any(0))
     pairs = pack_pairs(radii) if packed else None
@@ -266,14 +265,14 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
         st = replace(st0, absgrad_sink=None if sink is None else sink.for_batch(b))
         parts = []
         if n_col:
-            c = flat["colors"][b]
+            c = per[b]["colors"]
             if sh_degree is not None:
-                vm_b = cast(flat["viewmats"][b])
+                vm_b = cast(per[b]["viewmats"])
                 if c.dim() == 4:  # per-view SH coefficients [C, N, K, 3]
-                    parts.append(torch.cat([ShFn.apply(cast(c[i]), cast(means_f[b]), vm_b[i:i + 1],
+                    parts.append(torch.cat([ShFn.apply(cast(c[i]), cast(per[b]["means"]), vm_b[i:i + 1],
                                                        radii[b, i:i + 1], st) for i in range(C)]))
                 else:
-                    parts.append(ShFn.apply(cast(c), cast(means_f[b]), vm_b, radii[b], st))
+                    parts.append(ShFn.apply(cast(c), cast(per[b]["means"]), vm_b, radii[b], st))
             else:
                 c = cast(c)
                 parts.append(c.expand(C, N, D) if c.dim() == 2 else c)
@@ -289,8 +288,8 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
             render, T = RasterizeFn.apply(m2d_used[b], conics[b], opac[b], feats.contiguous(),
                                           rects[b], extents[b], depths[b].detach(), st)
             isects.append(st.isect)
-        if flat["backgrounds"] is not None and n_col:
-            bg = cast(flat["backgrounds"][b])[:, None, None, :]
+        if per[b]["backgrounds"] is not None and n_col:
+            bg = cast(per[b]["backgrounds"])[:, None, None, :]
             render = torch.cat([render[..., :n_col] + T.unsqueeze(-1) * bg, render[..., n_col:]], -1)
         renders.append(render)
         Ts.append(T)
