@@ -25,7 +25,8 @@ def main() -> None:
     rows = defaultdict(list)
     for line in open(a.file):
         d = json.loads(line)
-        rnd, cfg = d["label"].split()[:2]
+        rnd, *rest = d["label"].split()
+        cfg = " ".join(rest)
         if rnd in skip or d.get("rc", 0) != 0:
             continue
         rows[(d["family"], cfg)].append(d)
@@ -33,7 +34,7 @@ def main() -> None:
     print("|---" * (6 + len(PARTS)) + "|")
     for (fam, cfg), ds in rows.items():
         med = {k: statistics.median(d["median_s"][k] for d in ds) for k in PARTS}
-        base = rows.get((fam, a.base))
+        base = rows.get((fam, a.base + cfg[len(cfg.split()[0]):]))  # "t1 loaded" for "default loaded"
         ratio = med["step"] / statistics.median(d["median_s"]["step"] for d in base) if base else float("nan")
         loads = [d["load_start"] for d in ds]
         threads = sorted({d["torch_threads"] for d in ds})
