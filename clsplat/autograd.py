@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from . import stages
@@ -48,7 +49,7 @@ class Settings:
 
 
 def _finite_grad(name: str, g: torch.Tensor | None) -> None:
-    if g is not None and not bool(torch.isfinite(g).all()):
+    if g is not None and not np.isfinite(g.detach().numpy()).all():  # numpy: see clsplat.validate
         raise ValueError(f"grad_output ({name}): contains NaN or Inf; the loss or its "
                          "gradient is not finite")
 
