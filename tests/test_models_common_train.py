@@ -322,6 +322,7 @@ def _staged_run(out, steps, resume=False, every=10):
     from clsplat.models.common.train import LoopHooks
     from clsplat.strategy import rebuild
 
+    torch.manual_seed(0)  # the loss draws from the global RNG (a resumed run restores it)
     model = _Grower(0 if resume else 3)
     opt = torch.optim.Adam([{"params": [model.a], "lr": 0.05}, {"params": [model.rows], "lr": 0.1}])
 

@@ -467,7 +467,7 @@ def train(model: torch.nn.Module, optimizer: torch.optim.Optimizer, spec: TrainS
                 for k, v in terms.items():
                     sums[k] = sums.get(k, 0.0) + float(torch.as_tensor(v).detach())
             groups = hooks.trainable_groups(step) if hooks is not None else None
-            if groups is not None:  # a stage: the other groups get no update (their gradients go)
+            if groups is not None:  # a stage: the other groups get no update (their gradients are dropped)
                 frozen = set(range(len(optimizer.param_groups))) - set(groups)
                 for i in frozen:
                     for q in optimizer.param_groups[i]["params"]:
