@@ -4,7 +4,7 @@
     clsplat train autosplat --data synthetic|pandaset:PATH|nuscenes:PATH [--cameras CAM ...]
         [--frames A:B] [--scale S] [--preset NAME] [--steps N] [--set FIELD=VALUE] [--holdout K]
         [--no-flatness] [--no-symmetry] [--no-residual-sh] [--no-pose-correction] [--no-densify]
-        [--no-decompose] [--masks DIR] --out DIR [--resume] [--stop-after N]
+        [--no-decompose] [--masks DIR] [--batch-size B] --out DIR [--resume] [--stop-after N]
         [--view [--view-port P] [--view-every N]]
     clsplat eval autosplat --checkpoint RUN/checkpoint.pt --out DIR [--data ...]
 
