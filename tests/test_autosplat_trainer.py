@@ -1,5 +1,12 @@
-"""AutoSplat end to end on a tiny street: CLI outputs, bitwise resume, skipped stages, bad input."""
+"""AutoSplat end to end on a tiny street, on the shared training loop: CLI outputs, bitwise resume
+(mid-stage, right after and across a densification), a skipped non-finite step, torchrun data
+parallelism, skipped stages, bad input."""
 import json
+import math
+import os
+import socket
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -16,6 +23,7 @@ from clsplat.models.autosplat.evaluate import evaluate_run
 from clsplat.models.autosplat.trainer import Trainer
 
 TINY = get_preset("autosplat", "tiny")
+TINY_STEPS = sum(TINY.stage_steps().values())
 CAMS = ["CAM_FRONT", "CAM_BACK_LEFT"]
 
 
@@ -24,25 +32,106 @@ def street():
     return generate_sequence(height=32, width=56, num_frames=4, seed=1, dt=0.2)
 
 
-def test_resume_is_bitwise(street, tmp_path):
-    data = prepare_data(street, CAMS, holdout=4)
-    full = Trainer(data, TINY, Switches(), tmp_path / "full", progress=False)
+@pytest.fixture(scope="module")
+def full_run(street, tmp_path_factory):
+    """The uninterrupted tiny run: its trainer and log."""
+    out = tmp_path_factory.mktemp("full")
+    full = Trainer(prepare_data(street, CAMS, holdout=4), TINY, Switches(), out, progress=False)
     full.fit()
-    part = Trainer(data, TINY, Switches(), tmp_path / "part", progress=False)
-    part.fit(stop_at=7)  # mid-foreground, after densification changed the set sizes
-    assert part.step == 7
-    resumed = Trainer(data, TINY, Switches(), tmp_path / "part", progress=False)
+    return full, [json.loads(x) for x in (out / "log.jsonl").read_text().splitlines()]
+
+
+def _log(folder):
+    return [json.loads(x) for x in (folder / "log.jsonl").read_text().splitlines()]
+
+
+# TINY: 4 steps per stage, densification after steps 3, 7, 11, 15. Stopped after 5: mid-stage
+# (background phase 2), the resumed run crosses the densification after step 7; stopped after 7:
+# right after a densification changed the set sizes and Adam's state.
+@pytest.mark.parametrize("stop", [5, 7])
+def test_resume_on_the_shared_loop_is_bitwise(street, full_run, tmp_path, stop):
+    full, full_log = full_run
+    densified = {r["step"] for r in full_log if any(k.startswith("densify_") for k in r)}
+    assert 7 in densified and full_log[6]["gaussians"] != full_log[5]["gaussians"]  # it did change sizes
+    data = prepare_data(street, CAMS, holdout=4)
+    part = Trainer(data, TINY, Switches(), tmp_path, progress=False)
+    part.fit(stop_at=stop)
+    assert part.step == stop and torch.load(tmp_path / "checkpoint.pt", weights_only=True)["step"] == stop
+    resumed = Trainer(data, TINY, Switches(), tmp_path, progress=False)
     resumed.fit(resume=True)
     assert resumed.step == full.step == full.total
+    assert resumed.model.sizes() == full.model.sizes()
     a, b = full.model.state_dict(), resumed.model.state_dict()
     assert a.keys() == b.keys()
     for k in a:
         assert torch.equal(a[k], b[k]), k
-    assert full.model.sizes() != {"background": 0}
-    logs = [json.loads(x) for x in (tmp_path / "part" / "log.jsonl").read_text().splitlines()]
+    for (qa, sa), (qb, sb) in zip(full.opt.state.items(), resumed.opt.state.items()):  # Adam's moments too
+        assert torch.equal(sa["exp_avg"], sb["exp_avg"]) and torch.equal(sa["exp_avg_sq"], sb["exp_avg_sq"])
+    logs = _log(tmp_path)
     assert [r["step"] for r in logs] == list(range(1, full.total + 1))
+    assert [r["loss"] for r in logs] == [r["loss"] for r in full_log]
+    assert [r["grad_norm"] for r in logs] == [r["grad_norm"] for r in full_log]
     with pytest.raises(ValueError, match="switches"):
-        Trainer(data, TINY, Switches(symmetry=False), tmp_path / "part", progress=False).fit(resume=True)
+        Trainer(data, TINY, Switches(symmetry=False), tmp_path, progress=False).fit(resume=True)
+
+
+def test_a_non_finite_step_is_skipped(street, tmp_path):
+    """A NaN loss at step 6 (background phase 2) leaves every parameter as it was and the run goes on."""
+
+    class Poisoned(Trainer):
+        def sample_loss(self, model, step, index):
+            terms = super().sample_loss(model, step, index)
+            if step == 5:
+                terms["loss"] = terms["loss"] * math.nan
+            return terms
+
+    seen = {}
+    t = Poisoned(prepare_data(street, CAMS, holdout=4), TINY, Switches(), tmp_path, progress=False)
+    t.fit(on_step=lambda step, rec: seen.__setitem__(step, {k: v.clone() for k, v in t.model.state_dict().items()})
+          if step in (5, 6) else None)
+    assert t.step == t.total
+    logs = _log(tmp_path)
+    assert logs[5]["skipped"] is True and "grad_norm" not in logs[5]
+    assert all("skipped" not in r for i, r in enumerate(logs) if i != 5)
+    for k, v in seen[5].items():
+        assert torch.equal(v, seen[6][k]), k
+    assert all(torch.isfinite(q).all() for q in t.model.parameters())
+
+
+def test_torchrun_data_parallel_equals_one_process(tmp_path):
+    """``torchrun --nproc_per_node 2 ... --batch-size 2``: each rank renders one of the iteration's two
+    frames, gradients and densification statistics are summed over the ranks, and the run ends where
+    one process with two frames per iteration does (float sums in another order: close, not bitwise)."""
+    args = ["--data", "synthetic", "--preset", "tiny", "--frames", "0:4", "--scale", "0.2", "--cameras",
+            "CAM_FRONT", "CAM_BACK", "--batch-size", "2", "--no-progress"]
+    assert train([*args, "--out", str(tmp_path / "one")]) == 0
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    script = tmp_path / "autosplat_train.py"
+    script.write_text("import sys; from clsplat.cli import console; sys.exit(console(['train', 'autosplat', *sys.argv[1:]]))")
+    r = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
+                        str(port), str(script), *args, "--out", str(tmp_path / "two")],
+                       capture_output=True, text=True, timeout=600, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "2 process(es)" in r.stdout
+    one = torch.load(tmp_path / "one" / "checkpoint.pt", weights_only=True)
+    two = torch.load(tmp_path / "two" / "checkpoint.pt", weights_only=True)
+    assert two["step"] == one["step"] == TINY_STEPS
+    assert two["extra"]["sizes"] == one["extra"]["sizes"]
+    for k, v in one["model"].items():
+        assert torch.allclose(v, two["model"][k], rtol=1e-4, atol=1e-5), (k, float((v - two["model"][k]).abs().max()))
+    la, lb = _log(tmp_path / "one"), _log(tmp_path / "two")
+    assert [x["frames"] for x in la] == [x["frames"] for x in lb] and len(la[0]["frames"]) == 2
+    assert [x["loss"] for x in la] == pytest.approx([x["loss"] for x in lb], rel=1e-4)
+    assert (tmp_path / "two" / "metrics.json").is_file()
+    # fewer frames per iteration than processes: one line that says why
+    env = {**os.environ, "WORLD_SIZE": "2"}
+    r = subprocess.run([sys.executable, str(script), "--batch-size", "1", "--out", str(tmp_path / "x"),
+                        "--no-progress"], capture_output=True, text=True, timeout=120, env=env)
+    assert r.returncode == 2 and r.stderr.strip().splitlines() == [
+        "clsplat train autosplat: --batch-size: 1 frame(s) per iteration cannot be shared by 2 processes; "
+        "give --batch-size 2 or more"]
 
 
 def test_sequence_without_tracks_skips_foreground_and_static_tracks_get_no_residual(street, tmp_path):
@@ -102,7 +191,7 @@ def test_bad_input_is_named(street, tmp_path):
     with pytest.raises(ValueError, match="--frames"):
         train(["--frames", "4:2", "--out", str(tmp_path / "x"), "--no-progress"])
     with pytest.raises(ValueError, match="--batch-size"):
-        train(["--batch-size", "2", "--out", str(tmp_path / "x"), "--no-progress"])
+        Trainer(prepare_data(street, CAMS, 4), TINY, Switches(), tmp_path, progress=False, batch_size=0)
     with pytest.raises(ValueError, match="--scale"):
         train(["--scale", "0", "--out", str(tmp_path / "x"), "--no-progress"])
 

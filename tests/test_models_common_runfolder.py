@@ -101,7 +101,7 @@ def assert_same_run(a: Path, b: Path) -> None:
     assert sa.keys() == sb.keys()
     for k in sa:
         assert torch.equal(torch.as_tensor(sa[k]), torch.as_tensor(sb[k])), k  # bitwise
-    strip = lambda d: [{k: v for k, v in json.loads(x).items() if k != "time_s"}  # noqa: E731
+    strip = lambda d: [{k: v for k, v in json.loads(x).items() if k not in ("time_s", "backward_s")}  # noqa: E731
                        for x in (d / "log.jsonl").read_text().splitlines()]
     assert strip(a) == strip(b)
 

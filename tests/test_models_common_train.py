@@ -299,3 +299,74 @@ def test_on_step_sees_every_step_and_its_logged_record(toy, tmp_path):
     logged = [json.loads(x) for x in (tmp_path / "log.jsonl").read_text().splitlines()]
     assert [s for s, _ in seen] == [1, 2, 3, 4]
     assert [r["loss"] for _, r in seen] == [r["loss"] for r in logged]
+
+
+@dataclass(frozen=True)
+class _StagedPreset(presets.Preset):
+    name: str = "staged"
+
+
+class _Grower(torch.nn.Module):
+    """Two parameter groups: ``a`` (a fixed vector) and ``rows`` (grows by its first rows after step 3)."""
+
+    def __init__(self, n: int) -> None:
+        super().__init__()
+        self.a = torch.nn.Parameter(torch.linspace(-1, 1, 4, dtype=torch.float64))
+        self.rows = torch.nn.Parameter(torch.linspace(0, 1, 2 * n, dtype=torch.float64).reshape(n, 2))
+
+
+def _staged_run(out, steps, resume=False, every=10):
+    """A staged family on the shared loop: odd steps train only group 1 (``rows``), even steps both;
+    after step 3 ``rows`` grows by copies of its first 2 rows (fresh Adam moments) through
+    :func:`clsplat.strategy.rebuild`; the size travels in the checkpoint."""
+    from clsplat.models.common.train import LoopHooks
+    from clsplat.strategy import rebuild
+
+    torch.manual_seed(0)  # the loss draws from the global RNG (a resumed run restores it)
+    model = _Grower(0 if resume else 3)
+    opt = torch.optim.Adam([{"params": [model.a], "lr": 0.05}, {"params": [model.rows], "lr": 0.1}])
+
+    class Hooks(LoopHooks):
+        def trainable_groups(self, step):
+            return [1] if step % 2 else [0, 1]
+
+        def after_step(self, step, applied):
+            if step == 2:
+                params = {"rows": model.rows}
+                rebuild(params, {"rows": opt}, lambda n, p: torch.cat([p, p[:2]]),
+                        lambda k, v: torch.cat([v, v.new_zeros((2,) + v.shape[1:])]))
+                model.rows = params["rows"]
+            return {"n_rows": len(model.rows)}
+
+        def state(self):
+            return {"n_rows": len(model.rows)}
+
+        def load_state(self, extra, path):
+            model.rows.data = model.rows.data.new_zeros(extra["n_rows"], 2)
+
+    def sample_loss(m, step, index):
+        g = sample_generator(3, index)
+        t = torch.randn(len(m.rows), 2, generator=g, dtype=torch.float64)
+        return {"loss": ((m.rows - t) ** 2).mean() + (m.a ** 2).sum() * torch.rand(()).double()}
+
+    spec = TrainSpec(out_dir=out, steps=steps, checkpoint_every=every, resume=resume, progress=False)
+    train(model, opt, spec, _StagedPreset(), "staged", sample_loss, hooks=Hooks())
+    return model, opt
+
+
+@pytest.mark.parametrize("stop", [2, 3])
+def test_staged_hooks_freeze_groups_and_resume_bitwise_across_parameter_surgery(tmp_path, stop):
+    """``trainable_groups`` leaves the other groups exactly alone (no Adam step, no moment decay);
+    ``after_step`` replaces a parameter and its moments; a run stopped before (2) or right after (3)
+    that surgery resumes bitwise; the hooks' log fields are written."""
+    full, full_opt = _staged_run(tmp_path / "full", 6)
+    recs = [json.loads(x) for x in (tmp_path / "full" / "log.jsonl").read_text().splitlines()]
+    assert [r["n_rows"] for r in recs] == [3, 3, 5, 5, 5, 5] and len(full.rows) == 5
+    assert full_opt.state[full.a]["step"] == 3  # a trained at steps 0, 2, 4 only
+    assert full_opt.state[full.rows]["step"] == 6  # the grown leaf kept the old one's step count
+    _staged_run(tmp_path / "part", stop, every=stop)
+    resumed, resumed_opt = _staged_run(tmp_path / "part", 6, resume=True)
+    assert torch.equal(full.a, resumed.a) and torch.equal(full.rows, resumed.rows)
+    for p, q in ((full.a, resumed.a), (full.rows, resumed.rows)):
+        for k in ("exp_avg", "exp_avg_sq"):
+            assert torch.equal(full_opt.state[p][k], resumed_opt.state[q][k])

@@ -7,7 +7,8 @@ runs ``clsplat <args after -->`` in this process with timing hooks installed and
 line: the medians, over the steps after the first ``--skip``, of
 
 * ``step``: the whole optimisation step (DrivingForward / PGT: from one optimiser step to the
-  next, so logging is included; AutoSplat: one ``Trainer.train_step``);
+  next, so logging is included; AutoSplat, on the same loop: from the end of one
+  ``Trainer.after_step`` to the next, so densification is included);
 * ``data``: the family's sample function (DrivingForward ``load_triplet``, PGT ``make_sample``;
   AutoSplat preloads its data, so 0), renders inside it not counted as the renderer's;
 * ``render_fwd``: inside :func:`clsplat.rasterization` (validation, projection, binning, sort,
@@ -112,16 +113,14 @@ def _install(clock: _Clock, family: str) -> None:
         pt.make_sample = timed(pt.make_sample, "data", data=True)
     elif family == "autosplat":
         from clsplat.models.autosplat.trainer import Trainer
-        step = Trainer.train_step
+        after = Trainer.after_step
 
-        @functools.wraps(step)
-        def train_step(self, i):
-            clock.close()  # drops what ran before this step (start-up, the previous step's log)
-            clock.steps.pop()
-            out = step(self, i)
+        @functools.wraps(after)
+        def after_step(self, i, applied):
+            out = after(self, i, applied)
             clock.close(stage=self.stage_of(i)[0])
             return out
-        Trainer.train_step = train_step
+        Trainer.after_step = after_step
     else:
         raise ValueError(f"family: expected drivingforward, pgt or autosplat, got {family!r}")
 

@@ -36,6 +36,7 @@ from .ops import (
     duplicate,
     inject_noise_to_position,
     quat_scale_to_covar_preci,
+    rebuild,
     relocate,
     remove,
     reset_opa,
@@ -44,6 +45,6 @@ from .ops import (
     swap_parameter,
 )
 
-__all__ = ["Strategy", "swap_parameter", "DefaultStrategy", "MCMCStrategy", "compute_relocation",
+__all__ = ["Strategy", "swap_parameter", "rebuild", "DefaultStrategy", "MCMCStrategy", "compute_relocation",
            "quat_scale_to_covar_preci", "duplicate", "split", "remove", "reset_opa",
            "relocate", "sample_add", "inject_noise_to_position"]

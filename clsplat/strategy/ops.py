@@ -1,9 +1,11 @@
 """Operations of the densification strategies, each keeping the optimizers in step with the
 parameters: the geometry (:func:`quat_scale_to_covar_preci`) and 3DGS-MCMC's relocation rule
 (:func:`compute_relocation`), both with the signatures of gsplat's CUDA-backed ops;
-:func:`swap_parameter`, the one piece of optimiser surgery every densifier needs; and the
-parameter surgery built on it (:func:`duplicate`, :func:`split`, :func:`remove`,
-:func:`reset_opa`, :func:`relocate`, :func:`sample_add`, :func:`inject_noise_to_position`).
+:func:`swap_parameter`, the one piece of optimiser surgery every densifier needs, and
+:func:`rebuild`, the parameter surgery on top of it (each named parameter replaced, its moments
+carried over); and the strategies' operations built on those (:func:`duplicate`, :func:`split`,
+:func:`remove`, :func:`reset_opa`, :func:`relocate`, :func:`sample_add`,
+:func:`inject_noise_to_position`). AutoSplat's ``densify_and_prune`` uses :func:`rebuild` too.
 """
 from __future__ import annotations
 
@@ -15,7 +17,8 @@ from torch import Tensor
 
 from ..quaternion import quat_to_rotmat
 
-__all__ = ["Params", "quat_scale_to_covar_preci", "compute_relocation", "swap_parameter", "duplicate", "split",
+__all__ = ["Params", "quat_scale_to_covar_preci", "compute_relocation", "swap_parameter", "rebuild", "duplicate",
+           "split",
            "remove", "reset_opa", "relocate", "sample_add", "inject_noise_to_position"]
 
 Params = Union[Dict[str, torch.nn.Parameter], torch.nn.ParameterDict]
@@ -86,11 +89,14 @@ def swap_parameter(optimizer: torch.optim.Optimizer, old: Tensor, new: Tensor,
 
 
 @torch.no_grad()
-def _rebuild(params: Params, optimizers: Dict[str, torch.optim.Optimizer],
-             param_fn: Callable[[str, Tensor], Tensor], state_fn: Callable[[str, Tensor], Tensor],
-             names: Optional[list] = None) -> None:
-    """Replace each named parameter by param_fn(name, p) and each of its optimizer's per-
-    element state tensors (not ``step``) by state_fn(key, v)."""
+def rebuild(params: Params, optimizers: Dict[str, torch.optim.Optimizer],
+            param_fn: Callable[[str, Tensor], Tensor], state_fn: Callable[[str, Tensor], Tensor],
+            names: Optional[list] = None) -> None:
+    """Replace each named parameter (all of ``params``, or ``names``) by a new leaf
+    ``param_fn(name, p)`` in ``params`` and in its optimizer, and each of the optimizer's
+    per-element state tensors (not ``step``) by ``state_fn(key, v)``. ``optimizers`` maps each
+    trainable name to the optimizer that holds it (one optimizer may hold several names, in
+    several groups); a trainable name without one is a ValueError."""
     for name in (list(params.keys()) if names is None else names):
         old = params[name]
         new = torch.nn.Parameter(param_fn(name, old), requires_grad=old.requires_grad)
@@ -113,7 +119,7 @@ def _edit_state(state: Dict[str, Any], fn: Callable[[Tensor], Tensor]) -> None:
 def duplicate(params: Params, optimizers, state: Dict[str, Any], mask: Tensor) -> None:
     """Append a copy of every Gaussian in ``mask`` [N] (fresh optimizer moments)."""
     sel = mask.nonzero()[:, 0]
-    _rebuild(params, optimizers, lambda n, p: torch.cat([p, p[sel]]),
+    rebuild(params, optimizers, lambda n, p: torch.cat([p, p[sel]]),
              lambda k, v: torch.cat([v, v.new_zeros((len(sel),) + v.shape[1:])]))
     _edit_state(state, lambda v: torch.cat([v, v[sel]]))
 
@@ -138,7 +144,7 @@ def split(params: Params, optimizers, state: Dict[str, Any], mask: Tensor,
             return torch.logit(1 - torch.sqrt(1 - torch.sigmoid(p[sel]))).repeat(2, *[1] * (p.dim() - 1))
         return p[sel].repeat(2, *[1] * (p.dim() - 1))
 
-    _rebuild(params, optimizers, lambda n, p: torch.cat([p[rest], new_values(n, p)]),
+    rebuild(params, optimizers, lambda n, p: torch.cat([p[rest], new_values(n, p)]),
              lambda k, v: torch.cat([v[rest], v.new_zeros((2 * len(sel),) + v.shape[1:])]))
     _edit_state(state, lambda v: torch.cat([v[rest], v[sel].repeat(2, *[1] * (v.dim() - 1))]))
 
@@ -147,7 +153,7 @@ def split(params: Params, optimizers, state: Dict[str, Any], mask: Tensor,
 def remove(params: Params, optimizers, state: Dict[str, Any], mask: Tensor) -> None:
     """Drop every Gaussian in ``mask``."""
     keep = (~mask).nonzero()[:, 0]
-    _rebuild(params, optimizers, lambda n, p: p[keep], lambda k, v: v[keep])
+    rebuild(params, optimizers, lambda n, p: p[keep], lambda k, v: v[keep])
     _edit_state(state, lambda v: v[keep])
 
 
@@ -155,7 +161,7 @@ def remove(params: Params, optimizers, state: Dict[str, Any], mask: Tensor) -> N
 def reset_opa(params: Params, optimizers, state: Dict[str, Any], value: float) -> None:
     """Clamp every opacity to at most ``value`` and clear its optimizer moments."""
     cap = math.log(value / (1 - value))
-    _rebuild(params, optimizers, lambda n, p: p.clamp_max(cap), lambda k, v: torch.zeros_like(v),
+    rebuild(params, optimizers, lambda n, p: p.clamp_max(cap), lambda k, v: torch.zeros_like(v),
              names=["opacities"])
 
 
@@ -226,7 +232,7 @@ def relocate(params: Params, optimizers, state: Dict[str, Any], mask: Tensor, bi
         v[src] = 0
         return v
 
-    _rebuild(params, optimizers, param_fn, state_fn)
+    rebuild(params, optimizers, param_fn, state_fn)
     _edit_state(state, lambda v: v.index_fill(0, src, 0))
 
 
@@ -240,7 +246,7 @@ def sample_add(params: Params, optimizers, state: Dict[str, Any], n: int, binoms
         p = shared(name, p)
         return torch.cat([p, p[src]])
 
-    _rebuild(params, optimizers, param_fn,
+    rebuild(params, optimizers, param_fn,
              lambda k, v: torch.cat([v, v.new_zeros((n,) + v.shape[1:])]))
     _edit_state(state, lambda v: torch.cat([v, v.new_zeros((n,) + v.shape[1:])]))
 

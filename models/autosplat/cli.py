@@ -4,12 +4,14 @@
     clsplat train autosplat --data synthetic|pandaset:PATH|nuscenes:PATH [--cameras CAM ...]
         [--frames A:B] [--scale S] [--preset NAME] [--steps N] [--set FIELD=VALUE] [--holdout K]
         [--no-flatness] [--no-symmetry] [--no-residual-sh] [--no-pose-correction] [--no-densify]
-        [--no-decompose] [--masks DIR] --out DIR [--resume] [--stop-after N]
+        [--no-decompose] [--masks DIR] [--batch-size B] --out DIR [--resume] [--stop-after N]
         [--view [--view-port P] [--view-every N]]
     clsplat eval autosplat --checkpoint RUN/checkpoint.pt --out DIR [--data ...]
 
 ``--no-decompose`` is plain 3DGS from LiDAR (one static set, no objects, no phase 1). ``--steps N``
-rescales the preset's four stages to N iterations in all, each keeping its share.
+rescales the preset's four stages to N iterations in all, each keeping its share. ``--batch-size B``
+trains on B frames per iteration (default 1); under ``torchrun`` the ranks share them (data
+parallel on the shared loop, so B must be at least the number of processes).
 
 Writes ``DIR/metrics.json`` (:mod:`clsplat.models.common.report`'s schema: held-out PSNR, SSIM
 per camera and overall with PSNR over object pixels, LPIPS when weights are given; ``train`` the
@@ -21,6 +23,7 @@ class, seconds per stage), ``DIR/scene.ply``,
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from pathlib import Path
 
@@ -52,22 +55,23 @@ def _parser() -> argparse.ArgumentParser:
 def reconstruct(data, preset, switches, out: Path, *, device=None, progress: bool = True,
                 checkpoint_every: int = 100, resume: bool = False, stop_after: int | None = None,
                 lpips=(None, "LPIPS off: no weights given"), extra: dict | None = None,
-                view: dict | None = None) -> dict | None:
+                view: dict | None = None, batch_size: int = 1) -> dict | None:
     """Train (or resume) and evaluate one run; writes metrics.json and scene.ply into ``out``.
     With ``view`` ({"host", "port", "every"}) the run is served to the browser as it trains.
 
     ``out`` is written in place; the commands (``clsplat train autosplat``, ``clsplat demo``) pass
     the staging folder of a :class:`~..common.runfolder.RunFolder`, which publishes it as a group.
-    Returns the metrics, or None when ``stop_after`` stopped the schedule early.
+    Returns the metrics, or None when ``stop_after`` stopped the schedule early or on a rank > 0
+    under ``torchrun`` (rank 0 evaluates and writes the outputs).
     """
     from ..common.report import metrics_report, write_metrics
-    from ..common.train import read_log
+    from ..common.train import distributed_info, read_log
     from .evaluate import evaluate_run
     from .trainer import Trainer
 
     t_start = time.perf_counter()
     trainer = Trainer(data, preset, switches, out, device=device, progress=progress,
-                      checkpoint_every=checkpoint_every)
+                      checkpoint_every=checkpoint_every, batch_size=batch_size)
     watcher = None
     if view is not None:
         from ..common.view import TrainView
@@ -79,6 +83,8 @@ def reconstruct(data, preset, switches, out: Path, *, device=None, progress: boo
     finally:
         if watcher is not None:
             watcher.close()
+    if distributed_info()[0] != 0:
+        return None
     if trainer.step < trainer.total:
         print(f"stopped after {trainer.step} of {trainer.total} iterations (the unfinished run is in {out}); "
               "continue with --resume")
@@ -125,9 +131,11 @@ def train(argv: list[str]) -> int:
     preset = apply_sets(get_preset("autosplat", a.preset), a.set)
     if a.steps is not None:   # the four stages keep their shares of the schedule
         preset = with_total_steps(preset, a.steps)
-    if a.batch_size is not None:
-        raise ValueError("--batch-size: an AutoSplat iteration renders every selected camera of one frame; "
-                         "it has no batch size")
+    batch = 1 if a.batch_size is None else a.batch_size
+    world = int(os.environ.get("WORLD_SIZE", "1"))   # torchrun's; checked before the process group starts
+    if batch < world:
+        raise ValueError(f"--batch-size: {batch} frame(s) per iteration cannot be shared by {world} processes; "
+                         f"give --batch-size {world} or more")
     set_threads(a.threads, a.device)
     preset = preset.replace(seed=a.seed) if a.seed != preset.seed else preset
     if a.holdout is not None:
@@ -147,20 +155,20 @@ def train(argv: list[str]) -> int:
         load_mask_folder(seq, a.masks, list(range(*(frames or (0, len(seq.frames))))))
     data = prepare_data(seq, a.cameras, preset.holdout)
     load_s = time.perf_counter() - t0
-    if not a.no_progress:
-        print(preset.describe())
     if a.stop_after is not None and a.stop_after < 1:
         raise ValueError(f"--stop-after: expected a positive number of iterations, got {a.stop_after}")
     lp, msg = lpips_or_none(a.lpips_vgg, a.lpips_lin)
     print(msg, flush=True)
     from ..common.runfolder import RunFolder
+    from ..common.train import distributed_info
+    distributed_info()   # under torchrun: the process group the run folder's ranks meet in
     with RunFolder(a.out, resume=a.resume) as rf:  # the lock; outputs staged, then published as a group
         metrics = reconstruct(data, preset, switches, rf.stage, device=a.device, progress=not a.no_progress,
                               checkpoint_every=a.checkpoint_every, resume=a.resume, stop_after=a.stop_after,
                               lpips=(lp, msg), extra={"data": a.data, "scale": scale, "frames": list(frames) if frames else None,
                                      "load_seconds": load_s},
                               view={"host": a.view_host, "port": a.view_port, "every": a.view_every}
-                              if a.view else None)
+                              if a.view else None, batch_size=batch)
         if metrics is None:
             return 0
         rf.publish()

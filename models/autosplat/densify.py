@@ -12,16 +12,19 @@ Per trainable set (:class:`GaussianParams`), while a stage trains it:
 * Gaussians with opacity < ``prune_opacity``, or (if ``growable``) a scale > ``prune_scale``, are
   removed; then the accumulators restart.
 
-Adam's moments follow the Gaussians (new ones start at zero; the optimiser surgery is
-:func:`clsplat.strategy.swap_parameter`, shared with gsplat's strategies), so the optimiser
-state stays consistent when parameter counts change; ``GaussianParams.sizes`` records them for checkpoints.
+Adam's moments follow the Gaussians (new ones start at zero), so the optimiser state stays
+consistent when parameter counts change. The parameter and optimiser surgery is
+:func:`clsplat.strategy.rebuild` (each parameter replaced, its moments re-gathered through
+:func:`clsplat.strategy.swap_parameter`), the one copy that gsplat's strategies in
+:mod:`clsplat.strategy` use too; what is AutoSplat's own is only which rows survive, which are
+copied and where split children go. ``AutoSplatModel.sizes`` records the set sizes for checkpoints.
 """
 from __future__ import annotations
 
 import torch
 from torch import nn
 
-from clsplat.strategy import swap_parameter
+from clsplat.strategy import rebuild
 
 from ..common.geometry import quat_to_matrix
 
@@ -78,10 +81,12 @@ class GaussianParams(nn.Module):
         return int(self.means.shape[0])
 
     def resize_(self, n: int) -> None:
-        """Replace every parameter and buffer by zeros of length ``n`` (before ``load_state_dict``)."""
+        """Make every parameter and buffer zeros of length ``n`` (before ``load_state_dict``). The
+        parameters are resized in place, so an optimiser built over them still holds them (the
+        shared loop's resume loads the optimiser's state after this)."""
         for name in PARAM_NAMES:
             p = getattr(self, name)
-            setattr(self, name, nn.Parameter(p.new_zeros((n,) + tuple(p.shape[1:]))))
+            p.data = p.data.new_zeros((n,) + tuple(p.shape[1:]))
         self.labels = self.labels.new_zeros(n)
         self.normals = self.normals.new_zeros(n, 3)
 
@@ -157,16 +162,19 @@ def densify_and_prune(g: GaussianParams, stats: GradStats, opt: torch.optim.Opti
         R = quat_to_matrix(torch.nn.functional.normalize(g.quats[split_idx], dim=-1)).repeat(2, 1, 1)
         z = torch.randn(2 * ns, 3, generator=generator)
         offsets = (R @ (z * scales[split_idx].repeat(2, 1))[..., None])[..., 0]
-    for name in PARAM_NAMES:
-        old = getattr(g, name)
+
+    def gathered(name: str, old: torch.Tensor) -> torch.Tensor:
         val = old.data[src].clone()
         if ns and name == "means":
             val[s0:] += offsets
         if ns and name == "log_scales":
             val[s0:] -= torch.log(torch.tensor(1.6))
-        new = nn.Parameter(val)
-        swap_parameter(opt, old, new, lambda key, v: _gathered(v, src, fresh))
-        setattr(g, name, new)
+        return val
+
+    params = {name: getattr(g, name) for name in PARAM_NAMES}
+    rebuild(params, {name: opt for name in PARAM_NAMES}, gathered, lambda key, v: _gathered(v, src, fresh))
+    for name in PARAM_NAMES:
+        setattr(g, name, params[name])
     g.labels = g.labels[src].clone()
     g.normals = g.normals[src].clone()
     stats.grad = torch.zeros(n_new)

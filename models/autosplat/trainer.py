@@ -1,8 +1,12 @@
-"""The staged AutoSplat optimisation: the four stages, densification, checkpoints, the loop
-(the run's tensors come from :mod:`.data`, its evaluation is :mod:`.evaluate`).
+"""The staged AutoSplat optimisation on the shared training loop (:func:`..common.train.train`):
+the four stages as a schedule of Adam parameter groups, the per-sample loss, densification after
+the optimiser step, and AutoSplat's checkpoint state (the run's tensors come from :mod:`.data`,
+its evaluation is :mod:`.evaluate`). This module has no loop of its own: :class:`Trainer` is the
+family's :class:`~..common.train.LoopHooks`.
 
-Stages (iterations from the preset; one iteration = all selected cameras of one training frame,
-drawn with a generator keyed by (seed, step), so a resumed run draws the same frames):
+Stages (iterations from the preset; one iteration = all selected cameras of ``batch_size``
+training frames, 1 by default; sample ``index`` draws its frame with a generator keyed by
+(seed, index), so a resumed run and a data-parallel run draw the same frames):
 
 1. ``bg_phase1``: the road set and the sky set, each rendered alone and supervised on its own
    pixels, plus β·C (flatness).
@@ -11,10 +15,15 @@ drawn with a generator keyed by (seed, step), so a resumed run draws the same fr
    images, plus the L1 sparsity of the residuals. Skipped when the sequence has no tracks.
 4. ``fusion``: everything, full images, with the per-object per-frame pose corrections.
 
-Parameters outside a stage's set get no update (their gradients are dropped before Adam). Sets
-are densified and pruned while their stage runs (:mod:`.densify`). Checkpoints carry the model,
-every set's size, Adam's state, the densification statistics, the step and the RNG states, so a
-resumed run continues bitwise.
+Parameter groups outside a stage's set get no update (:meth:`Trainer.trainable_groups`: the loop
+drops their gradients before Adam). Means' learning rates decay ×0.1 over the whole schedule (a
+``LambdaLR``). Sets are densified and pruned while their stage runs (:meth:`Trainer.after_step`,
+:mod:`.densify`, whose parameter and Adam-moment surgery is :mod:`clsplat.strategy`'s); under
+``torchrun`` the screen-space gradient statistics are summed over the ranks every step, so every
+rank densifies alike. Checkpoints are the shared loop's (model, optimizer, scheduler, step, RNG
+states) with every set's size, the densification statistics and the run's identity under
+``extra``, so a resumed run continues bitwise; a non-finite step is skipped (no update, no
+densification) as for every family.
 """
 from __future__ import annotations
 
@@ -23,10 +32,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import torch.distributed as dist
 
 from ..common.gaussians import GaussianSet
-from ..common.train import (JsonlLog, capture_rng, load_checkpoint, plot_losses, restore_rng, sample_generator,
-                            save_checkpoint, seed_everything)
+from ..common.train import LoopHooks, TrainSpec, distributed_info, sample_generator, seed_everything, train
 from .background import flatness, masked_photometric, reference_frames
 from .densify import GaussianParams, GradStats, densify_and_prune
 from .data import RunData
@@ -39,6 +48,8 @@ __all__ = ["STAGES", "Trainer", "checkpoint_extra"]
 
 STAGES: tuple[str, ...] = ("bg_phase1", "bg_phase2", "foreground", "fusion")
 FAMILY = "autosplat"
+#: the parameter kinds of a Gaussian set, one Adam group each (in this order)
+_KINDS = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN")
 
 
 def checkpoint_extra(ck: dict) -> dict:
@@ -47,7 +58,7 @@ def checkpoint_extra(ck: dict) -> dict:
     return ck.get("extra") or ck
 
 
-class Trainer:
+class Trainer(LoopHooks):
     """One AutoSplat reconstruction.
 
     Args:
@@ -58,13 +69,19 @@ class Trainer:
         device: OpenCL device for :func:`clsplat.rasterization`.
         progress: tqdm progress bar.
         checkpoint_every: steps between checkpoints (and at the end).
+        batch_size: training frames per iteration (the loss is their mean); under ``torchrun``
+            each rank renders every world-th of them, so data parallelism needs
+            ``batch_size >= WORLD_SIZE``.
     """
 
     def __init__(self, data: RunData, preset: AutoSplatPreset, switches: Switches, out_dir: str | Path,
-                 device=None, progress: bool = True, checkpoint_every: int = 100) -> None:
+                 device=None, progress: bool = True, checkpoint_every: int = 100, batch_size: int = 1) -> None:
+        if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
+            raise ValueError(f"--batch-size: expected a positive number of frames per iteration, got {batch_size!r}")
         self.data, self.preset, self.switches = data, preset, switches
         self.out = Path(out_dir)
         self.device, self.progress, self.checkpoint_every = device, progress, int(checkpoint_every)
+        self.batch_size = batch_size
         self.tracks = collect_tracks(data.seq, data.train_frames, preset.dynamic_threshold)
         steps = preset.stage_steps()
         if not switches.decompose:  # plain 3DGS: one static set, one background phase
@@ -84,8 +101,10 @@ class Trainer:
         self.stage_seconds = {s: 0.0 for s in STAGES}
         self._events: list = []
         self._render_wall = 0.0
+        self._renders: list = []  # (meta, layout) of this step's renders, for the densification statistics
         self.step = 0
         self.opt: torch.optim.Optimizer | None = None
+        self.scheduler = None
 
     # ------------------------------------------------------------------ initialisation
     def initialise(self) -> None:
@@ -117,27 +136,31 @@ class Trainer:
         self._build_optimizer()
 
     def _build_optimizer(self) -> None:
+        """Adam with one group per (set, parameter kind), then the residual MLPs, the pose
+        corrections and the sky colour; ``self.group_owner[i]`` names group i's owner (a set key,
+        ``residuals``, ``pose`` or ``sky``), which :meth:`trainable_groups` selects by stage."""
         p, m = self.preset, self.model
         groups = []
-        self.base_lr: list[float] = []
-        self.is_means: list[bool] = []
+        self.group_owner: list[str] = []
+        decays: list = []
+        lrs = {"means": p.lr_means, "quats": p.lr_quats, "log_scales": p.lr_scales,
+               "opacity_logits": p.lr_opacity, "sh0": p.lr_sh0, "shN": p.lr_shN}
+        total = max(self.total, 1)
 
-        def add(params, lr, means=False):
+        def add(owner: str, params, lr: float, decay: bool = False) -> None:
             groups.append({"params": list(params), "lr": lr})
-            self.base_lr.append(lr)
-            self.is_means.append(means)
+            self.group_owner.append(owner)
+            # lr at global step s: lr · 0.1^(s / total) for the means, lr otherwise
+            decays.append((lambda s: 0.1 ** (s / total)) if decay else (lambda s: 1.0))
 
-        for g in [m.background, *m.objects]:
-            add([g.means], p.lr_means, True)
-            add([g.quats], p.lr_quats)
-            add([g.log_scales], p.lr_scales)
-            add([g.opacity_logits], p.lr_opacity)
-            add([g.sh0], p.lr_sh0)
-            add([g.shN], p.lr_shN)
-        add(m.residuals.parameters(), p.lr_residual)
-        add([m.pose.delta], p.lr_pose)
-        add([m.sky_color], p.lr_sky)
+        for key, g in (("background", m.background), *((f"object{k}", o) for k, o in enumerate(m.objects))):
+            for kind in _KINDS:
+                add(key, [getattr(g, kind)], lrs[kind], decay=kind == "means")
+        add("residuals", m.residuals.parameters(), p.lr_residual)
+        add("pose", [m.pose.delta], p.lr_pose)
+        add("sky", [m.sky_color], p.lr_sky)
         self.opt = torch.optim.Adam(groups, eps=1e-15)
+        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.opt, decays)
         self.stats = {k: GradStats(n) for k, n in m.sizes().items()}
 
     # ------------------------------------------------------------------ schedule
@@ -156,20 +179,21 @@ class Trainer:
         return {"bg_phase1": ["background"], "bg_phase2": ["background"], "foreground": objs,
                 "fusion": ["background", *objs]}[stage]
 
-    def _active_params(self, stage: str) -> set[int]:
-        m = self.model
-        act: list[torch.nn.Parameter] = []
+    def trainable_groups(self, step: int) -> list[int]:
+        """The optimiser groups ``step``'s stage trains: background and sky in the background phases;
+        the objects and their residual SH in the foreground stage; all of them in fusion, plus the
+        pose corrections when switched on."""
+        stage = self.stage_of(step)[0]
+        owners = set(self._trained_sets(stage))
         if stage in ("bg_phase1", "bg_phase2", "fusion"):
-            act += list(m.background.parameters()) + [m.sky_color]
+            owners.add("sky")
         if stage in ("foreground", "fusion"):
-            for o in m.objects:
-                act += list(o.parameters())
-            act += list(m.residuals.parameters())
+            owners.add("residuals")
         if stage == "fusion" and self.switches.pose_correction:
-            act.append(m.pose.delta)
-        return {id(q) for q in act}
+            owners.add("pose")
+        return [i for i, o in enumerate(self.group_owner) if o in owners]
 
-    # ------------------------------------------------------------------ one step
+    # ------------------------------------------------------------------ one sample
     def _render(self, gs: GaussianSet, viewmats: torch.Tensor, absgrad: bool = True):
         C = viewmats.shape[0]
         bg = torch.sigmoid(self.model.sky_color).expand(C, 3)
@@ -189,20 +213,18 @@ class Trainer:
         res = [r for r in res if r is not None]
         return torch.cat([r.reshape(-1) for r in res]).abs().mean() if res else None
 
-    def train_step(self, step: int) -> dict:
-        """Run global iteration ``step``; returns its log record."""
-        p, d, m = self.preset, self.data, self.model
-        stage, s_in, n_stage = self.stage_of(step)
-        rng = np.random.default_rng([p.seed, step])
-        frame = d.train_frames[int(rng.integers(len(d.train_frames)))]
-        decay = 0.1 ** (step / max(self.total, 1))
-        for g, lr, is_m in zip(self.opt.param_groups, self.base_lr, self.is_means):
-            g["lr"] = lr * decay if is_m else lr
-        self.opt.zero_grad(set_to_none=True)
-        self._events, self._render_wall = [], 0.0
-        t0 = time.perf_counter()
+    def frame_of(self, index: int) -> int:
+        """The training frame of sample ``index`` (drawn with a generator keyed by (seed, index))."""
+        rng = np.random.default_rng([self.preset.seed, index])
+        return self.data.train_frames[int(rng.integers(len(self.data.train_frames)))]
+
+    def sample_loss(self, model: AutoSplatModel, step: int, index: int) -> dict[str, torch.Tensor]:
+        """The loss terms of sample ``index`` (one training frame, every selected camera) at global
+        iteration ``step``; its renders are kept for :meth:`after_step`'s statistics."""
+        p, d, m = self.preset, self.data, model
+        stage = self.stage_of(step)[0]
+        frame = self.frame_of(index)
         target, vm = d.images[frame], d.viewmats[frame]
-        renders = []
         terms: dict[str, torch.Tensor] = {}
         loss = torch.zeros(())
         if stage == "bg_phase1":
@@ -217,7 +239,7 @@ class Trainer:
                 l, l1, _ = masked_photometric(col, target, mask, p.lambda_dssim)
                 loss = loss + l
                 terms[f"l1_{name}"] = l1
-                renders.append((meta, layout))
+                self._renders.append((meta, layout))
         else:
             if stage == "bg_phase2":
                 gs, layout = m.scene_at(frame, background=True, objects=False)
@@ -230,7 +252,7 @@ class Trainer:
             l, l1, dssim = masked_photometric(col, target, mask, p.lambda_dssim)
             loss = loss + l
             terms["l1"], terms["dssim"] = l1, dssim
-            renders.append((meta, layout))
+            self._renders.append((meta, layout))
         if self.switches.flatness and stage != "foreground":
             c = self._flatness()
             terms["flatness"] = c
@@ -241,20 +263,15 @@ class Trainer:
                 terms["sparsity"] = sp
                 loss = loss + p.sparsity_weight * sp
         terms["loss"] = loss
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"step {step} ({stage}): non-finite loss; terms "
-                                     f"{ {k: float(v) for k, v in terms.items()} }")
-        t_bwd = time.perf_counter()
-        loss.backward()
-        t_bwd = time.perf_counter() - t_bwd
-        active = self._active_params(stage)
-        for g in self.opt.param_groups:
-            for q in g["params"]:
-                if id(q) not in active:
-                    q.grad = None
-        self.opt.step()
-        trained = self._trained_sets(stage)
-        for meta, layout in renders:
+        return terms
+
+    # ------------------------------------------------------------------ after the optimiser step
+    def _accumulate(self, trained: list[str], world: int) -> None:
+        """Add this step's screen-space gradients to the statistics of the ``trained`` sets; under
+        torchrun the step's contributions are summed over the ranks first."""
+        d = self.data
+        target = self.stats if world == 1 else {k: GradStats(len(self.stats[k].grad)) for k in trained}
+        for meta, layout in self._renders:
             ag = getattr(meta["means2d"], "absgrad", None)
             if ag is None:
                 continue
@@ -262,12 +279,30 @@ class Trainer:
             for key, rows in layout:
                 n = rows.shape[0]
                 if key in trained:
-                    self.stats[key].add(ag[:, start:start + n], meta["radii"][:, start:start + n], d.width,
-                                        d.height, rows)
+                    target[key].add(ag[:, start:start + n], meta["radii"][:, start:start + n], d.width,
+                                    d.height, rows)
                 start += n
-        record = {"step": step + 1, "stage": stage, "frame": frame,
-                  **{k: float(v.detach()) for k, v in terms.items()}}
-        if (self.switches.densify and s_in + 1 >= p.densify_start and (s_in + 1) % p.densify_every == 0
+        if world > 1:
+            flat = torch.cat([t for k in trained for t in (target[k].grad, target[k].count)])
+            dist.all_reduce(flat)
+            off = 0
+            for k in trained:
+                n = len(target[k].grad)
+                self.stats[k].grad += flat[off:off + n]
+                self.stats[k].count += flat[off + n:off + 2 * n]
+                off += 2 * n
+
+    def after_step(self, step: int, applied: bool) -> dict:
+        """Densification statistics and, on schedule, densification and pruning of the sets the
+        stage trains (nothing on a skipped step); returns the step's diagnostics for the log."""
+        p, m = self.preset, self.model
+        stage, s_in, n_stage = self.stage_of(step)
+        trained = self._trained_sets(stage)
+        B = self.batch_size
+        record: dict = {"stage": stage, "frames": [self.frame_of(i) for i in range(step * B, (step + 1) * B)]}
+        if applied:
+            self._accumulate(trained, distributed_info()[1])
+        if (applied and self.switches.densify and s_in + 1 >= p.densify_start and (s_in + 1) % p.densify_every == 0
                 and s_in + 1 <= 0.8 * n_stage):
             gen = sample_generator(p.seed, step)
             for key in trained:
@@ -282,78 +317,66 @@ class Trainer:
                     max_gaussians=p.max_gaussians if key == "background" else max(4 * p.object_points, len(g)),
                     growable=growable, generator=gen)
                 record[f"densify_{key}"] = res["total"]
-        wall = time.perf_counter() - t0
-        self.stage_seconds[stage] += wall
-        dev = sum((ev.profile.end - ev.profile.start) for _, ev in self._events) * 1e-9
-        record.update(time_s=wall, renderer_device_s=dev, render_wall_s=self._render_wall, backward_s=t_bwd,
-                      gaussians=sum(m.sizes().values()))
+        record.update(renderer_device_s=sum((ev.profile.end - ev.profile.start) for _, ev in self._events) * 1e-9,
+                      render_wall_s=self._render_wall, gaussians=sum(m.sizes().values()))
+        self._renders, self._events, self._render_wall = [], [], 0.0
         return record
 
     # ------------------------------------------------------------------ checkpoints
+    def _identity(self) -> dict:
+        return {"switches": self.switches.to_dict(), "cameras": self.data.cameras,
+                "train_frames": self.data.train_frames, "tracks": [t.track_id for t in self.tracks],
+                "batch_size": self.batch_size}
+
     def state(self) -> dict:
-        """The shared loop's checkpoint layout (model, optimizer, scheduler, step, rng) with
-        AutoSplat's own state under ``extra`` (set sizes, densification statistics, the run's
-        switches, cameras, training frames and tracks)."""
-        return {"model": self.model.state_dict(), "optimizer": self.opt.state_dict(), "scheduler": None,
-                "step": self.step, "rng": capture_rng(),
-                "extra": {"sizes": self.model.sizes(), "stats": {k: s.state() for k, s in self.stats.items()},
-                          "switches": self.switches.to_dict(), "cameras": self.data.cameras,
-                          "train_frames": self.data.train_frames, "tracks": [t.track_id for t in self.tracks],
-                          "stage_seconds": dict(self.stage_seconds)}}
+        """AutoSplat's checkpoint ``extra``: set sizes, densification statistics, seconds per
+        stage, and the run's identity (switches, cameras, training frames, tracks, batch size)."""
+        return {"sizes": self.model.sizes(), "stats": {k: s.state() for k, s in self.stats.items()},
+                **self._identity(), "stage_seconds": dict(self.stage_seconds)}
 
-    def save(self) -> Path:
-        return save_checkpoint(self.out / "checkpoint.pt", self.state(), FAMILY, self.preset)
-
-    def load(self, path: str | Path) -> None:
-        """Restore a checkpoint of the same data, preset and switches."""
-        ck = load_checkpoint(path, FAMILY, self.preset)
-        ex = checkpoint_extra(ck)
-        for key, mine in (("switches", self.switches.to_dict()), ("cameras", self.data.cameras),
-                          ("train_frames", self.data.train_frames), ("tracks", [t.track_id for t in self.tracks])):
-            if ex.get(key) != mine:
-                raise ValueError(f"checkpoint: {str(path)!r} was made with {key} {ex.get(key)!r}, this run has "
+    def load_state(self, extra: dict, path: Path) -> None:
+        """Check the checkpoint is this run's, give every set its recorded size (in place: the
+        optimiser's groups keep their parameters) and restore the statistics."""
+        ex = checkpoint_extra(extra)
+        if not isinstance(ex.get("sizes"), dict) or not isinstance(ex.get("stats"), dict):
+            raise ValueError(f"checkpoint: {str(path)!r} holds no AutoSplat set sizes and statistics; it cannot be "
+                             "resumed (train again without --resume)")
+        saved = {**ex, "batch_size": ex.get("batch_size", 1)}   # checkpoints before issue 19: one frame per step
+        for key, mine in self._identity().items():
+            if saved.get(key) != mine:
+                raise ValueError(f"checkpoint: {str(path)!r} was made with {key} {saved.get(key)!r}, this run has "
                                  f"{mine!r}; resume with the same arguments")
         self.model.resize_(ex["sizes"])
-        self.model.load_state_dict(ck["model"])
-        self._build_optimizer()
-        self.opt.load_state_dict(ck["optimizer"])
+        self.stats = {k: GradStats(0) for k in self.model.sizes()}
         for k, st in ex["stats"].items():
             self.stats[k].load(st)
-        self.step = int(ck["step"])
         self.stage_seconds.update(ex.get("stage_seconds", {}))
-        restore_rng(ck["rng"])
 
-    # ------------------------------------------------------------------ the loop
+    # ------------------------------------------------------------------ the run
     def fit(self, resume: bool = False, stop_at: int | None = None, on_step=None) -> None:
-        """Train to the end of the schedule (or to ``stop_at`` steps), checkpointing as it goes;
-        ``on_step(step, record)`` (optional, e.g. the ``--view`` viewer) is called after each step."""
-        from tqdm.auto import tqdm
-
-        self.out.mkdir(parents=True, exist_ok=True)
+        """Train to the end of the schedule (or to ``stop_at`` steps) on the shared loop,
+        checkpointing as it goes; ``on_step(step, record)`` (optional, e.g. the ``--view`` viewer)
+        is called after each step."""
         if resume:
-            self.load(self.out / "checkpoint.pt")
+            self._build_optimizer()   # over the empty sets; load_state resizes them in place
         else:
             t0 = time.perf_counter()
             self.initialise()
             self.stage_seconds["init"] = time.perf_counter() - t0
-        log = JsonlLog(self.out / "log.jsonl", resume_step=self.step if resume else None)
         end = self.total if stop_at is None else min(stop_at, self.total)
-        bar = tqdm(total=self.total, initial=self.step, desc="autosplat", disable=not self.progress,
-                   dynamic_ncols=True)
-        while self.step < end:
-            rec = self.train_step(self.step)
-            self.step += 1
-            log.write(rec)
+
+        def stepped(step: int, rec: dict) -> None:
+            self.step = step
+            self.stage_seconds[rec["stage"]] += rec["time_s"]
             if on_step is not None:
-                on_step(self.step, rec)
-            bar.set_postfix_str(f"{rec['stage']} loss {rec['loss']:.4f} N {rec['gaussians']}")
-            bar.update(1)
-            if self.step % self.checkpoint_every == 0 or self.step == end:
-                self.save()
-        bar.close()
-        if self.step == 0:
-            self.save()
-        plot_losses(self.out / "log.jsonl", self.out / "loss.png", keys=None, title="AutoSplat training loss")
+                on_step(step, rec)
+
+        spec = TrainSpec(out_dir=self.out, steps=end, batch_size=self.batch_size,
+                         checkpoint_every=self.checkpoint_every, seed=self.preset.seed, resume=resume,
+                         progress=self.progress)
+        res = train(self.model, self.opt, spec, self.preset, FAMILY, self.sample_loss, scheduler=self.scheduler,
+                    on_step=stepped, hooks=self)
+        self.step = res["step"]
 
     # ------------------------------------------------------------------ evaluation
     @torch.no_grad()

@@ -4,7 +4,8 @@
     geometry    pixel grids, unprojection, projection, inverse warping, SE(3)/SO(3) helpers
     data        --data specs (synthetic | pandaset:PATH | nuscenes:PATH) -> DrivingSequence windows
     presets     the frozen-dataclass preset base, registry and checkpoint check
-    train       the training loop: seeds, threads, JSONL log, loss PNG, checkpoints, resume, DDP
+    train       the training loop of every family: seeds, threads, JSONL log, loss PNG, checkpoints,
+                resume, DDP; LoopHooks for staged families (parameter-group stages, densification)
     runfolder   a run's folder: one run at a time (lock), outputs staged and published as a group
     report      metrics.json: the one schema every family's evaluation writes
     cli         arguments every ``clsplat train|eval <family>`` command shares (models/README.md)

@@ -11,6 +11,11 @@ That makes two things exact:
   takes every world-th sample of the batch, gradients are summed with one all-reduce, and the
   update equals one process accumulating the same B samples.
 
+A family whose training is more than "one optimiser over fixed parameters" says so through a
+:class:`LoopHooks` (AutoSplat: stages that train different parameter groups, densification that
+replaces parameters and their Adam moments after the optimiser step, set sizes and statistics in
+the checkpoint); DrivingForward and PGT pass none.
+
 Data parallelism uses ``torch.distributed`` collectives directly rather than the
 ``DistributedDataParallel`` wrapper: DDP only synchronises gradients of computations that go
 through the wrapper's ``forward``, and the models here call several methods per sample
@@ -37,7 +42,7 @@ import time
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable, Collection, Iterator
 
 import numpy as np
 import torch
@@ -47,7 +52,7 @@ from clsplat.io.atomic import atomic_write
 
 from .presets import Preset, check_preset_matches
 
-__all__ = ["TrainSpec", "train", "seed_everything", "set_threads", "sample_generator", "capture_rng",
+__all__ = ["TrainSpec", "LoopHooks", "train", "seed_everything", "set_threads", "sample_generator", "capture_rng",
            "restore_rng", "save_checkpoint", "load_checkpoint", "JsonlLog", "plot_losses", "atomic_write",
            "distributed_info", "MAX_CONSECUTIVE_SKIPS", "CHECKPOINT_FORMAT"]
 
@@ -211,17 +216,19 @@ def read_log(path: str | Path) -> list[dict]:
 
 
 def plot_losses(log_jsonl: str | Path, png: str | Path, keys: list[str] | None = None,
-                title: str = "training loss") -> Path | None:
-    """Plot loss terms against step (log scale) from a JSONL log; None if the log is empty."""
+                title: str = "training loss", exclude: tuple[str, ...] | set[str] = ()) -> Path | None:
+    """Plot loss terms against step (log scale) from a JSONL log; None if the log is empty.
+    Without ``keys``: every numeric field of any record but the loop's bookkeeping and ``exclude``."""
     recs = read_log(log_jsonl)
     if not recs:
         return None
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    skip = {"step", "time_s", "lr", "skipped", "n_samples", "grad_norm"}
-    keys = keys or [k for k in recs[0] if k not in skip and not k.startswith("diag_")
-                    and isinstance(recs[0][k], (int, float))]
+    skip = {"step", "time_s", "lr", "skipped", "n_samples", "grad_norm", "backward_s", *exclude}
+    if not keys:  # every numeric term any record has (a staged family's terms change between stages)
+        keys = list(dict.fromkeys(k for r in recs for k, v in r.items() if k not in skip and not k.startswith("diag_")
+                                  and isinstance(v, (int, float)) and not isinstance(v, bool)))
     fig, ax = plt.subplots(figsize=(7, 4), dpi=110)
     for k in keys:
         pts = [(r["step"], r[k]) for r in recs if isinstance(r.get(k), (int, float)) and math.isfinite(r[k]) and r[k] > 0]
@@ -316,6 +323,40 @@ class TrainSpec:
             raise ValueError(f"grad_clip: expected a positive number or None, got {self.grad_clip!r}")
 
 
+class LoopHooks:
+    """What a family adds to :func:`train`; every method is optional (this base does nothing).
+
+    The order inside one step: ``trainable_groups`` -> the samples' forward and backward ->
+    gradients of the other groups dropped -> all-reduce -> optimiser and scheduler step (when the
+    step is finite) -> ``after_step`` -> the log record -> the checkpoint (``state``).
+    """
+
+    def trainable_groups(self, step: int) -> Collection[int] | None:
+        """Indices into ``optimizer.param_groups`` that ``step`` updates (a stage of a schedule of
+        parameter groups). The other groups' gradients are dropped before the all-reduce, so Adam
+        leaves those parameters and their moments exactly as they are. None: every group."""
+        return None
+
+    def after_step(self, step: int, applied: bool) -> dict:
+        """Runs on every rank after the optimiser step (``applied`` False when the step was skipped
+        as non-finite), e.g. densification, which may replace parameters in the model and in the
+        optimiser (:func:`clsplat.strategy.swap_parameter`; the loop re-reads the model's
+        parameters every step). Collectives are allowed: every rank calls it with the same
+        arguments. Returns fields for the step's log record (diagnostics: never plotted)."""
+        return {}
+
+    def state(self) -> dict:
+        """Extra checkpoint state (tensors and plain values), saved under ``extra`` with
+        ``extra_state`` at every checkpoint."""
+        return {}
+
+    def load_state(self, extra: dict, path: Path) -> None:
+        """Restore :meth:`state` from checkpoint ``path``'s ``extra`` on resume, *before* the model's
+        and optimiser's state are loaded (a family whose parameter shapes change resizes them here,
+        in place, so the optimiser's parameter groups still hold them). ValueError naming ``path``
+        when the checkpoint was made by another kind of run."""
+
+
 @contextmanager
 def _progress(enabled: bool, total: int, initial: int) -> Iterator:
     if not enabled:
@@ -333,7 +374,7 @@ def train(model: torch.nn.Module, optimizer: torch.optim.Optimizer, spec: TrainS
           family: str, sample_loss: Callable[[torch.nn.Module, int, int], dict[str, torch.Tensor]],
           scheduler=None, extra_state: dict | None = None,
           on_checkpoint: Callable[[int], None] | None = None,
-          on_step: Callable[[int, dict], None] | None = None) -> dict:
+          on_step: Callable[[int, dict], None] | None = None, hooks: LoopHooks | None = None) -> dict:
     """Train ``model`` for ``spec.steps`` steps (see the module docstring).
 
     Args:
@@ -343,12 +384,14 @@ def train(model: torch.nn.Module, optimizer: torch.optim.Optimizer, spec: TrainS
         preset: the family's preset (printed, saved in the checkpoint, checked on resume).
         family: model family name (saved in the checkpoint, checked on resume).
         sample_loss: ``(model, step, sample_index) -> {"loss": scalar, term: scalar, ...}`` for one
-            sample; every rank must return the same keys.
+            sample; a term a sample lacks counts as 0 in the batch mean (under torchrun the keys
+            are gathered from every rank).
         scheduler: optional LR scheduler, stepped after every applied optimiser step.
         extra_state: a dict of tensors/plain values the family wants checkpointed (updated in
             place on resume).
         on_checkpoint: called with the step after each checkpoint is written (rank 0).
         on_step: called with (step, log record) after each step (rank 0; e.g. ``--view``).
+        hooks: the family's :class:`LoopHooks` (stages, densification, extra checkpoint state).
     Returns:
         {"step": final step, "skipped": skipped steps, "last": last logged record,
          "resumed_from": step or None}.
@@ -362,6 +405,8 @@ def train(model: torch.nn.Module, optimizer: torch.optim.Optimizer, spec: TrainS
     start, resumed_from = 0, None
     if spec.resume:
         ck = load_checkpoint(ckpt_path, family, preset)
+        if hooks is not None:
+            hooks.load_state(ck.get("extra", {}), ckpt_path)
         try:
             model.load_state_dict(ck["model"])
             optimizer.load_state_dict(ck["optimizer"])
@@ -389,22 +434,25 @@ def train(model: torch.nn.Module, optimizer: torch.optim.Optimizer, spec: TrainS
             save_checkpoint(ckpt_path, {
                 "model": model.state_dict(), "optimizer": optimizer.state_dict(),
                 "scheduler": scheduler.state_dict() if scheduler is not None else None,
-                "step": step, "rng": capture_rng(), "extra": extra_state or {}}, family, preset)
+                "step": step, "rng": capture_rng(),
+                "extra": {**(extra_state or {}), **(hooks.state() if hooks is not None else {})}}, family, preset)
             if on_checkpoint is not None:
                 on_checkpoint(step)
 
-    params = _params(model)
     B = spec.batch_size
     skipped = consecutive = 0
     last: dict = {}
     bad_terms: set[str] = set()
+    diagnostics: set[str] = set()  # the hooks' log fields, left out of the loss plot
     with _progress(spec.progress and rank == 0, spec.steps, start) as bar:
         for step in range(start, spec.steps):
             t0 = time.perf_counter()
+            params = _params(model)  # after_step may have replaced some (densification)
             optimizer.zero_grad(set_to_none=True)
             indices = list(range(step * B, (step + 1) * B))[rank::world]
             sums: dict[str, float] = {}
             local_ok = True
+            backward_s = 0.0
             for idx in indices:
                 terms = sample_loss(model, step, idx)
                 if "loss" not in terms:
@@ -414,11 +462,23 @@ def train(model: torch.nn.Module, optimizer: torch.optim.Optimizer, spec: TrainS
                     local_ok = False
                     bad_terms.update(k for k, v in terms.items() if not torch.isfinite(torch.as_tensor(v)).all())
                 else:
+                    tb = time.perf_counter()
                     (loss / B).backward()
+                    backward_s += time.perf_counter() - tb
                 for k, v in terms.items():
                     sums[k] = sums.get(k, 0.0) + float(torch.as_tensor(v).detach())
+            groups = hooks.trainable_groups(step) if hooks is not None else None
+            if groups is not None:  # a stage: the other groups get no update (their gradients are dropped)
+                frozen = set(range(len(optimizer.param_groups))) - set(groups)
+                for i in frozen:
+                    for q in optimizer.param_groups[i]["params"]:
+                        q.grad = None
             keys = sorted(sums)
-            stats = torch.tensor([sums[k] for k in keys] + [float(not local_ok)], dtype=torch.float64)
+            if world > 1:  # the union of every rank's terms (a term one rank's samples lack is 0 there)
+                gathered: list = [None] * world
+                dist.all_gather_object(gathered, keys)
+                keys = sorted(set().union(*gathered))
+            stats = torch.tensor([sums.get(k, 0.0) for k in keys] + [float(not local_ok)], dtype=torch.float64)
             if world > 1:
                 stats = _allreduce_gradients(params, stats)
             grads_ok = all(torch.isfinite(p.grad).all() for p in params if p.grad is not None)
@@ -438,8 +498,11 @@ def train(model: torch.nn.Module, optimizer: torch.optim.Optimizer, spec: TrainS
                     raise RuntimeError(f"training diverged: {consecutive} consecutive steps up to step {step + 1} "
                                        f"had non-finite values in {sorted(bad_terms)}; lower the learning rate "
                                        f"or resume from the last checkpoint ({ckpt_path})")
+            fields = hooks.after_step(step, ok) if hooks is not None else {}
+            diagnostics.update(fields)
             rec = {"step": step + 1, **{k: float(v) / B for k, v in zip(keys, stats[:-1].tolist())},
-                   "lr": optimizer.param_groups[0]["lr"], "time_s": time.perf_counter() - t0}
+                   "lr": optimizer.param_groups[0]["lr"], "time_s": time.perf_counter() - t0,
+                   "backward_s": backward_s, **fields}
             if ok:
                 rec["grad_norm"] = grad_norm
             else:
@@ -455,5 +518,6 @@ def train(model: torch.nn.Module, optimizer: torch.optim.Optimizer, spec: TrainS
             if (step + 1) % spec.checkpoint_every == 0 or step + 1 == spec.steps:
                 checkpoint(step + 1)
     if rank == 0:
-        plot_losses(out / "log.jsonl", out / "loss.png", title=f"{family} ({preset.name}) training loss")  # type: ignore[attr-defined]
+        plot_losses(out / "log.jsonl", out / "loss.png", title=f"{family} ({preset.name}) training loss",  # type: ignore[attr-defined]
+                    exclude=diagnostics)
     return {"step": spec.steps, "skipped": skipped, "last": last, "resumed_from": resumed_from}
