@@ -249,6 +249,7 @@ def tile_ranges(offsets: DeviceArray, n_cameras: int, tiles_y: int, tiles_x: int
 
 
 CHANNEL_CHUNK = 32  # channels per compositing launch at most (gsplat's channel_chunk default)
+EXTENT_WORD = 32  # samples per extent-bit word of the tuned kernels (CLS_WORD, kernels/common.h)
 
 
 def composite_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: int,
@@ -281,7 +282,10 @@ def composite_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: i
         staged_f = chunk if channels <= chunk else 1  # features for f . v_out (not WIDE)
         return (8 + staged_f + group // waves * pg + (pg if waves > 1 else 0)) * real + 8
 
-    budget = rt.local_mem - 64  # the kernels' scalars
+    # the kernels' scalars; the tuned kernels pad the extent arrays to words of samples and,
+    # backward, each item's partials to whole vectors (at most 7 values)
+    pad = 4 * (EXTENT_WORD - 1) * real + (7 * real * group if backward else 0)
+    budget = rt.local_mem - 64 - (pad if composite_tuned(rt, cfg) else 0)
     chunk, waves = min(channels, CHANNEL_CHUNK), 1
     # Fewer channels per launch first (down to 8), then partials handed over in waves.
     while per_sample(chunk, waves) > budget:
@@ -300,10 +304,20 @@ def composite_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: i
     return pix, batch, chunk, waves
 
 
+def composite_tuned(rt: Runtime, cfg: RenderConfig) -> bool:
+    """Whether compositing runs the tuned kernels (``RenderConfig.composite_impl``; None: on
+    CPUs) rather than the baseline ones (``kernels/composite_base.cl``, ``composite_bwd_base.cl``)."""
+    return (cfg.composite_impl or ("tuned" if rt.is_cpu else "baseline")) == "tuned"
+
+
 def _composite_kernel(rt: Runtime, cfg: RenderConfig, stage: str, defines: dict, group: int,
                       tile_size: int) -> cl.Kernel:
-    k = rt.kernel(stage, stage if stage == "composite_bwd" else "composite_fwd", defines,
-                  cfg.fast_math)
+    name = stage if stage == "composite_bwd" else "composite_fwd"
+    if composite_tuned(rt, cfg):
+        defines = defines | {"CLS_INLINE_MATH": True}
+    else:
+        stage += "_base"
+    k = rt.kernel(stage, name, defines, cfg.fast_math)
     rt.check_group(k, stage, group, f" (tile_size {tile_size}, {defines['PIX']} pixel(s) per "
                    "item; use a smaller tile_size or a larger RenderConfig.pix)")
     return k
