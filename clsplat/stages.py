@@ -314,7 +314,7 @@ def _composite_kernel(rt: Runtime, cfg: RenderConfig, stage: str, defines: dict,
                       tile_size: int) -> cl.Kernel:
     name = stage if stage == "composite_bwd" else "composite_fwd"
     if composite_tuned(rt, cfg):
-        defines = defines | {"CLS_INLINE_MATH": True}
+        defines = defines | {"CLS_POCL_CPU": rt.is_pocl_cpu}
     else:
         stage += "_base"
     k = rt.kernel(stage, name, defines, cfg.fast_math)

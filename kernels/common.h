@@ -111,12 +111,26 @@
  * the CPU name LLVM reports (znver3 under LLVM 14 on Zen 4). LLVM does not inline a callee
  * whose target features are not a subset of the caller's, so every builtin in a hot loop is
  * an out-of-line call, and the call spills every vector register (all are caller-saved).
- * With CLS_INLINE_MATH the compositing kernels use the inline forms below instead; they give
+ * With CLS_INLINE_MATH (= CLS_POCL_CPU) the tuned compositing kernels use the inline forms
+ * below instead; they give
  * the same values: selects for fmin/fmax/fabs (equal for every non-NaN input), lane
  * reductions for any/all, and for float exp the algorithm of the library's exp (SLEEF's
  * expf_u10: same constants, same operation order, fused where the library fuses). */
-#ifndef CLS_INLINE_MATH
-#define CLS_INLINE_MATH 0
+/* CLS_POCL_CPU: 1 (set by the host for the tuned compositing kernels) on PoCL's CPU device,
+ * whose kernel compiler is the host's clang: there the kernels use the inline maths below
+ * and clang builtins (count of trailing/leading zeros, prefetch) that other implementations
+ * need not know (Oclgrind rejects llvm.cttz, and llvm.fabs on vectors, which clang makes of
+ * the inline fabs); elsewhere the OpenCL builtins, which their compilers inline. */
+#ifndef CLS_POCL_CPU
+#define CLS_POCL_CPU 0
+#endif
+#define CLS_INLINE_MATH CLS_POCL_CPU
+#if CLS_POCL_CPU
+#define CLS_CTZ(m) __builtin_ctz(m)        /* m != 0 */
+#define CLS_TOP_BIT(m) (31 - __builtin_clz(m))
+#else
+#define CLS_CTZ(m) (31 - (int)clz((m) & (0u - (m))))
+#define CLS_TOP_BIT(m) (31 - (int)clz(m))
 #endif
 /* op over the lanes of a vector, pairwise (no builtin) */
 #define CLS_LANES2(m, op) ((m).s0 op (m).s1)
@@ -280,6 +294,21 @@ inline void stage_sample_soa(int i, uint cg, __global const REAL *means2d, __glo
         l_f[CCHUNK * i + ch] = ch0 + ch < CHANNELS ? feats[(size_t)cg * CHANNELS + ch0 + ch] : (REAL)0;
 }
 
+/* Prefetch (on PoCL's CPU device, CLS_POCL_CPU; elsewhere nothing) the compositing parameters
+ * of sample cg and nf of its features from channel ch0 on. A batch's samples are random Gaussians, each a cache miss per array; prefetched while the
+ * batch before is composited, their staging no longer waits on memory. */
+inline void prefetch_sample(uint cg, __global const REAL *means2d, __global const REAL *conics,
+                            __global const REAL *opac_cg, __global const REAL *extents,
+                            __global const REAL *feats, const int ch0, const int nf) {
+#if CLS_POCL_CPU
+    __builtin_prefetch(means2d + 2 * cg);
+    __builtin_prefetch(conics + 3 * cg);
+    __builtin_prefetch(opac_cg + cg);
+    __builtin_prefetch(extents + 2 * cg);
+    if (nf > 0) __builtin_prefetch(feats + (size_t)cg * CHANNELS + ch0);
+#endif
+}
+
 /* Bit j set: sample w0 + j may reach ALPHA_MIN somewhere in the row segment [px_first,
  * px_last] x pyc, i.e. !outside_extent (for non-NaN inputs the same comparisons). */
 inline uint extent_bits(int w0, __local const REAL *l_x, __local const REAL *l_y,
@@ -289,11 +318,8 @@ inline uint extent_bits(int w0, __local const REAL *l_x, __local const REAL *l_y
     for (int j = 0; j < CLS_WORD / CLS_MV; ++j) {
         const int o = (w0 + j * CLS_MV) / CLS_MV;
         const MVREAL x = ((__local const MVREAL *)l_x)[o], y = ((__local const MVREAL *)l_y)[o];
-        const MVREAL ady = y - pyc;
-        const MVREAL dy = ady > 0 ? ady : 0 - ady;
-        const MVREAL a = px_first - x, b = x - px_last;
-        const MVREAL ab = b > a ? b : a;
-        const MVREAL dx = ab > 0 ? ab : (MVREAL)0;
+        const MVREAL dy = CLS_FABS(y - pyc);
+        const MVREAL dx = CLS_FMAX((MVREAL)0, CLS_FMAX(px_first - x, x - px_last));
         const MVMASK vis = dy <= ((__local const MVREAL *)l_by)[o] && dx <= ((__local const MVREAL *)l_bx)[o];
 #if CLS_MV == 8
         const MVMASK bit = vis & (MVMASK)(1, 2, 4, 8, 16, 32, 64, 128);

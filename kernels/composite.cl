@@ -13,18 +13,20 @@
  *
  * What differs from composite_base.cl, with the same arithmetic per sample and so the same
  * outputs bit for bit:
- *  - the maths is inline (CLS_INLINE_MATH, see common.h): on PoCL's CPU device the library
+ *  - on PoCL's CPU device (CLS_POCL_CPU) the maths is inline (see common.h): there the library
  *    builtins are out-of-line calls that spill every vector register;
  *  - a batch is staged as structure-of-arrays, and an item tests the extents of CLS_WORD
  *    samples at once (vector compares into a bit mask), then visits only the samples its
- *    row segment can see, in order, instead of a hard-to-predict branch per sample.
+ *    row segment can see, in order, instead of a hard-to-predict branch per sample;
+ *  - on PoCL's CPU device (CLS_POCL_CPU) the next batch's samples are prefetched while this
+ *    one is composited.
  *
  * Channels are composited CCHUNK at a time (gsplat's channel_chunk): one launch per chunk,
  * from channel ch0 on, so private and local memory stay bounded for any number of channels.
  * Every launch makes the same decisions; the first (ch0 = 0) writes T and the last index.
  *
  * Build parameters: REAL_DOUBLE, TILE, PIX, BATCH, CHANNELS,
- * CCHUNK, SAVE_LAST, ALPHA_MIN, ALPHA_MAX, T_MIN, CLS_INLINE_MATH.
+ * CCHUNK, SAVE_LAST, ALPHA_MIN, ALPHA_MAX, T_MIN, CLS_POCL_CPU.
  */
 
 #define GROUP (TILE * TILE / PIX)
@@ -97,13 +99,17 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
             }
         }
         barrier(CLK_LOCAL_MEM_FENCE);
+#if CLS_POCL_CPU
+        for (int i = b0 + BATCH + lid; i < min(b0 + 2 * BATCH, end); i += GROUP)
+            prefetch_sample(key_id(keys[i]), means2d, conics, opac_cg, extents, feats, ch0, CCHUNK);
+#endif
 
         for (int w0 = 0; w0 < nb; w0 += CLS_WORD) {
             if (CLS_VALL(done)) break;
             uint seen = extent_bits(w0, l_x, l_y, l_bx, l_by, px_first, px_last, pyc);
             while (seen != 0) {
                 if (CLS_VALL(done)) break;
-                const int k = w0 + __builtin_ctz(seen);
+                const int k = w0 + CLS_CTZ(seen);
                 seen &= seen - 1;
                 const VREAL dx = l_x[k] - pxc;
                 const REAL dy = l_y[k] - pyc;

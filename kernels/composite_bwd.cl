@@ -37,17 +37,19 @@
  *
  * What differs from composite_bwd_base.cl, with the same arithmetic and the same order of
  * every sum, so the same slots bit for bit:
- *  - inline maths (CLS_INLINE_MATH, see common.h), as in composite.cl;
+ *  - on PoCL's CPU device inline maths (CLS_POCL_CPU, see common.h), as in composite.cl;
  *  - the extent test a word of samples at a time (common.h: extent_bits), and an item visits
  *    only the samples its row segment can see and that lie before its last contributor;
  *  - an item's partials of a batch are one contiguous block [sample][value], zeroed once per
- *    batch, so the group's sum over items reads consecutive values for consecutive items.
+ *    batch, so the group's sum over items reads consecutive values for consecutive items;
+ *  - on PoCL's CPU device (CLS_POCL_CPU) the next batch's samples are prefetched (replay
+ *    order only: with BWD_DIVIDE the batches run back to front and nothing is prefetched).
  *
  * Slot layout (SLOT_G values): [geometry: v_xy(2) v_conic(3) v_opacity(1) (|v_xy|(2))]
  * [colour: v_feat(CHANNELS)], the colour block starting at column SLOT_COLOR0.
  *
  * Build parameters: REAL_DOUBLE, TILE, PIX, BATCH, CHANNELS, CCHUNK, GEOM_GRAD, COLOR_GRAD,
- * ABSGRAD, BWD_DIVIDE, SLOT_G, SLOT_COLOR0, WAVES, ALPHA_MIN, ALPHA_MAX, CLS_INLINE_MATH.
+ * ABSGRAD, BWD_DIVIDE, SLOT_G, SLOT_COLOR0, WAVES, ALPHA_MIN, ALPHA_MAX, CLS_POCL_CPU.
  */
 
 #define GROUP (TILE * TILE / PIX)
@@ -184,6 +186,11 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
         }
         barrier(CLK_LOCAL_MEM_FENCE);
 
+#if CLS_POCL_CPU && !BWD_DIVIDE
+        for (int i = start + b0 + BATCH + lid; i < start + min(b0 + 2 * BATCH, n_used); i += GROUP)
+            prefetch_sample(key_id(keys[i]), means2d, conics, opac_cg, extents, feats, 0,
+                            (GEOM_GRAD && !WIDE) ? CCHUNK : 0);
+#endif
 #if WAVES == 1
         __local REAL *mine = part + lid * PB;
 #else
@@ -203,9 +210,9 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
             if (lim - w0 < CLS_WORD) seen &= (1u << (lim - w0)) - 1;
             while (seen != 0) {
 #if BWD_DIVIDE
-                const int bit = 31 - __builtin_clz(seen);
+                const int bit = CLS_TOP_BIT(seen);
 #else
-                const int bit = __builtin_ctz(seen);
+                const int bit = CLS_CTZ(seen);
 #endif
                 seen &= ~(1u << bit);
                 const int k = w0 + bit;
