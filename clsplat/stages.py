@@ -282,13 +282,20 @@ def composite_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: i
         staged_f = chunk if channels <= chunk else 1  # features for f . v_out (not WIDE)
         return (8 + staged_f + group // waves * pg + (pg if waves > 1 else 0)) * real + 8
 
-    # the kernels' scalars; the tuned kernels pad the extent arrays to words of samples and,
-    # backward, each item's partials to whole vectors (at most 7 values)
-    pad = 4 * (EXTENT_WORD - 1) * real + (7 * real * group if backward else 0)
-    budget = rt.local_mem - 64 - (pad if composite_tuned(rt, cfg) else 0)
+    tuned = composite_tuned(rt, cfg)
+
+    def budget(waves: int) -> int:
+        """Local bytes for the staged samples: all but the kernels' scalars and, in the tuned
+        kernels, the padding of the 4 extent arrays to words of samples and, backward, of each
+        partials block (of the items of a wave, and the wave sum) to whole vectors."""
+        if not tuned:
+            return rt.local_mem - 64
+        vec_pad = (32 // real - 1) * real * (group // waves + (waves > 1)) if backward else 0
+        return rt.local_mem - 64 - 4 * (EXTENT_WORD - 1) * real - vec_pad
+
     chunk, waves = min(channels, CHANNEL_CHUNK), 1
     # Fewer channels per launch first (down to 8), then partials handed over in waves.
-    while per_sample(chunk, waves) > budget:
+    while per_sample(chunk, waves) > budget(waves):
         if chunk > 8:
             chunk = -(-chunk // 2)
         elif waves < group:
@@ -300,7 +307,7 @@ def composite_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: i
                              f"item need {per_sample(chunk, waves)} bytes of local memory per "
                              f"sample, over the {rt.local_mem} available; use a smaller tile_size")
     cap = (32 if waves == 1 else 4) if backward else group  # waves keep partials in registers
-    batch = max(1, min(cap, budget // per_sample(chunk, waves)))
+    batch = max(1, min(cap, budget(waves) // per_sample(chunk, waves)))
     return pix, batch, chunk, waves
 
 

@@ -125,6 +125,9 @@
 #define CLS_POCL_CPU 0
 #endif
 #define CLS_INLINE_MATH CLS_POCL_CPU
+#ifndef CLS_PREFETCH /* (a -D for side-by-side timings) */
+#define CLS_PREFETCH CLS_POCL_CPU
+#endif
 #if CLS_POCL_CPU
 #define CLS_CTZ(m) __builtin_ctz(m)        /* m != 0 */
 #define CLS_TOP_BIT(m) (31 - __builtin_clz(m))
@@ -300,7 +303,7 @@ inline void stage_sample_soa(int i, uint cg, __global const REAL *means2d, __glo
 inline void prefetch_sample(uint cg, __global const REAL *means2d, __global const REAL *conics,
                             __global const REAL *opac_cg, __global const REAL *extents,
                             __global const REAL *feats, const int ch0, const int nf) {
-#if CLS_POCL_CPU
+#if CLS_PREFETCH
     __builtin_prefetch(means2d + 2 * cg);
     __builtin_prefetch(conics + 3 * cg);
     __builtin_prefetch(opac_cg + cg);
@@ -315,6 +318,7 @@ inline uint extent_bits(int w0, __local const REAL *l_x, __local const REAL *l_y
                         __local const REAL *l_bx, __local const REAL *l_by,
                         REAL px_first, REAL px_last, REAL pyc) {
     uint m = 0;
+#if CLS_POCL_CPU
     for (int j = 0; j < CLS_WORD / CLS_MV; ++j) {
         const int o = (w0 + j * CLS_MV) / CLS_MV;
         const MVREAL x = ((__local const MVREAL *)l_x)[o], y = ((__local const MVREAL *)l_y)[o];
@@ -328,6 +332,15 @@ inline uint extent_bits(int w0, __local const REAL *l_x, __local const REAL *l_y
 #endif
         m |= (uint)CAT(CLS_LANES, CLS_MV)(bit, |) << (j * CLS_MV);
     }
+#else
+    /* Elsewhere one sample at a time: Oclgrind 21.10's uninitialised-value checker crashes on
+     * the vector form, and a GPU runs one pixel per item anyway. */
+    for (int j = 0; j < CLS_WORD; ++j) {
+        const REAL dy = fabs(l_y[w0 + j] - pyc);
+        const REAL dx = fmax((REAL)0, fmax(px_first - l_x[w0 + j], l_x[w0 + j] - px_last));
+        m |= (uint)(dy <= l_by[w0 + j] && dx <= l_bx[w0 + j]) << j;
+    }
+#endif
     return m;
 }
 #endif

@@ -99,7 +99,7 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
             }
         }
         barrier(CLK_LOCAL_MEM_FENCE);
-#if CLS_POCL_CPU
+#if CLS_PREFETCH
         for (int i = b0 + BATCH + lid; i < min(b0 + 2 * BATCH, end); i += GROUP)
             prefetch_sample(key_id(keys[i]), means2d, conics, opac_cg, extents, feats, ch0, CCHUNK);
 #endif

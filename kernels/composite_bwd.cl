@@ -186,7 +186,7 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
         }
         barrier(CLK_LOCAL_MEM_FENCE);
 
-#if CLS_POCL_CPU && !BWD_DIVIDE
+#if CLS_PREFETCH && !BWD_DIVIDE
         for (int i = start + b0 + BATCH + lid; i < start + min(b0 + 2 * BATCH, n_used); i += GROUP)
             prefetch_sample(key_id(keys[i]), means2d, conics, opac_cg, extents, feats, 0,
                             (GEOM_GRAD && !WIDE) ? CCHUNK : 0);
