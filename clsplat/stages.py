@@ -15,6 +15,7 @@ import pyopencl as cl
 import pyopencl.array as cl_array
 import torch
 
+from . import constants as K
 from .config import RenderConfig
 from .runtime import DeviceArray, Runtime
 
@@ -249,7 +250,6 @@ def tile_ranges(offsets: DeviceArray, n_cameras: int, tiles_y: int, tiles_x: int
 
 
 CHANNEL_CHUNK = 32  # channels per compositing launch at most (gsplat's channel_chunk default)
-EXTENT_WORD = 32  # samples per extent-bit word of the tuned kernels (CLS_WORD, kernels/common.h)
 
 
 def composite_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: int,
@@ -275,14 +275,16 @@ def composite_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: i
         raise ValueError(f"tile_size: {tile_size}x{tile_size} tiles need work-groups of {group} "
                          f"items with {pix} pixel(s) per item; the device allows {rt.max_group}")
 
+    tuned = composite_tuned(rt, cfg)
+    params = 9 if tuned else 8  # staged per sample besides features (the tuned: l_sm)
+
     def per_sample(chunk: int, waves: int) -> int:  # local bytes per staged sample (kernels)
         if not backward:
-            return (8 + chunk) * real
+            return (params + chunk) * real
         pg = geom_grads + chunk * color_grad
         staged_f = chunk if channels <= chunk else 1  # features for f . v_out (not WIDE)
-        return (8 + staged_f + group // waves * pg + (pg if waves > 1 else 0)) * real + 8
+        return (params + staged_f + group // waves * pg + (pg if waves > 1 else 0)) * real + 8
 
-    tuned = composite_tuned(rt, cfg)
 
     def budget(waves: int) -> int:
         """Local bytes for the staged samples: all but the kernels' scalars and, in the tuned
@@ -291,7 +293,7 @@ def composite_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: i
         if not tuned:
             return rt.local_mem - 64
         vec_pad = (32 // real - 1) * real * (group // waves + (waves > 1)) if backward else 0
-        return rt.local_mem - 64 - 4 * (EXTENT_WORD - 1) * real - vec_pad
+        return rt.local_mem - 64 - 4 * (K.EXTENT_WORD - 1) * real - vec_pad
 
     chunk, waves = min(channels, CHANNEL_CHUNK), 1
     # Fewer channels per launch first (down to 8), then partials handed over in waves.

@@ -278,18 +278,28 @@ inline REAL extent_bound(REAL ext) {
     return ext * (1 + m) + m; /* outside_extent's bound, same expression */
 }
 
+/* l_sm: a bound on sigma past which o exp(-sigma) < ALPHA_MIN for sure (ln(o / ALPHA_MIN)
+ * widened by 0.1% and 1e-3, far beyond the rounding of exp and of the product), so that an
+ * item skips the exp of a sample no pixel of its segment can see at ALPHA_MIN; the exact
+ * test on alpha still decides for the others. */
+#define CLS_SIGMA_MARGIN 1e-3
 inline void stage_sample_soa(int i, uint cg, __global const REAL *means2d, __global const REAL *conics,
                              __global const REAL *opac_cg, __global const REAL *extents,
                              __global const REAL *feats, __local REAL *l_x, __local REAL *l_y,
                              __local REAL *l_ca, __local REAL *l_cb, __local REAL *l_cc,
-                             __local REAL *l_op, __local REAL *l_bx, __local REAL *l_by,
-                             __local REAL *l_f, const int ch0, const int nf) {
+                             __local REAL *l_op, __local REAL *l_sm, __local REAL *l_bx,
+                             __local REAL *l_by, __local REAL *l_f, const int ch0, const int nf) {
     l_x[i] = means2d[2 * cg];
     l_y[i] = means2d[2 * cg + 1];
     l_ca[i] = conics[3 * cg];
     l_cb[i] = conics[3 * cg + 1];
     l_cc[i] = conics[3 * cg + 2];
-    l_op[i] = opac_cg[cg];
+    const REAL op = opac_cg[cg];
+    l_op[i] = op;
+    l_sm[i] = !((REAL)ALPHA_MIN > 0) ? (REAL)1e30 /* alpha_min = 0: every sigma >= 0 counts */
+              : op >= (REAL)ALPHA_MIN
+                  ? log(op / (REAL)ALPHA_MIN) * (1 + (REAL)CLS_SIGMA_MARGIN) + (REAL)CLS_SIGMA_MARGIN
+                  : (REAL)-1;
     const REAL ex = extents[2 * cg], ey = extents[2 * cg + 1];
     l_bx[i] = extent_bound(ex);
     l_by[i] = ey < 0 ? (REAL)-1 : extent_bound(ey);

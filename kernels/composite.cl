@@ -17,7 +17,8 @@
  *    builtins are out-of-line calls that spill every vector register;
  *  - a batch is staged as structure-of-arrays, and an item tests the extents of CLS_WORD
  *    samples at once (vector compares into a bit mask), then visits only the samples its
- *    row segment can see, in order, instead of a hard-to-predict branch per sample;
+ *    row segment can see, in order, instead of a hard-to-predict branch per sample, and
+ *    skips the exp where sigma exceeds a safe bound on every lane (common.h: l_sm);
  *  - on PoCL's CPU device (CLS_POCL_CPU) the next batch's samples are prefetched while this
  *    one is composited.
  *
@@ -50,7 +51,7 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
 ) {
     /* Vector-typed, so that extent_bits may load them as vectors (alignment). */
     __local MVREAL l_xv[NPAD / CLS_MV], l_yv[NPAD / CLS_MV], l_bxv[NPAD / CLS_MV], l_byv[NPAD / CLS_MV];
-    __local REAL l_ca[BATCH], l_cb[BATCH], l_cc[BATCH], l_op[BATCH];
+    __local REAL l_ca[BATCH], l_cb[BATCH], l_cc[BATCH], l_op[BATCH], l_sm[BATCH];
     __local REAL l_f[CCHUNK * BATCH];
     __local int n_done;
     __local REAL *l_x = (__local REAL *)l_xv, *l_y = (__local REAL *)l_yv;
@@ -90,7 +91,7 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
             if (i < nb) {
                 const uint cg = key_id(keys[b0 + i]);
                 stage_sample_soa(i, cg, means2d, conics, opac_cg, extents, feats, l_x, l_y, l_ca,
-                                 l_cb, l_cc, l_op, l_bx, l_by, l_f, ch0, CCHUNK);
+                                 l_cb, l_cc, l_op, l_sm, l_bx, l_by, l_f, ch0, CCHUNK);
             } else { /* padding of the last word: seen by no pixel */
                 l_x[i] = 0;
                 l_y[i] = 0;
@@ -114,6 +115,7 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
                 const VREAL dx = l_x[k] - pxc;
                 const REAL dy = l_y[k] - pyc;
                 const VREAL sigma = (REAL)0.5 * (l_ca[k] * dx * dx + l_cc[k] * dy * dy) + l_cb[k] * dx * dy;
+                if (!CLS_VANY(sigma <= l_sm[k])) continue; /* alpha < ALPHA_MIN in every lane */
                 const VREAL alpha = CLS_FMIN((VREAL)(REAL)ALPHA_MAX, l_op[k] * CLS_VEXP(-sigma));
                 VMASK valid = !done && sigma >= (REAL)0 && alpha >= (REAL)ALPHA_MIN;
                 if (!CLS_VANY(valid)) continue;

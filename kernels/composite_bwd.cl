@@ -39,7 +39,8 @@
  * every sum, so the same slots bit for bit:
  *  - on PoCL's CPU device inline maths (CLS_POCL_CPU, see common.h), as in composite.cl;
  *  - the extent test a word of samples at a time (common.h: extent_bits), and an item visits
- *    only the samples its row segment can see and that lie before its last contributor;
+ *    only the samples its row segment can see and that lie before its last contributor, and
+ *    skips the exp where sigma exceeds a safe bound on every lane (common.h: l_sm);
  *  - an item's partials of a batch are one contiguous block [sample][value], zeroed once per
  *    batch, so the group's sum over items reads consecutive values for consecutive items;
  *  - on PoCL's CPU device (CLS_POCL_CPU) the next batch's samples are prefetched (replay
@@ -82,7 +83,7 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
                    __global REAL *slots)             /* [M, SLOT_G] */
 {
     __local MVREAL l_xv[NPAD / CLS_MV], l_yv[NPAD / CLS_MV], l_bxv[NPAD / CLS_MV], l_byv[NPAD / CLS_MV];
-    __local REAL l_ca[BATCH], l_cb[BATCH], l_cc[BATCH], l_op[BATCH];
+    __local REAL l_ca[BATCH], l_cb[BATCH], l_cc[BATCH], l_op[BATCH], l_sm[BATCH];
     __local REAL l_f[(WIDE ? 1 : CCHUNK) * BATCH];
     __local int l_slot[BATCH];
     __local uint l_cg[BATCH];
@@ -171,7 +172,7 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
             if (i < nb) {
                 const uint cg = key_id(keys[start + b0 + i]);
                 stage_sample_soa(i, cg, means2d, conics, opac_cg, extents, feats, l_x, l_y, l_ca, l_cb,
-                                 l_cc, l_op, l_bx, l_by, l_f, 0, (GEOM_GRAD && !WIDE) ? CCHUNK : 0);
+                                 l_cc, l_op, l_sm, l_bx, l_by, l_f, 0, (GEOM_GRAD && !WIDE) ? CCHUNK : 0);
                 l_cg[i] = cg;
                 /* The slot of (pair, tile): the pair's first slot plus the tile's position in
                  * its row-major tile rectangle, the order in which its tiles were counted. */
@@ -226,6 +227,7 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
                 const REAL dy = l_y[k] - pyc;
                 const REAL ca = l_ca[k], cb = l_cb[k], cc = l_cc[k];
                 const VREAL sigma = (REAL)0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy;
+                if (!CLS_VANY(sigma <= l_sm[k])) continue; /* alpha < ALPHA_MIN in every lane */
                 const VREAL g = CLS_VEXP(-sigma);
                 const VREAL raw = l_op[k] * g;
                 const VREAL alpha = CLS_FMIN((VREAL)(REAL)ALPHA_MAX, raw);
