@@ -8,7 +8,7 @@ the device time from profiling events (end - start), summed over the stage's lau
 ExclusiveScanKernel returns its output Array, whose events are already drained),
 as median, min, max over the repeats, with the first call apart.
 
-Compositing work is counted three ways (see :func:`count_evaluations`):
+Compositing work is counted four ways (see :func:`count_evaluations`):
 
 * ``segment``: sum over tiles of segment length x in-image pixels of the tile (upper bound);
 * ``kernel``:  what the kernel evaluates: per work-item (PIX pixels of a row) the samples up to
@@ -19,7 +19,7 @@ Compositing work is counted three ways (see :func:`count_evaluations`):
   alpha >= ALPHA_MIN (and sigma >= 0): a lower bound of the samples whose exp the kernel
   evaluates, since the extent test that skips the others is conservative.
 
-All three use the configuration's ALPHA_MAX clamp (until issue 21 item 5 the emulation clamped
+All use the configuration's ALPHA_MAX clamp (until issue 21 item 5 the emulation clamped
 at 0.99 whatever the configuration said; the default is 0.999).
 
 The per-tile sort (:func:`clsplat.stages.sort_segments`, on the forward's keys shuffled inside

@@ -285,7 +285,6 @@ def composite_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: i
         staged_f = chunk if channels <= chunk else 1  # features for f . v_out (not WIDE)
         return (params + staged_f + group // waves * pg + (pg if waves > 1 else 0)) * real + 8
 
-
     def budget(waves: int) -> int:
         """Local bytes for the staged samples: all but the kernels' scalars and, in the tuned
         kernels, the padding of the 4 extent arrays to words of samples and, backward, of each
