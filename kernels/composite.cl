@@ -72,6 +72,7 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
 
     VREAL T = (VREAL)1;
     VREAL acc[CCHUNK];
+#pragma unroll
     for (int ch = 0; ch < CCHUNK; ++ch) acc[ch] = (VREAL)0;
     VMASK last = (VMASK)0;
 
@@ -124,6 +125,7 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
                 done = done || stop;
                 valid = valid && !stop;
                 const VREAL w = valid ? alpha * T : (VREAL)0;
+#pragma unroll /* so the accumulators can stay in registers */
                 for (int ch = 0; ch < CCHUNK; ++ch) acc[ch] += l_f[CCHUNK * k + ch] * w;
                 T = valid ? next_T : T;
                 last = valid ? (VMASK)(b0 - start + k + 1) : last;

@@ -240,6 +240,7 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
 #endif
                 const VREAL w = valid ? alpha * T : (VREAL)0;
 #if COLOR_GRAD
+#pragma unroll /* channel loops unrolled, so vo[] and the sums stay in registers */
                 for (int ch = 0; ch < CCHUNK; ++ch) my[G_GEOM + ch] = VSUM(w * vo[ch]);
 #endif
 #if GEOM_GRAD
@@ -257,6 +258,7 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
 #endif
                 }
 #else
+#pragma unroll
                 for (int ch = 0; ch < CHANNELS; ++ch) A += l_f[CCHUNK * k + ch] * vo[ch];
 #endif
 #if BWD_DIVIDE
