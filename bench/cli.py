@@ -1,11 +1,12 @@
 """``clsplat bench``: the engine's benchmark reports (``bench/``, installed as ``clsplat.bench``;
 registered as the ``bench`` command through the ``clsplat.commands`` entry point).
 
-    clsplat bench {stages,precision,stability,all} [--out DIR] [--device DEV] [--quick] [--repeats N]
+    clsplat bench {stages,precision,stability,all,composite} [--out DIR] [--device DEV] [--quick] [--repeats N]
     clsplat bench percall [--scenes ...] [--repeats N] [--layout ...] [--profile] [--json FILE]
 
 Each report writes ``<name>.json`` and ``<name>.md`` into ``--out`` (precision also a PNG);
-``all`` runs the three and writes ``report.md`` with the device description and the command.
+``all`` runs the three and writes ``report.md`` with the device description and the command;
+``composite`` (not part of ``all``) times the tuned compositing kernels against the baseline ones.
 """
 from __future__ import annotations
 
@@ -26,7 +27,7 @@ def main(argv: list[str] | None = None) -> int:
         from . import percall
         return percall.main(argv[1:])
     p = ArgumentParser(prog="clsplat bench", description=__doc__.split("\n")[0])
-    p.add_argument("report", choices=("stages", "precision", "stability", "all"))
+    p.add_argument("report", choices=("stages", "precision", "stability", "all", "composite"))
     p.add_argument("--out", default="bench_out", help="output folder (created)")
     p.add_argument("--device", default=None, help="OpenCL device, e.g. 'pocl' or '0:0' (default CLSPLAT_DEVICE)")
     p.add_argument("--quick", action="store_true", help="tiny configuration (for tests)")
@@ -37,14 +38,14 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     names = ("stages", "precision", "stability") if a.report == "all" else (a.report,)
-    defaults = {"stages": 5, "precision": 3, "stability": 3}
+    defaults = {"stages": 5, "precision": 3, "stability": 3, "composite": 7}
     parts, secs = [], {}
     import torch
 
     import clsplat
 
-    from . import precision, stability, stages
-    reports = {"stages": stages, "precision": precision, "stability": stability}
+    from . import composite, precision, stability, stages
+    reports = {"stages": stages, "precision": precision, "stability": stability, "composite": composite}
     torch.set_num_threads(1)  # torch's CPU threads would fight PoCL's workers for the cores
     for name in names:
         mod = reports[name]

@@ -8,13 +8,19 @@ the device time from profiling events (end - start), summed over the stage's lau
 ExclusiveScanKernel returns its output Array, whose events are already drained),
 as median, min, max over the repeats, with the first call apart.
 
-Compositing work is counted three ways (see :func:`count_evaluations`):
+Compositing work is counted four ways (see :func:`count_evaluations`):
 
 * ``segment``: sum over tiles of segment length x in-image pixels of the tile (upper bound);
 * ``kernel``:  what the kernel evaluates: per work-item (PIX pixels of a row) the samples up to
   and including the one where its last pixel stops, times its in-image pixels; this is
   emulated in float32 from the engine's own projected values and sorted keys;
-* ``useful``:  per pixel, samples up to and including its own stop.
+* ``useful``:  per pixel, samples up to and including its own stop;
+* ``kernel_alpha``: of the ``kernel`` count, the samples where some pixel of the work-item has
+  alpha >= ALPHA_MIN (and sigma >= 0): a lower bound of the samples whose exp the kernel
+  evaluates, since the extent test that skips the others is conservative.
+
+All use the configuration's ALPHA_MAX clamp (until issue 21 item 5 the emulation clamped
+at 0.99 whatever the configuration said; the default is 0.999).
 
 The per-tile sort (:func:`clsplat.stages.sort_segments`, on the forward's keys shuffled inside
 each segment) is compared with numpy on the same unsorted uint64 keys, side by side in
@@ -136,7 +142,7 @@ def count_evaluations(st, scene: dict) -> dict:
     INSIDE = (PX < W) & (PY < H)
     lens = torch.from_numpy(np.diff(off))
     seg_total = int((lens * INSIDE.sum(1)).sum())
-    kern_total = useful_total = 0
+    kern_total = useful_total = alpha_total = 0
     # Tiles in batches, padded to the longest segment of the batch (sorted by length so that
     # padding stays small); padding samples are invalid and never stop a pixel.
     order = torch.argsort(lens)
@@ -160,7 +166,7 @@ def count_evaluations(st, scene: dict) -> dict:
         dx = xy[g, 0][..., None] - px
         dy = xy[g, 1][..., None] - py
         sigma = 0.5 * (con[g, 0][..., None] * dx * dx + con[g, 2][..., None] * dy * dy) + con[g, 1][..., None] * dx * dy
-        alpha = torch.clamp_max(op[g][..., None] * torch.exp(-sigma), 0.99)
+        alpha = torch.clamp_max(op[g][..., None] * torch.exp(-sigma), cfg.alpha_max)
         valid = (sigma >= 0) & (alpha >= cfg.alpha_min) & real[..., None]
         Tc = torch.cumprod(torch.where(valid, 1 - alpha, torch.ones_like(alpha)), 1)
         hit = Tc <= cfg.t_min                                                   # [b, n, P]
@@ -172,9 +178,12 @@ def count_evaluations(st, scene: dict) -> dict:
         useful_total += int(stop.sum())
         b = len(tiles)
         item = stop.reshape(b, ts, ts // pix, pix).amax(-1)
-        kern_total += int((item * inside.reshape(b, ts, ts // pix, pix).sum(-1)).sum())
+        n_in = inside.reshape(b, ts, ts // pix, pix).sum(-1)
+        kern_total += int((item * n_in).sum())
+        seen = valid.reshape(b, n_max, ts, ts // pix, pix).any(-1) & (k[None, :, None, None] < item[:, None])
+        alpha_total += int((seen.sum(1) * n_in).sum())
     return {"segment": int(seg_total), "kernel": int(kern_total), "useful": int(useful_total),
-            "pix_per_item": pix, "intersections": int(off[-1])}
+            "kernel_alpha": int(alpha_total), "pix_per_item": pix, "intersections": int(off[-1])}
 
 
 def sort_vs_numpy(st, repeats: int = 5) -> dict:

@@ -31,6 +31,11 @@ class RenderConfig:
     sort_local:   keys sorted in local memory per work-group (None: from device limits).
     sort_layout:  "serial" (a merge sort per segment and work-item; CPU default) or
                   "bitonic" (a work-group per segment in local memory; GPU default).
+    composite_impl: "tuned" (kernels/composite.cl and composite_bwd.cl: inline maths instead
+                  of the OpenCL library builtins PoCL's CPU device cannot inline, extent tests a
+                  word of samples at a time; CPU default) or "baseline" (composite_base.cl and
+                  composite_bwd_base.cl, the kernels before issue 21 item 5; GPU default).
+                  None: by device. Both give the same images and gradients.
     """
 
     precision: str | None = None
@@ -42,6 +47,7 @@ class RenderConfig:
     pix: int | None = None
     sort_local: int | None = None
     sort_layout: str | None = None
+    composite_impl: str | None = None
 
     def __post_init__(self) -> None:
         for name in ("pix", "sort_local"):
@@ -68,6 +74,8 @@ class RenderConfig:
             raise ValueError(f"pix: expected 1, 2, 4, 8 or 16, got {self.pix}")
         if self.sort_layout not in (None, "serial", "bitonic"):
             raise ValueError(f"sort_layout: expected 'serial' or 'bitonic', got {self.sort_layout!r}")
+        if self.composite_impl not in (None, "tuned", "baseline"):
+            raise ValueError(f"composite_impl: expected 'tuned' or 'baseline', got {self.composite_impl!r}")
         if self.sort_local is not None and (self.sort_local < 2 or self.sort_local & (self.sort_local - 1)):
             raise ValueError(f"sort_local: must be a power of two >= 2, got {self.sort_local}")
 

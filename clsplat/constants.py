@@ -26,6 +26,7 @@ RADIUS_SIGMA: float = _parse("CLS_DEFAULT_RADIUS_SIGMA")
 EPS2D: float = _parse("CLS_DEFAULT_EPS2D")
 FRUSTUM_MARGIN: float = _parse("CLS_FRUSTUM_MARGIN")
 PIXEL_CENTRE: float = _parse("CLS_PIXEL_CENTRE")
+EXTENT_WORD: int = int(_parse("CLS_WORD"))  # samples per extent-bit word (tuned compositing)
 
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 RADIUS_RULES = ("3.33sigma", "opacity", "4sigma")

@@ -185,6 +185,12 @@ class Runtime:
         return self._in_host_memory
 
     @property
+    def is_pocl_cpu(self) -> bool:
+        """PoCL's CPU device (whose kernel compiler is clang on the host: kernels may use clang
+        builtins there, e.g. the compositing kernels' prefetches)."""
+        return self.computes_in_host_memory
+
+    @property
     def max_alloc(self) -> int:
         """``CL_DEVICE_MAX_MEM_ALLOC_SIZE`` in bytes (queried once)."""
         if not self._limits:

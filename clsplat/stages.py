@@ -15,6 +15,7 @@ import pyopencl as cl
 import pyopencl.array as cl_array
 import torch
 
+from . import constants as K
 from .config import RenderConfig
 from .runtime import DeviceArray, Runtime
 
@@ -289,17 +290,28 @@ def composite_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: i
         raise ValueError(f"tile_size: {tile_size}x{tile_size} tiles need work-groups of {group} "
                          f"items with {pix} pixel(s) per item; the device allows {rt.max_group}")
 
+    tuned = composite_tuned(rt, cfg)
+    params = 9 if tuned else 8  # staged per sample besides features (the tuned: l_sm)
+
     def per_sample(chunk: int, waves: int) -> int:  # local bytes per staged sample (kernels)
         if not backward:
-            return (8 + chunk) * real
+            return (params + chunk) * real
         pg = geom_grads + chunk * color_grad
         staged_f = chunk if channels <= chunk else 1  # features for f . v_out (not WIDE)
-        return (8 + staged_f + group // waves * pg + (pg if waves > 1 else 0)) * real + 8
+        return (params + staged_f + group // waves * pg + (pg if waves > 1 else 0)) * real + 8
 
-    budget = rt.local_mem - 64  # the kernels' scalars
+    def budget(waves: int) -> int:
+        """Local bytes for the staged samples: all but the kernels' scalars and, in the tuned
+        kernels, the padding of the 4 extent arrays to words of samples and, backward, of each
+        partials block (of the items of a wave, and the wave sum) to whole vectors."""
+        if not tuned:
+            return rt.local_mem - 64
+        vec_pad = (32 // real - 1) * real * (group // waves + (waves > 1)) if backward else 0
+        return rt.local_mem - 64 - 4 * (K.EXTENT_WORD - 1) * real - vec_pad
+
     chunk, waves = min(channels, CHANNEL_CHUNK), 1
     # Fewer channels per launch first (down to 8), then partials handed over in waves.
-    while per_sample(chunk, waves) > budget:
+    while per_sample(chunk, waves) > budget(waves):
         if chunk > 8:
             chunk = -(-chunk // 2)
         elif waves < group:
@@ -311,14 +323,24 @@ def composite_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: i
                              f"item need {per_sample(chunk, waves)} bytes of local memory per "
                              f"sample, over the {rt.local_mem} available; use a smaller tile_size")
     cap = (32 if waves == 1 else 4) if backward else group  # waves keep partials in registers
-    batch = max(1, min(cap, budget // per_sample(chunk, waves)))
+    batch = max(1, min(cap, budget(waves) // per_sample(chunk, waves)))
     return pix, batch, chunk, waves
+
+
+def composite_tuned(rt: Runtime, cfg: RenderConfig) -> bool:
+    """Whether compositing runs the tuned kernels (``RenderConfig.composite_impl``; None: on
+    CPUs) rather than the baseline ones (``kernels/composite_base.cl``, ``composite_bwd_base.cl``)."""
+    return (cfg.composite_impl or ("tuned" if rt.is_cpu else "baseline")) == "tuned"
 
 
 def _composite_kernel(rt: Runtime, cfg: RenderConfig, stage: str, defines: dict, group: int,
                       tile_size: int) -> cl.Kernel:
-    k = rt.kernel(stage, stage if stage == "composite_bwd" else "composite_fwd", defines,
-                  cfg.fast_math)
+    name = stage if stage == "composite_bwd" else "composite_fwd"
+    if composite_tuned(rt, cfg):
+        defines = defines | {"CLS_POCL_CPU": rt.is_pocl_cpu}
+    else:
+        stage += "_base"
+    k = rt.kernel(stage, name, defines, cfg.fast_math)
     rt.check_group(k, stage, group, f" (tile_size {tile_size}, {defines['PIX']} pixel(s) per "
                    "item; use a smaller tile_size or a larger RenderConfig.pix)")
     return k

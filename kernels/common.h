@@ -105,6 +105,104 @@
 /* Comparisons give 1 for a true scalar but -1 for a true vector lane; masks therefore only
  * ever pass through &&, ||, ! and ?:, which treat both the same way. */
 
+/* ---- compositing maths: library builtins or inline equivalents (CLS_INLINE_MATH) -------- */
+/* PoCL's CPU device links builtins (exp, fmin, fabs, any, ...) from a kernel library built for
+ * the CPU variant it detects (avx512 on this host), while the kernel itself is compiled for
+ * the CPU name LLVM reports (znver3 under LLVM 14 on Zen 4). LLVM does not inline a callee
+ * whose target features are not a subset of the caller's, so every builtin in a hot loop is
+ * an out-of-line call, and the call spills every vector register (all are caller-saved).
+ * With CLS_INLINE_MATH (= CLS_POCL_CPU) the tuned compositing kernels use the inline forms
+ * below instead; they give
+ * the same values: selects for fmin/fmax/fabs (equal for every non-NaN input), lane
+ * reductions for any/all, and for float exp the algorithm of the library's exp (SLEEF's
+ * expf_u10: same constants, same operation order, fused where the library fuses). */
+/* CLS_POCL_CPU: 1 (set by the host for the tuned compositing kernels) on PoCL's CPU device,
+ * whose kernel compiler is the host's clang: there the kernels use the inline maths below
+ * and clang builtins (count of trailing/leading zeros, prefetch) that other implementations
+ * need not know (Oclgrind rejects llvm.cttz, and llvm.fabs on vectors, which clang makes of
+ * the inline fabs); elsewhere the OpenCL builtins, which their compilers inline. */
+#ifndef CLS_POCL_CPU
+#define CLS_POCL_CPU 0
+#endif
+#define CLS_INLINE_MATH CLS_POCL_CPU
+#ifndef CLS_PREFETCH /* (a -D for side-by-side timings) */
+#define CLS_PREFETCH CLS_POCL_CPU
+#endif
+#if CLS_POCL_CPU
+#define CLS_CTZ(m) __builtin_ctz(m)        /* m != 0 */
+#define CLS_TOP_BIT(m) (31 - __builtin_clz(m))
+#else
+#define CLS_CTZ(m) (31 - (int)clz((m) & (0u - (m))))
+#define CLS_TOP_BIT(m) (31 - (int)clz(m))
+#endif
+/* op over the lanes of a vector, pairwise (no builtin) */
+#define CLS_LANES2(m, op) ((m).s0 op (m).s1)
+#define CLS_LANES4(m, op) CLS_LANES2((m).lo op (m).hi, op)
+#define CLS_LANES8(m, op) CLS_LANES4((m).lo op (m).hi, op)
+#define CLS_LANES16(m, op) CLS_LANES8((m).lo op (m).hi, op)
+#if CLS_INLINE_MATH
+/* fmin/fmax for a non-NaN a (a NaN b gives a, as the builtins do) */
+#define CLS_FMIN(a, b) ((b) < (a) ? (b) : (a))
+#define CLS_FMAX(a, b) ((b) > (a) ? (b) : (a))
+#define CLS_FABS(a) ((a) > 0 ? (a) : 0 - (a))   /* 0 - (-0) = +0, as fabs(-0) */
+#if PIX == 1
+#define CLS_VANY(m) (m)
+#define CLS_VALL(m) (m)
+#else
+/* A true vector lane is -1: OR (AND) the lanes pairwise and test the sign. */
+inline int cls_vany(VMASK m) { return CAT(CLS_LANES, PIX)(m, |) < 0; }
+inline int cls_vall(VMASK m) { return CAT(CLS_LANES, PIX)(m, &) < 0; }
+#define CLS_VANY(m) cls_vany(m)
+#define CLS_VALL(m) cls_vall(m)
+#endif
+#if REAL_DOUBLE || PIX == 1
+/* float64 keeps the library's exp, and so does the scalar layout: the library's scalar expf
+ * is SLEEF's other variant (no fused multiply-adds, rint by adding 0.5 and truncating). */
+#define CLS_VEXP(x) exp(x)
+#else
+#define VINT CAT(int, PIX)
+#define VUINT CAT(uint, PIX)
+#define CLS_TO_VREAL(k) __builtin_convertvector(k, VREAL)
+#define CLS_AS_VINT CAT(as_, VINT)
+#define CLS_AS_VUINT CAT(as_, VUINT)
+#define CLS_AS_VREAL CAT(as_, VREAL)
+/* SLEEF's expf_u10: x = k ln2 + s, exp(s) by a degree-7 polynomial, times 2^k in two steps.
+ * k = rint(x / ln2) comes from adding 1.5 * 2^23 (exact for |x / ln2| < 2^22, the only range
+ * where the result is not replaced by 0 or inf at the end), so it needs no conversion builtin
+ * and survives -cl-fast-relaxed-math. Each a * b + c below is one expression, so clang fuses
+ * it (fp-contract on) as the library's code does. */
+inline VREAL cls_vexp(VREAL x) {
+    const VREAL t = x * 1.44269502162933349609375f;                 /* 1 / ln 2 */
+    const VINT k = CLS_AS_VINT(t + 12582912.0f) - 0x4B400000;       /* rint(t) */
+    const VREAL kf = CLS_TO_VREAL(k);
+    VREAL s = kf * -0.693145751953125f + x;                         /* ln 2, high part */
+    s = kf * -1.428606765330187045e-06f + s;                        /* ln 2, low part */
+    VREAL u = (VREAL)0.000198527617612853646278381f;
+    u = u * s + 0.00139304355252534151077271f;
+    u = u * s + 0.00833336077630519866943359f;
+    u = u * s + 0.0416664853692054748535156f;
+    u = u * s + 0.166666671633720397949219f;
+    u = u * s + 0.5f;
+    const VREAL s2 = s * s;
+    u = u * s2 + s;
+    u = u + 1.0f;
+    const VINT q = k >> 1;                                          /* 2^k = 2^q 2^(k-q) */
+    u = u * CLS_AS_VREAL((CLS_AS_VUINT(q) << 23) + 0x3f800000u);
+    u = u * CLS_AS_VREAL((CLS_AS_VUINT(k - q) << 23) + 0x3f800000u);
+    u = x < -104.0f ? (VREAL)0.0f : u;
+    return x > 100.0f ? (VREAL)INFINITY : u;
+}
+#define CLS_VEXP(x) cls_vexp(x)
+#endif
+#else
+#define CLS_FMIN(a, b) fmin(a, b)
+#define CLS_FMAX(a, b) fmax(a, b)
+#define CLS_FABS(a) fabs(a)
+#define CLS_VANY(m) VANY(m)
+#define CLS_VALL(m) VALL(m)
+#define CLS_VEXP(x) exp(x)
+#endif
+
 /* ---- small linear algebra (row-major 3x3 as REAL[9]) -------------------------------- */
 inline void quat_to_rotmat(REAL4 q, REAL *R) {
     /* Unnormalised input is allowed; a zero quaternion is rejected on the host. */
@@ -129,8 +227,8 @@ inline uint key_id(ulong key) { return (uint)(key & 0xffffffffUL); }
  * the backward replays exactly what the forward composited. */
 #define CLS_EXTENT_MARGIN 1e-3
 inline int outside_extent(REAL x, REAL y, REAL ext_x, REAL ext_y, REAL px_first, REAL px_last, REAL py) {
-    const REAL dy = fabs(y - py);
-    const REAL dx = fmax((REAL)0, fmax(px_first - x, x - px_last));
+    const REAL dy = CLS_FABS(y - py);
+    const REAL dx = CLS_FMAX((REAL)0, CLS_FMAX(px_first - x, x - px_last));
     const REAL m = (REAL)CLS_EXTENT_MARGIN;
     return ext_y < 0 || dy > ext_y * (1 + m) + m || dx > ext_x * (1 + m) + m;
 }
@@ -154,6 +252,106 @@ inline void stage_sample(int i, uint cg, __global const REAL *means2d, __global 
     l_ext[2 * i + 1] = extents[2 * cg + 1];
     for (int ch = 0; ch < nf; ++ch)
         l_f[CCHUNK * i + ch] = ch0 + ch < CHANNELS ? feats[(size_t)cg * CHANNELS + ch0 + ch] : (REAL)0;
+}
+#endif
+
+#ifdef CCHUNK
+/* ---- the tuned compositing kernels' staging (RenderConfig.composite_impl="tuned") ------- */
+/* A batch is staged as structure-of-arrays in local memory, padded to whole words of
+ * CLS_WORD samples, so that an item tests the extents of a word of samples at once with
+ * vector loads and walks only the samples it can see (set bits of a mask) instead of
+ * branching on each. l_bx, l_by hold the extent test's bounds, computed as outside_extent
+ * computes them (the same expression, so the same rounding and the same decisions); -1
+ * marks a pair outside the tile (ext_y < 0) and the padding, which no pixel can see. */
+#define CLS_WORD 32
+#if REAL_DOUBLE
+#define CLS_MV 4 /* lanes of the extent test: one 256-bit vector */
+#else
+#define CLS_MV 8
+#endif
+#define NPAD ((BATCH + CLS_WORD - 1) / CLS_WORD * CLS_WORD) /* staged samples, padded */
+#define MVREAL CAT(REAL, CLS_MV)
+#define MVMASK CAT(MASK_SCALAR, CLS_MV)
+
+inline REAL extent_bound(REAL ext) {
+    const REAL m = (REAL)CLS_EXTENT_MARGIN;
+    return ext * (1 + m) + m; /* outside_extent's bound, same expression */
+}
+
+/* l_sm: a bound on sigma past which o exp(-sigma) < ALPHA_MIN for sure (ln(o / ALPHA_MIN)
+ * widened by 0.1% and 1e-3, far beyond the rounding of exp and of the product), so that an
+ * item skips the exp of a sample no pixel of its segment can see at ALPHA_MIN; the exact
+ * test on alpha still decides for the others. */
+#define CLS_SIGMA_MARGIN 1e-3
+inline void stage_sample_soa(int i, uint cg, __global const REAL *means2d, __global const REAL *conics,
+                             __global const REAL *opac_cg, __global const REAL *extents,
+                             __global const REAL *feats, __local REAL *l_x, __local REAL *l_y,
+                             __local REAL *l_ca, __local REAL *l_cb, __local REAL *l_cc,
+                             __local REAL *l_op, __local REAL *l_sm, __local REAL *l_bx,
+                             __local REAL *l_by, __local REAL *l_f, const int ch0, const int nf) {
+    l_x[i] = means2d[2 * cg];
+    l_y[i] = means2d[2 * cg + 1];
+    l_ca[i] = conics[3 * cg];
+    l_cb[i] = conics[3 * cg + 1];
+    l_cc[i] = conics[3 * cg + 2];
+    const REAL op = opac_cg[cg];
+    l_op[i] = op;
+    l_sm[i] = !((REAL)ALPHA_MIN > 0) ? (REAL)1e30 /* alpha_min = 0: every sigma >= 0 counts */
+              : op >= (REAL)ALPHA_MIN
+                  ? log(op / (REAL)ALPHA_MIN) * (1 + (REAL)CLS_SIGMA_MARGIN) + (REAL)CLS_SIGMA_MARGIN
+                  : (REAL)-1;
+    const REAL ex = extents[2 * cg], ey = extents[2 * cg + 1];
+    l_bx[i] = extent_bound(ex);
+    l_by[i] = ey < 0 ? (REAL)-1 : extent_bound(ey);
+    for (int ch = 0; ch < nf; ++ch)
+        l_f[CCHUNK * i + ch] = ch0 + ch < CHANNELS ? feats[(size_t)cg * CHANNELS + ch0 + ch] : (REAL)0;
+}
+
+/* Prefetch (on PoCL's CPU device, CLS_POCL_CPU; elsewhere nothing) the compositing parameters
+ * of sample cg and nf of its features from channel ch0 on. A batch's samples are random Gaussians, each a cache miss per array; prefetched while the
+ * batch before is composited, their staging no longer waits on memory. */
+inline void prefetch_sample(uint cg, __global const REAL *means2d, __global const REAL *conics,
+                            __global const REAL *opac_cg, __global const REAL *extents,
+                            __global const REAL *feats, const int ch0, const int nf) {
+#if CLS_PREFETCH
+    __builtin_prefetch(means2d + 2 * cg);
+    __builtin_prefetch(conics + 3 * cg);
+    __builtin_prefetch(opac_cg + cg);
+    __builtin_prefetch(extents + 2 * cg);
+    if (nf > 0) __builtin_prefetch(feats + (size_t)cg * CHANNELS + ch0);
+#endif
+}
+
+/* Bit j set: sample w0 + j may reach ALPHA_MIN somewhere in the row segment [px_first,
+ * px_last] x pyc, i.e. !outside_extent (for non-NaN inputs the same comparisons). */
+inline uint extent_bits(int w0, __local const REAL *l_x, __local const REAL *l_y,
+                        __local const REAL *l_bx, __local const REAL *l_by,
+                        REAL px_first, REAL px_last, REAL pyc) {
+    uint m = 0;
+#if CLS_POCL_CPU
+    for (int j = 0; j < CLS_WORD / CLS_MV; ++j) {
+        const int o = (w0 + j * CLS_MV) / CLS_MV;
+        const MVREAL x = ((__local const MVREAL *)l_x)[o], y = ((__local const MVREAL *)l_y)[o];
+        const MVREAL dy = CLS_FABS(y - pyc);
+        const MVREAL dx = CLS_FMAX((MVREAL)0, CLS_FMAX(px_first - x, x - px_last));
+        const MVMASK vis = dy <= ((__local const MVREAL *)l_by)[o] && dx <= ((__local const MVREAL *)l_bx)[o];
+#if CLS_MV == 8
+        const MVMASK bit = vis & (MVMASK)(1, 2, 4, 8, 16, 32, 64, 128);
+#else
+        const MVMASK bit = vis & (MVMASK)(1, 2, 4, 8);
+#endif
+        m |= (uint)CAT(CLS_LANES, CLS_MV)(bit, |) << (j * CLS_MV);
+    }
+#else
+    /* Elsewhere one sample at a time: Oclgrind 21.10's uninitialised-value checker crashes on
+     * the vector form, and a GPU runs one pixel per item anyway. */
+    for (int j = 0; j < CLS_WORD; ++j) {
+        const REAL dy = fabs(l_y[w0 + j] - pyc);
+        const REAL dx = fmax((REAL)0, fmax(px_first - l_x[w0 + j], l_x[w0 + j] - px_last));
+        m |= (uint)(dy <= l_by[w0 + j] && dx <= l_bx[w0 + j]) << j;
+    }
+#endif
+    return m;
 }
 #endif
 

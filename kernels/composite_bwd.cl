@@ -1,4 +1,6 @@
-/* composite_bwd.cl — backward of compositing: per-intersection gradient slots.
+/* composite_bwd.cl — backward of compositing: per-intersection gradient slots
+ * (RenderConfig.composite_impl="tuned", the CPU default; composite_bwd_base.cl is the kernel
+ * it replaced, kept for the side-by-side and as the GPU default).
  *
  * One work-group per tile, the forward's pixel layout. For every sample a pixel composited,
  * with w_i = alpha_i T_i, out = sum_i f_i w_i and T_final = prod_i (1 - alpha_i):
@@ -33,17 +35,31 @@
  * private memory and the items hand them over in WAVES waves of GROUP / WAVES, so local
  * memory holds one wave; the sums, and so the results, are the same as with one wave.
  *
+ * What differs from composite_bwd_base.cl, with the same arithmetic and the same order of
+ * every sum, so the same slots bit for bit:
+ *  - on PoCL's CPU device inline maths (CLS_POCL_CPU, see common.h), as in composite.cl;
+ *  - the extent test a word of samples at a time (common.h: extent_bits), and an item visits
+ *    only the samples its row segment can see and that lie before its last contributor, and
+ *    skips the exp where sigma exceeds a safe bound on every lane (common.h: l_sm);
+ *  - an item's partials of a batch are one contiguous block [sample][value], zeroed once per
+ *    batch, so the group's sum over items reads consecutive values for consecutive items;
+ *  - on PoCL's CPU device (CLS_POCL_CPU) the next batch's samples are prefetched (replay
+ *    order only: with BWD_DIVIDE the batches run back to front and nothing is prefetched).
+ *
  * Slot layout (SLOT_G values): [geometry: v_xy(2) v_conic(3) v_opacity(1) (|v_xy|(2))]
  * [colour: v_feat(CHANNELS)], the colour block starting at column SLOT_COLOR0.
  *
  * Build parameters: REAL_DOUBLE, TILE, PIX, BATCH, CHANNELS, CCHUNK, GEOM_GRAD, COLOR_GRAD,
- * ABSGRAD, BWD_DIVIDE, SLOT_G, SLOT_COLOR0, WAVES, ALPHA_MIN, ALPHA_MAX.
+ * ABSGRAD, BWD_DIVIDE, SLOT_G, SLOT_COLOR0, WAVES, ALPHA_MIN, ALPHA_MAX, CLS_POCL_CPU.
  */
 
 #define GROUP (TILE * TILE / PIX)
 #define ITEMS_PER_ROW (TILE / PIX)
 #define G_GEOM (GEOM_GRAD ? (ABSGRAD ? 8 : 6) : 0)
 #define PG (G_GEOM + (COLOR_GRAD ? CCHUNK : 0)) /* partials per item and sample, this launch */
+/* Partials per item and batch, padded to whole vectors so the group sum can read CLS_MV
+ * consecutive values (of consecutive samples and values) as one vector. */
+#define PB ((BATCH * PG + CLS_MV - 1) / CLS_MV * CLS_MV)
 #define WIDE (CHANNELS > CCHUNK)
 #define WAVE (GROUP / WAVES)
 
@@ -66,16 +82,20 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
                    __global const REAL *v_T,         /* [C, H, W] */
                    __global REAL *slots)             /* [M, SLOT_G] */
 {
-    __local REAL l_xy[2 * BATCH], l_conic[3 * BATCH], l_op[BATCH], l_ext[2 * BATCH];
+    __local MVREAL l_xv[NPAD / CLS_MV], l_yv[NPAD / CLS_MV], l_bxv[NPAD / CLS_MV], l_byv[NPAD / CLS_MV];
+    __local REAL l_ca[BATCH], l_cb[BATCH], l_cc[BATCH], l_op[BATCH], l_sm[BATCH];
     __local REAL l_f[(WIDE ? 1 : CCHUNK) * BATCH];
     __local int l_slot[BATCH];
     __local uint l_cg[BATCH];
-    __local REAL part[BATCH * WAVE * PG];
+    __local MVREAL partv[WAVE * PB / CLS_MV]; /* [item of the wave][sample][value] */
 #if WAVES > 1
-    __local REAL l_acc[BATCH * PG];
-    REAL my_p[BATCH * PG];
+    __local MVREAL l_accv[PB / CLS_MV];
+    REAL my_p[PB];
 #endif
     __local int l_max_last;
+    __local REAL *l_x = (__local REAL *)l_xv, *l_y = (__local REAL *)l_yv;
+    __local REAL *l_bx = (__local REAL *)l_bxv, *l_by = (__local REAL *)l_byv;
+    __local REAL *part = (__local REAL *)partv;
 
     const int tile = get_group_id(0), lid = get_local_id(0);
     const int c = tile / tiles_per_cam, t = tile - c * tiles_per_cam;
@@ -123,6 +143,8 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
     }
     const VREAL pxc = (REAL)px0 + VRAMP + (REAL)CLS_PIXEL_CENTRE;
     const REAL pyc = (REAL)py + (REAL)CLS_PIXEL_CENTRE;
+    const REAL px_first = (REAL)px0 + (REAL)CLS_PIXEL_CENTRE;
+    const REAL px_last = (REAL)(px0 + PIX - 1) + (REAL)CLS_PIXEL_CENTRE;
 
     if (lid == 0) l_max_last = 0;
     barrier(CLK_LOCAL_MEM_FENCE);
@@ -144,128 +166,161 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
         const int b0 = bi * BATCH;
 #endif
         const int nb = min(BATCH, n_used - b0);
+        const int n_words = (nb + CLS_WORD - 1) / CLS_WORD;
         barrier(CLK_LOCAL_MEM_FENCE);
-        for (int i = lid; i < nb; i += GROUP) {
-            const uint cg = key_id(keys[start + b0 + i]);
-            stage_sample(i, cg, means2d, conics, opac_cg, extents, feats, l_xy, l_conic, l_op,
-                         l_ext, l_f, 0, (GEOM_GRAD && !WIDE) ? CCHUNK : 0);
-            l_cg[i] = cg;
-            /* The slot of (pair, tile): the pair's first slot plus the tile's position in
-             * its row-major tile rectangle, the order in which its tiles were counted. */
-            const int4 r = vload4(cg, rects);
-            l_slot[i] = isect_offsets[cg] + (ty - r.y) * (r.z - r.x) + (tx - r.x);
+        for (int i = lid; i < n_words * CLS_WORD; i += GROUP) {
+            if (i < nb) {
+                const uint cg = key_id(keys[start + b0 + i]);
+                stage_sample_soa(i, cg, means2d, conics, opac_cg, extents, feats, l_x, l_y, l_ca, l_cb,
+                                 l_cc, l_op, l_sm, l_bx, l_by, l_f, 0, (GEOM_GRAD && !WIDE) ? CCHUNK : 0);
+                l_cg[i] = cg;
+                /* The slot of (pair, tile): the pair's first slot plus the tile's position in
+                 * its row-major tile rectangle, the order in which its tiles were counted. */
+                const int4 r = vload4(cg, rects);
+                l_slot[i] = isect_offsets[cg] + (ty - r.y) * (r.z - r.x) + (tx - r.x);
+            } else { /* padding of the last word: seen by no pixel */
+                l_x[i] = 0;
+                l_y[i] = 0;
+                l_bx[i] = -1;
+                l_by[i] = -1;
+            }
         }
         barrier(CLK_LOCAL_MEM_FENCE);
 
-        for (int kk = 0; kk < nb; ++kk) {
-#if BWD_DIVIDE
-            const int k = nb - 1 - kk;
-#else
-            const int k = kk;
+#if CLS_PREFETCH && !BWD_DIVIDE
+        for (int i = start + b0 + BATCH + lid; i < start + min(b0 + 2 * BATCH, n_used); i += GROUP)
+            prefetch_sample(key_id(keys[i]), means2d, conics, opac_cg, extents, feats, 0,
+                            (GEOM_GRAD && !WIDE) ? CCHUNK : 0);
 #endif
 #if WAVES == 1
-            __local REAL *my = part + (k * GROUP + lid) * PG;
+        __local REAL *mine = part + lid * PB;
 #else
-            REAL *my = my_p + k * PG;
+        REAL *mine = my_p;
 #endif
-            for (int j = 0; j < PG; ++j) my[j] = 0;
-            if (outside_extent(l_xy[2 * k], l_xy[2 * k + 1], l_ext[2 * k], l_ext[2 * k + 1],
-                               (REAL)px0 + (REAL)CLS_PIXEL_CENTRE,
-                               (REAL)(px0 + PIX - 1) + (REAL)CLS_PIXEL_CENTRE, pyc))
-                continue; /* the forward skipped it too */
-            const REAL pos = (REAL)(b0 + k + 1);
-            const VREAL dx = l_xy[2 * k] - pxc;
-            const REAL dy = l_xy[2 * k + 1] - pyc;
-            const REAL ca = l_conic[3 * k], cb = l_conic[3 * k + 1], cc = l_conic[3 * k + 2];
-            const VREAL sigma = (REAL)0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy;
-            const VREAL g = exp(-sigma);
-            const VREAL raw = l_op[k] * g;
-            const VREAL alpha = fmin((VREAL)(REAL)ALPHA_MAX, raw);
-            const VMASK valid = pos <= last && sigma >= (REAL)0 && alpha >= (REAL)ALPHA_MIN;
-            if (!VANY(valid)) continue;
-            const VREAL one_m = (REAL)1 - alpha;
-            const VREAL inv_one_m = (REAL)1 / one_m;
+        const int n_vec = (nb * PG + CLS_MV - 1) / CLS_MV; /* vectors of partials this batch */
+        for (int i = 0; i < n_vec * CLS_MV; ++i) mine[i] = 0; /* samples not visited stay 0 */
+        /* Samples from position my_max on lie past every lane's last contributor. */
+        const int lim = min(nb, my_max - b0);
+        for (int wi = 0; wi < (lim + CLS_WORD - 1) / CLS_WORD; ++wi) {
 #if BWD_DIVIDE
-            T = valid ? T * inv_one_m : T;
+            const int w0 = ((lim + CLS_WORD - 1) / CLS_WORD - 1 - wi) * CLS_WORD; /* back to front */
+#else
+            const int w0 = wi * CLS_WORD;
 #endif
-            const VREAL w = valid ? alpha * T : (VREAL)0;
+            uint seen = extent_bits(w0, l_x, l_y, l_bx, l_by, px_first, px_last, pyc);
+            if (lim - w0 < CLS_WORD) seen &= (1u << (lim - w0)) - 1;
+            while (seen != 0) {
+#if BWD_DIVIDE
+                const int bit = CLS_TOP_BIT(seen);
+#else
+                const int bit = CLS_CTZ(seen);
+#endif
+                seen &= ~(1u << bit);
+                const int k = w0 + bit;
+#if WAVES == 1
+                __local REAL *my = mine + k * PG;
+#else
+                REAL *my = mine + k * PG;
+#endif
+                const REAL pos = (REAL)(b0 + k + 1);
+                const VREAL dx = l_x[k] - pxc;
+                const REAL dy = l_y[k] - pyc;
+                const REAL ca = l_ca[k], cb = l_cb[k], cc = l_cc[k];
+                const VREAL sigma = (REAL)0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy;
+                if (!CLS_VANY(sigma <= l_sm[k])) continue; /* alpha < ALPHA_MIN in every lane */
+                const VREAL g = CLS_VEXP(-sigma);
+                const VREAL raw = l_op[k] * g;
+                const VREAL alpha = CLS_FMIN((VREAL)(REAL)ALPHA_MAX, raw);
+                const VMASK valid = pos <= last && sigma >= (REAL)0 && alpha >= (REAL)ALPHA_MIN;
+                if (!CLS_VANY(valid)) continue;
+                const VREAL one_m = (REAL)1 - alpha;
+                const VREAL inv_one_m = (REAL)1 / one_m;
+#if BWD_DIVIDE
+                T = valid ? T * inv_one_m : T;
+#endif
+                const VREAL w = valid ? alpha * T : (VREAL)0;
 #if COLOR_GRAD
-            for (int ch = 0; ch < CCHUNK; ++ch) my[G_GEOM + ch] = VSUM(w * vo[ch]);
+#pragma unroll /* channel loops unrolled, so vo[] and the sums stay in registers */
+                for (int ch = 0; ch < CCHUNK; ++ch) my[G_GEOM + ch] = VSUM(w * vo[ch]);
 #endif
 #if GEOM_GRAD
-            VREAL A = (VREAL)0; /* f_k . v_out at each pixel */
+                VREAL A = (VREAL)0; /* f_k . v_out at each pixel */
 #if WIDE
-            const size_t fb = (size_t)l_cg[k] * CHANNELS;
-            for (int ch = 0; ch < CHANNELS; ++ch) {
-                REAL v_l[PIX];
-                for (int q = 0; q < PIX; ++q)
-                    v_l[q] = pix_l[q] == ~(size_t)0 ? (REAL)0 : v_out[pix_l[q] * CHANNELS + ch];
+                const size_t fb = (size_t)l_cg[k] * CHANNELS;
+                for (int ch = 0; ch < CHANNELS; ++ch) {
+                    REAL v_l[PIX];
+                    for (int q = 0; q < PIX; ++q)
+                        v_l[q] = pix_l[q] == ~(size_t)0 ? (REAL)0 : v_out[pix_l[q] * CHANNELS + ch];
 #if PIX == 1
-                A += feats[fb + ch] * v_l[0];
+                    A += feats[fb + ch] * v_l[0];
 #else
-                A += feats[fb + ch] * CAT(vload, PIX)(0, v_l);
+                    A += feats[fb + ch] * CAT(vload, PIX)(0, v_l);
 #endif
-            }
+                }
 #else
-            for (int ch = 0; ch < CHANNELS; ++ch) A += l_f[CCHUNK * k + ch] * vo[ch];
+#pragma unroll
+                for (int ch = 0; ch < CHANNELS; ++ch) A += l_f[CCHUNK * k + ch] * vo[ch];
 #endif
 #if BWD_DIVIDE
-            VREAL v_alpha = T * A - (B + vT * T_final) * inv_one_m;
-            B += w * A;
+                VREAL v_alpha = T * A - (B + vT * T_final) * inv_one_m;
+                B += w * A;
 #else
-            B -= w * A;
-            VREAL v_alpha = T * A - (B + vT * T_final) * inv_one_m;
+                B -= w * A;
+                VREAL v_alpha = T * A - (B + vT * T_final) * inv_one_m;
 #endif
-            /* The clamp makes alpha constant: nothing flows to sigma or the opacity. */
-            const VMASK live = valid && raw < (REAL)ALPHA_MAX;
-            v_alpha = live ? v_alpha : (VREAL)0;
-            const VREAL v_sigma = -v_alpha * raw;
-            const VREAL vx = v_sigma * (ca * dx + cb * dy), vy = v_sigma * (cb * dx + cc * dy);
-            my[0] = VSUM(vx);
-            my[1] = VSUM(vy);
-            my[2] = VSUM((REAL)0.5 * v_sigma * dx * dx);
-            my[3] = VSUM(v_sigma * dx * dy);
-            my[4] = VSUM((REAL)0.5 * v_sigma * dy * dy);
-            my[5] = VSUM(v_alpha * g);
+                /* The clamp makes alpha constant: nothing flows to sigma or the opacity. */
+                const VMASK live = valid && raw < (REAL)ALPHA_MAX;
+                v_alpha = live ? v_alpha : (VREAL)0;
+                const VREAL v_sigma = -v_alpha * raw;
+                const VREAL vx = v_sigma * (ca * dx + cb * dy), vy = v_sigma * (cb * dx + cc * dy);
+                my[0] = VSUM(vx);
+                my[1] = VSUM(vy);
+                my[2] = VSUM((REAL)0.5 * v_sigma * dx * dx);
+                my[3] = VSUM(v_sigma * dx * dy);
+                my[4] = VSUM((REAL)0.5 * v_sigma * dy * dy);
+                my[5] = VSUM(v_alpha * g);
 #if ABSGRAD
-            my[6] = VSUM(fabs(vx));
-            my[7] = VSUM(fabs(vy));
+                my[6] = VSUM(CLS_FABS(vx));
+                my[7] = VSUM(CLS_FABS(vy));
 #endif
 #endif
 #if !BWD_DIVIDE
-            T = valid ? T * one_m : T;
+                T = valid ? T * one_m : T;
 #endif
+            }
         }
         barrier(CLK_LOCAL_MEM_FENCE);
-        /* Sum each sample's per-item partials in item order and write its slot. */
+        /* Sum each sample's per-item partials in item order and write its slot: an item sums
+         * CLS_MV consecutive partials at once, each lane in item order as one scalar would. */
 #if WAVES == 1
-        for (int idx = lid; idx < nb * PG; idx += GROUP) {
-            const int k = idx / PG, j = idx - k * PG;
-            REAL acc = 0;
-            for (int w = 0; w < GROUP; ++w) acc += part[(k * GROUP + w) * PG + j];
+        for (int v = lid; v < n_vec; v += GROUP) {
+            MVREAL acc = (MVREAL)0;
+            for (int w = 0; w < GROUP; ++w) acc += partv[w * (PB / CLS_MV) + v];
 #else
-        for (int idx = lid; idx < nb * PG; idx += GROUP) l_acc[idx] = 0;
+        for (int v = lid; v < n_vec; v += GROUP) l_accv[v] = (MVREAL)0;
         for (int wave = 0; wave < WAVES; ++wave) {
             if (lid / WAVE == wave)
-                for (int k = 0; k < nb; ++k)
-                    for (int j = 0; j < PG; ++j)
-                        part[(k * WAVE + lid - wave * WAVE) * PG + j] = my_p[k * PG + j];
+                for (int i = 0; i < n_vec * CLS_MV; ++i) part[(lid - wave * WAVE) * PB + i] = my_p[i];
             barrier(CLK_LOCAL_MEM_FENCE);
-            for (int idx = lid; idx < nb * PG; idx += GROUP) {
-                const int k = idx / PG, j = idx - k * PG;
-                REAL acc = l_acc[idx];
-                for (int w = 0; w < WAVE; ++w) acc += part[(k * WAVE + w) * PG + j];
-                l_acc[idx] = acc;
+            for (int v = lid; v < n_vec; v += GROUP) {
+                MVREAL acc = l_accv[v];
+                for (int w = 0; w < WAVE; ++w) acc += partv[w * (PB / CLS_MV) + v];
+                l_accv[v] = acc;
             }
             barrier(CLK_LOCAL_MEM_FENCE);
         }
-        for (int idx = lid; idx < nb * PG; idx += GROUP) {
-            const int k = idx / PG, j = idx - k * PG;
-            const REAL acc = l_acc[idx];
+        for (int v = lid; v < n_vec; v += GROUP) {
+            const MVREAL acc = l_accv[v];
 #endif
-            const int col = j < G_GEOM ? j : SLOT_COLOR0 + ch0 + (j - G_GEOM);
-            if (j >= G_GEOM && ch0 + (j - G_GEOM) >= CHANNELS) continue;
-            slots[(size_t)l_slot[k] * SLOT_G + col] = acc;
+            const REAL *acc_l = (const REAL *)&acc;
+            for (int q = 0; q < CLS_MV; ++q) {
+                const int idx = v * CLS_MV + q;
+                const int k = idx / PG, j = idx - k * PG;
+                if (k >= nb) break;
+                const int col = j < G_GEOM ? j : SLOT_COLOR0 + ch0 + (j - G_GEOM);
+                if (j >= G_GEOM && ch0 + (j - G_GEOM) >= CHANNELS) continue;
+                slots[(size_t)l_slot[k] * SLOT_G + col] = acc_l[q];
+            }
         }
     }
 }

@@ -115,3 +115,20 @@ def test_percall_report(tmp_path, capsys):
         main(["percall", "--scenes", "huge"])
     err = capsys.readouterr().err.strip().splitlines()
     assert e.value.code == 2 and len(err) == 1 and "--scenes" in err[0]
+
+
+def test_composite_report(tmp_path):
+    """``clsplat bench composite``: both compositing implementations side by side, same images."""
+    assert main(["composite", "--quick", "--out", str(tmp_path), "--repeats", "1"]) == 0
+    r = json.loads((tmp_path / "composite.json").read_text())
+    assert (tmp_path / "composite.md").read_text().startswith("## Compositing")
+    for key in ("A", "B"):
+        s = r["scenes"][key]
+        assert all(s["bitwise_equal"].values()), s["max_abs_diff"]
+        ev = s["evaluations"]
+        assert 0 < ev["kernel_alpha"] <= ev["kernel"] and ev["useful"] <= ev["kernel"]
+        for impl in ("baseline", "tuned"):
+            t = s["impls"][impl]
+            assert t["stages_ms"]["composite"]["median"] > 0 and t["composite_pct_peak"] > 0
+            assert t["fwd_bwd"]["composite_bwd"]["median"] > 0
+        assert s["speedup"]["fwd_bwd_kernels"] > 0 and len(s["speedup"]["fwd_bwd_per_round"]) == 1

@@ -4,7 +4,9 @@ Oclgrind (Debian ``oclgrind``) simulates a strict OpenCL 1.2 device. Each case r
 subprocess whose only OpenCL platform is Oclgrind (an ICD folder holding one ``.icd`` file,
 named by ``OCL_ICD_VENDORS``), with its data-race checker on, in the CPU layout (vectors of
 pixels per work-item, serial segment sort) and in the GPU layout (one pixel per work-item,
-bitonic sort in local memory), tile 16 and 32, float32 and float64. Images and every
+bitonic sort in local memory), tile 16 and 32, float32 and float64; Oclgrind's device counts
+as a CPU, so these run the tuned compositing kernels, and two more cases the baseline ones
+(``RenderConfig(composite_impl="baseline")``, the GPU default). Images and every
 gradient must match PoCL's, and no report may name a clsplat kernel (pyopencl's own scan has
 a read-write race of its own; see README). The uninitialised-memory checker runs the whole
 forward and the compositing backward on both host-memory paths, with the scan done on the
@@ -53,6 +55,10 @@ _SCRIPT = textwrap.dedent('''
     K = torch.tensor([[[36.0, 0, W / 2], [0, 36, H / 2], [0, 0, 1]]], dtype=dt)
     if layout == "gpu":
         cfg = clsplat.RenderConfig(pix=1, sort_layout="bitonic", sort_local=8)
+    elif layout == "gpu-baseline":  # Oclgrind counts as a CPU: the tuned kernels are its default
+        cfg = clsplat.RenderConfig(pix=1, sort_layout="bitonic", sort_local=8, composite_impl="baseline")
+    elif layout == "cpu-baseline":
+        cfg = clsplat.RenderConfig(sort_layout="serial", composite_impl="baseline")
     elif layout == "cpu":
         cfg = clsplat.RenderConfig(sort_layout="serial")
     else:
@@ -145,7 +151,8 @@ needs_oclgrind = pytest.mark.skipif(
 
 _CASES = [("float32", "cpu", 16), ("float64", "cpu", 16),
           ("float32", "gpu", 16), ("float32", "gpu", 32),
-          ("float64", "gpu", 16), ("float64", "gpu", 32)]
+          ("float64", "gpu", 16), ("float64", "gpu", 32),
+          ("float32", "cpu-baseline", 16), ("float32", "gpu-baseline", 16)]
 
 
 @pytest.fixture(scope="module")

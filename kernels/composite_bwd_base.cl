@@ -1,0 +1,271 @@
+/* composite_bwd.cl — backward of compositing: per-intersection gradient slots.
+ *
+ * One work-group per tile, the forward's pixel layout. For every sample a pixel composited,
+ * with w_i = alpha_i T_i, out = sum_i f_i w_i and T_final = prod_i (1 - alpha_i):
+ *   d out / d f_i       = w_i
+ *   d out / d alpha_i   = T_i f_i - S_i / (1 - alpha_i),   S_i = sum_{j > i} f_j w_j
+ *   d T_final / d alpha_i = -T_final / (1 - alpha_i)
+ * and alpha_i = o_i exp(-sigma_i) unless the ALPHA_MAX clamp was active, in which case no
+ * gradient reaches o_i or sigma_i. Samples the forward skipped (alpha < ALPHA_MIN, sigma < 0)
+ * or never reached (past the pixel's last contributor) get none either: the forward's
+ * decisions are replayed exactly, with the same arithmetic.
+ *
+ * Only the dot products with the pixel's v_out enter d loss / d alpha_i: with
+ * A_i = f_i . v_out and B_i = S_i . v_out = sum_{j > i} w_j A_j,
+ *   d loss / d alpha_i = T_i A_i - (B_i + v_T T_final) / (1 - alpha_i),
+ * so each pixel carries one running scalar B, not one per channel.
+ *
+ * T_i is recovered in one of two ways (BWD_DIVIDE):
+ *   0 (replay, default): walk front to back as the forward did, so T_i is the forward's own
+ *     running product and B_i = out . v_out - sum_{j <= i} w_j A_j. No division by 1 - alpha.
+ *   1 (divide): walk back to front from T_final with T_i = T_{i+1} / (1 - alpha_i),
+ *     accumulating B_i. Rounding grows with every division through an opaque stack.
+ *
+ * Channel chunks (gsplat's channel_chunk): a launch writes the colour gradients of CCHUNK
+ * channels from ch0 on; the geometry gradients (GEOM_GRAD, first launch only) need A_i over
+ * all CHANNELS, which come from local memory when they fit in one chunk and from global
+ * memory otherwise (WIDE), so local and private memory stay bounded for any channel count.
+ *
+ * The pixel sums of each sample's gradient are reduced inside the group in a fixed order and
+ * written to that intersection's slot; no float atomics, so results are bitwise reproducible.
+ * The partials of a batch are summed over the group's items in item order. With WAVES > 1
+ * (large groups, e.g. 32x32 tiles at one pixel per item) each item keeps its partials in
+ * private memory and the items hand them over in WAVES waves of GROUP / WAVES, so local
+ * memory holds one wave; the sums, and so the results, are the same as with one wave.
+ *
+ * Slot layout (SLOT_G values): [geometry: v_xy(2) v_conic(3) v_opacity(1) (|v_xy|(2))]
+ * [colour: v_feat(CHANNELS)], the colour block starting at column SLOT_COLOR0.
+ *
+ * Build parameters: REAL_DOUBLE, TILE, PIX, BATCH, CHANNELS, CCHUNK, GEOM_GRAD, COLOR_GRAD,
+ * ABSGRAD, BWD_DIVIDE, SLOT_G, SLOT_COLOR0, WAVES, ALPHA_MIN, ALPHA_MAX.
+ */
+
+#define GROUP (TILE * TILE / PIX)
+#define ITEMS_PER_ROW (TILE / PIX)
+#define G_GEOM (GEOM_GRAD ? (ABSGRAD ? 8 : 6) : 0)
+#define PG (G_GEOM + (COLOR_GRAD ? CCHUNK : 0)) /* partials per item and sample, this launch */
+#define WIDE (CHANNELS > CCHUNK)
+#define WAVE (GROUP / WAVES)
+
+__kernel __attribute__((reqd_work_group_size(GROUP, 1, 1)))
+void composite_bwd(const int width, const int height, const int tiles_x, const int tiles_per_cam,
+                   const int N, const int ch0,
+                   __global const int *tile_offsets, /* [C * tiles_per_cam + 1] */
+                   __global const ulong *keys,       /* [M] sorted per segment */
+                   __global const int *rects,        /* [C, N, 4] */
+                   __global const int *isect_offsets,/* [C * N] first slot of each pair */
+                   __global const REAL *means2d,     /* [C, N, 2] */
+                   __global const REAL *conics,      /* [C, N, 3] */
+                   __global const REAL *opac_cg,     /* [C, N] */
+                   __global const REAL *extents,     /* [C, N, 2] */
+                   __global const REAL *feats,       /* [C, N, CHANNELS] */
+                   __global const REAL *out_feats,   /* [C, H, W, CHANNELS] forward result */
+                   __global const REAL *out_T,       /* [C, H, W] */
+                   __global const int *out_last,     /* [C, H, W] */
+                   __global const REAL *v_out,       /* [C, H, W, CHANNELS] */
+                   __global const REAL *v_T,         /* [C, H, W] */
+                   __global REAL *slots)             /* [M, SLOT_G] */
+{
+    __local REAL l_xy[2 * BATCH], l_conic[3 * BATCH], l_op[BATCH], l_ext[2 * BATCH];
+    __local REAL l_f[(WIDE ? 1 : CCHUNK) * BATCH];
+    __local int l_slot[BATCH];
+    __local uint l_cg[BATCH];
+    __local REAL part[BATCH * WAVE * PG];
+#if WAVES > 1
+    __local REAL l_acc[BATCH * PG];
+    REAL my_p[BATCH * PG];
+#endif
+    __local int l_max_last;
+
+    const int tile = get_group_id(0), lid = get_local_id(0);
+    const int c = tile / tiles_per_cam, t = tile - c * tiles_per_cam;
+    const int ty = t / tiles_x, tx = t - ty * tiles_x;
+    const int row = lid / ITEMS_PER_ROW;
+    const int py = ty * TILE + row, px0 = tx * TILE + (lid - row * ITEMS_PER_ROW) * PIX;
+
+    /* Per-lane state, gathered from the forward's per-pixel outputs. */
+    REAL Tf_l[PIX], lastf_l[PIX], vT_l[PIX], B_l[PIX], vo_l[PIX * CCHUNK];
+    size_t pix_l[PIX]; /* pixel index of each lane, or ~0 outside the image */
+    int my_max = 0;
+    for (int q = 0; q < PIX; ++q) {
+        const int px = px0 + q;
+        const int ok = px < width && py < height;
+        const size_t pix = ((size_t)c * height + (ok ? py : 0)) * width + (ok ? px : 0);
+        pix_l[q] = ok ? pix : ~(size_t)0;
+        Tf_l[q] = ok ? out_T[pix] : (REAL)1;
+        const int lst = ok ? out_last[pix] : 0;
+        lastf_l[q] = (REAL)lst;
+        my_max = max(my_max, lst);
+        vT_l[q] = ok ? v_T[pix] : (REAL)0;
+        REAL b = 0;
+#if GEOM_GRAD && !BWD_DIVIDE
+        for (int ch = 0; ch < CHANNELS && ok; ++ch) b += out_feats[pix * CHANNELS + ch] * v_out[pix * CHANNELS + ch];
+#endif
+        B_l[q] = b;
+        for (int ch = 0; ch < CCHUNK; ++ch)
+            vo_l[PIX * ch + q] = ok && ch0 + ch < CHANNELS ? v_out[pix * CHANNELS + ch0 + ch] : (REAL)0;
+    }
+#if PIX == 1
+    const VREAL T_final = Tf_l[0], last = lastf_l[0], vT = vT_l[0];
+    VREAL B = B_l[0];
+#else
+    const VREAL T_final = CAT(vload, PIX)(0, Tf_l), last = CAT(vload, PIX)(0, lastf_l);
+    const VREAL vT = CAT(vload, PIX)(0, vT_l);
+    VREAL B = CAT(vload, PIX)(0, B_l);
+#endif
+    VREAL vo[CCHUNK];
+    for (int ch = 0; ch < CCHUNK; ++ch) {
+#if PIX == 1
+        vo[ch] = vo_l[ch];
+#else
+        vo[ch] = CAT(vload, PIX)(0, vo_l + PIX * ch);
+#endif
+    }
+    const VREAL pxc = (REAL)px0 + VRAMP + (REAL)CLS_PIXEL_CENTRE;
+    const REAL pyc = (REAL)py + (REAL)CLS_PIXEL_CENTRE;
+
+    if (lid == 0) l_max_last = 0;
+    barrier(CLK_LOCAL_MEM_FENCE);
+    atomic_max(&l_max_last, my_max);
+    barrier(CLK_LOCAL_MEM_FENCE);
+    const int start = tile_offsets[tile];
+    const int n_used = l_max_last; /* samples past every pixel's last contributor: no gradient */
+    const int n_batches = (n_used + BATCH - 1) / BATCH;
+#if BWD_DIVIDE
+    VREAL T = T_final;
+#else
+    VREAL T = (VREAL)1;
+#endif
+
+    for (int bi = 0; bi < n_batches; ++bi) {
+#if BWD_DIVIDE
+        const int b0 = (n_batches - 1 - bi) * BATCH; /* back to front */
+#else
+        const int b0 = bi * BATCH;
+#endif
+        const int nb = min(BATCH, n_used - b0);
+        barrier(CLK_LOCAL_MEM_FENCE);
+        for (int i = lid; i < nb; i += GROUP) {
+            const uint cg = key_id(keys[start + b0 + i]);
+            stage_sample(i, cg, means2d, conics, opac_cg, extents, feats, l_xy, l_conic, l_op,
+                         l_ext, l_f, 0, (GEOM_GRAD && !WIDE) ? CCHUNK : 0);
+            l_cg[i] = cg;
+            /* The slot of (pair, tile): the pair's first slot plus the tile's position in
+             * its row-major tile rectangle, the order in which its tiles were counted. */
+            const int4 r = vload4(cg, rects);
+            l_slot[i] = isect_offsets[cg] + (ty - r.y) * (r.z - r.x) + (tx - r.x);
+        }
+        barrier(CLK_LOCAL_MEM_FENCE);
+
+        for (int kk = 0; kk < nb; ++kk) {
+#if BWD_DIVIDE
+            const int k = nb - 1 - kk;
+#else
+            const int k = kk;
+#endif
+#if WAVES == 1
+            __local REAL *my = part + (k * GROUP + lid) * PG;
+#else
+            REAL *my = my_p + k * PG;
+#endif
+            for (int j = 0; j < PG; ++j) my[j] = 0;
+            if (outside_extent(l_xy[2 * k], l_xy[2 * k + 1], l_ext[2 * k], l_ext[2 * k + 1],
+                               (REAL)px0 + (REAL)CLS_PIXEL_CENTRE,
+                               (REAL)(px0 + PIX - 1) + (REAL)CLS_PIXEL_CENTRE, pyc))
+                continue; /* the forward skipped it too */
+            const REAL pos = (REAL)(b0 + k + 1);
+            const VREAL dx = l_xy[2 * k] - pxc;
+            const REAL dy = l_xy[2 * k + 1] - pyc;
+            const REAL ca = l_conic[3 * k], cb = l_conic[3 * k + 1], cc = l_conic[3 * k + 2];
+            const VREAL sigma = (REAL)0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy;
+            const VREAL g = exp(-sigma);
+            const VREAL raw = l_op[k] * g;
+            const VREAL alpha = fmin((VREAL)(REAL)ALPHA_MAX, raw);
+            const VMASK valid = pos <= last && sigma >= (REAL)0 && alpha >= (REAL)ALPHA_MIN;
+            if (!VANY(valid)) continue;
+            const VREAL one_m = (REAL)1 - alpha;
+            const VREAL inv_one_m = (REAL)1 / one_m;
+#if BWD_DIVIDE
+            T = valid ? T * inv_one_m : T;
+#endif
+            const VREAL w = valid ? alpha * T : (VREAL)0;
+#if COLOR_GRAD
+            for (int ch = 0; ch < CCHUNK; ++ch) my[G_GEOM + ch] = VSUM(w * vo[ch]);
+#endif
+#if GEOM_GRAD
+            VREAL A = (VREAL)0; /* f_k . v_out at each pixel */
+#if WIDE
+            const size_t fb = (size_t)l_cg[k] * CHANNELS;
+            for (int ch = 0; ch < CHANNELS; ++ch) {
+                REAL v_l[PIX];
+                for (int q = 0; q < PIX; ++q)
+                    v_l[q] = pix_l[q] == ~(size_t)0 ? (REAL)0 : v_out[pix_l[q] * CHANNELS + ch];
+#if PIX == 1
+                A += feats[fb + ch] * v_l[0];
+#else
+                A += feats[fb + ch] * CAT(vload, PIX)(0, v_l);
+#endif
+            }
+#else
+            for (int ch = 0; ch < CHANNELS; ++ch) A += l_f[CCHUNK * k + ch] * vo[ch];
+#endif
+#if BWD_DIVIDE
+            VREAL v_alpha = T * A - (B + vT * T_final) * inv_one_m;
+            B += w * A;
+#else
+            B -= w * A;
+            VREAL v_alpha = T * A - (B + vT * T_final) * inv_one_m;
+#endif
+            /* The clamp makes alpha constant: nothing flows to sigma or the opacity. */
+            const VMASK live = valid && raw < (REAL)ALPHA_MAX;
+            v_alpha = live ? v_alpha : (VREAL)0;
+            const VREAL v_sigma = -v_alpha * raw;
+            const VREAL vx = v_sigma * (ca * dx + cb * dy), vy = v_sigma * (cb * dx + cc * dy);
+            my[0] = VSUM(vx);
+            my[1] = VSUM(vy);
+            my[2] = VSUM((REAL)0.5 * v_sigma * dx * dx);
+            my[3] = VSUM(v_sigma * dx * dy);
+            my[4] = VSUM((REAL)0.5 * v_sigma * dy * dy);
+            my[5] = VSUM(v_alpha * g);
+#if ABSGRAD
+            my[6] = VSUM(fabs(vx));
+            my[7] = VSUM(fabs(vy));
+#endif
+#endif
+#if !BWD_DIVIDE
+            T = valid ? T * one_m : T;
+#endif
+        }
+        barrier(CLK_LOCAL_MEM_FENCE);
+        /* Sum each sample's per-item partials in item order and write its slot. */
+#if WAVES == 1
+        for (int idx = lid; idx < nb * PG; idx += GROUP) {
+            const int k = idx / PG, j = idx - k * PG;
+            REAL acc = 0;
+            for (int w = 0; w < GROUP; ++w) acc += part[(k * GROUP + w) * PG + j];
+#else
+        for (int idx = lid; idx < nb * PG; idx += GROUP) l_acc[idx] = 0;
+        for (int wave = 0; wave < WAVES; ++wave) {
+            if (lid / WAVE == wave)
+                for (int k = 0; k < nb; ++k)
+                    for (int j = 0; j < PG; ++j)
+                        part[(k * WAVE + lid - wave * WAVE) * PG + j] = my_p[k * PG + j];
+            barrier(CLK_LOCAL_MEM_FENCE);
+            for (int idx = lid; idx < nb * PG; idx += GROUP) {
+                const int k = idx / PG, j = idx - k * PG;
+                REAL acc = l_acc[idx];
+                for (int w = 0; w < WAVE; ++w) acc += part[(k * WAVE + w) * PG + j];
+                l_acc[idx] = acc;
+            }
+            barrier(CLK_LOCAL_MEM_FENCE);
+        }
+        for (int idx = lid; idx < nb * PG; idx += GROUP) {
+            const int k = idx / PG, j = idx - k * PG;
+            const REAL acc = l_acc[idx];
+#endif
+            const int col = j < G_GEOM ? j : SLOT_COLOR0 + ch0 + (j - G_GEOM);
+            if (j >= G_GEOM && ch0 + (j - G_GEOM) >= CHANNELS) continue;
+            slots[(size_t)l_slot[k] * SLOT_G + col] = acc;
+        }
+    }
+}
