@@ -14,12 +14,14 @@
 #                    this (the default reads the load: the sitting's own previous run must not
 #                    decide it); unset: no wait
 #   COMPETE=1        run one CPU-bound busy loop beside the whole sitting (the "loaded" case)
+#   BEFORE_PY=PATH   config "before": the same command with this python (a venv importing an older
+#                    tree, e.g. the commit an issue started from) and that tree's own defaults;
+#                    BEFORE_FAMILIES (default "drivingforward pgt") says for which families
 set -u
 OUT=$1; ROUNDS=${2:-2}; RUN=$(mktemp -d)
 FAMILIES=${FAMILIES:-drivingforward pgt autosplat}
 CONFIGS=${CONFIGS:-t1 default t2 t2spin}
 export POCL_MAX_WORK_GROUP_SIZE=256
-SP=".venv/bin/python bench/experiments/step_profile.py"
 HOG=
 if [ "${COMPETE:-0}" = 1 ]; then
  python3 -c "while True: pass" & HOG=$!
@@ -43,10 +45,13 @@ for r in $(seq "$ROUNDS"); do
     default) E="A=1"; T=""; wait_quiet;;
     t2) E="A=1"; T="--threads 2";;
     t2spin) E="CLSPLAT_THREAD_DEFAULTS=0"; T="--threads 2";;
+    before) case " ${BEFORE_FAMILIES:-drivingforward pgt} " in *" $fam "*) ;; *) continue;; esac
+            E="A=1"; T="";;
     t2s*) E="CLSPLAT_THREAD_DEFAULTS=0 GOMP_SPINCOUNT=${cfg#t2s}"; T="--threads 2";;  # e.g. t2s10000
    esac
    rm -rf "$RUN/$fam"
-   env $E $SP --skip $SK --json "$OUT" --label "r$r $cfg${HOG:+ loaded}" -- $ARGS --out "$RUN/$fam" $T > "$RUN/last.log" 2>&1 \
+   PYB=.venv/bin/python; [ "$cfg" = before ] && PYB=$BEFORE_PY
+   env $E $PYB bench/experiments/step_profile.py --skip $SK --json "$OUT" --label "r$r $cfg${HOG:+ loaded}" -- $ARGS --out "$RUN/$fam" $T > "$RUN/last.log" 2>&1 \
      || echo "FAIL r$r $fam $cfg (see $RUN/last.log)" >&2
   done
  done
