@@ -42,13 +42,14 @@ def test_issue18_budget_stage_trains_on_many_views_from_a_base_with_other_budget
     defaults: only the base network has to match; its importance head trains."""
     out = tmp_path / "b18"
     sets = ["budget_views=4", "selection='stratified'", "importance_head=True", "coverage_input=True",
-            "target='density'", "kappa_schedule='log_uniform'", "kappa_min=0.02", "fill_cap_px=8.0"]
+            "target='density'", "kappa_schedule='log_uniform'", "kappa_min=0.02", "fill_cap_px=8.0",
+            "budget_colour=True"]
     assert train(["--stage", "budget", "--init", str(runs / "base" / "checkpoint.pt"), "--preset", "tiny",
                   "--steps", "2", "--eval-scenes", "0", "--out", str(out)] + [a for s in sets for a in ("--set", s)]) == 0
     ck = torch.load(out / "checkpoint.pt", weights_only=True)
     base = torch.load(runs / "base" / "checkpoint.pt", weights_only=True)["model"]
     assert not torch.equal(ck["model"]["budget.importance.2.weight"], base["heads.opacity.2.weight"])
-    assert "budget.cover.weight" in ck["model"]
+    assert "budget.cover.weight" in ck["model"] and "budget.colour.2.weight" in ck["model"]
     logs = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     assert all(0.02 <= r["kappa"] <= 0.95 for r in logs)
     # another base network is still refused by name

@@ -100,7 +100,7 @@ def test_prediction_moves_with_the_world_frame():
 
 #: issue 18's budget stage: importance head, coverage input, stratified selection, density target, fill cap
 ISSUE18 = TINY.replace(selection="stratified", importance_head=True, coverage_input=True, target="density",
-                       fill_cap_px=8.0, kappa_schedule="log_uniform", kappa_min=0.02)
+                       fill_cap_px=8.0, kappa_schedule="log_uniform", kappa_min=0.02, budget_colour=True)
 
 
 @pytest.mark.parametrize("preset", [TINY, ISSUE18], ids=["ecosplat", "issue18"])
@@ -178,7 +178,7 @@ def test_issue18_heads_start_as_the_base_and_select_by_importance(model):
     g = o.gaussians()
     cap = torch.maximum(torch.full_like(o.footprint, ISSUE18.scale_cap), 8.0 * o.footprint)[o.keep]
     assert (g.scales <= cap[:, None] + 1e-6).all()
-    no_cap = PGT(ISSUE18.replace(fill_cap_px=0.0))
+    no_cap = PGT(ISSUE18.replace(fill_cap_px=0.0)).enable_budget()
     no_cap.load_state_dict(m.state_dict())
     with torch.no_grad():
         assert no_cap(images, Ks, c2w, kappa=0.1).gaussians().scales.max() <= ISSUE18.scale_cap + 1e-6

@@ -62,13 +62,16 @@ class BudgetHeads(nn.Module):
     opacity) gives the selection score, and the opacity is left to rendering (EcoSplat selects by
     the opacity itself). With ``coverage``, a zero-initialised 3x3 conv of the cross-view share
     1/n (:func:`cross_view_coverage`, from the model's own depth) is added to the features too.
+    With ``colour`` and base heads without a colour head (colour from the source pixel), a
+    zero-initialised colour residual head lets a kept Gaussian take the colour of what it stands
+    for (its pruned neighbours), not only its own pixel's.
 
     forward(feat [V, C, H, W], kappa float, share [V, H, W] or None) -> :class:`RawGaussians`
     (``importance`` [V, 1, H, W] logits when the head exists).
     """
 
     def __init__(self, heads: GaussianHeads, channels: int, kernel: int = 7, importance: bool = False,
-                 coverage: bool = False) -> None:
+                 coverage: bool = False, colour: bool = False) -> None:
         super().__init__()
         self.heads = copy.deepcopy(heads)
         self.rate = nn.Conv2d(1, channels, kernel, padding=kernel // 2)
@@ -80,6 +83,12 @@ class BudgetHeads(nn.Module):
             self.cover = nn.Conv2d(1, channels, 3, padding=1)
             nn.init.zeros_(self.cover.weight)
             nn.init.zeros_(self.cover.bias)
+        self.colour = None
+        if colour and heads.colour is None:
+            self.colour = nn.Sequential(nn.Conv2d(channels, channels, 3, padding=1), nn.ReLU(inplace=True),
+                                        nn.Conv2d(channels, 3, 1))
+            nn.init.zeros_(self.colour[2].weight)
+            nn.init.zeros_(self.colour[2].bias)
 
     def forward(self, feat: Tensor, kappa: float, share: Tensor | None = None) -> RawGaussians:
         V, _, H, W = feat.shape
@@ -90,6 +99,8 @@ class BudgetHeads(nn.Module):
                 raise ValueError("share: the coverage-conditioned budget heads need the cross-view share map")
             x = x + self.cover(share[:, None].to(feat.dtype))
         raw = self.heads(x)
+        if self.colour is not None:
+            raw.colour = self.colour(x)
         if self.importance is not None:
             raw.importance = self.importance(x)
         return raw

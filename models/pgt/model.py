@@ -148,7 +148,7 @@ class PGT(nn.Module):
         if self.budget is None:
             p = self.preset
             self.budget = BudgetHeads(self.heads, p.head_channels, p.rate_kernel, importance=p.importance_head,
-                                      coverage=p.coverage_input)
+                                      coverage=p.coverage_input, colour=p.budget_colour)
         for name, prm in self.named_parameters():
             prm.requires_grad_(name.startswith("budget."))
         return self
