@@ -11,7 +11,8 @@ With κ < 1 (after :meth:`PGT.enable_budget`), the copied heads (:class:`~.budge
 give the parameters and K_v pixels per view are kept (K_v from the views' high-frequency
 energy): the top-K_v by their opacity (EcoSplat, ``selection="topk"``) or, with
 ``selection="stratified"``, spread in proportion to the score (:func:`~.budget.stratified_mask`);
-the score is the opacity, or the importance head's when the preset has one. κ = 1 (or None) never runs the copies: it is the base model, bitwise.
+the score is the opacity, or the importance head's when the preset has one. κ = 1 (or None)
+never runs the copies: it is the base model, bitwise.
 """
 from __future__ import annotations
 
@@ -189,7 +190,8 @@ class PGT(nn.Module):
                 coverage = cross_view_coverage(depth, Ks, cam_to_world, p.coverage_tol)[0]
                 share = 1.0 / coverage.to(depth.dtype)
             raw = self.budget(feat, kappa, share)
-            cap = p.scale_cap if p.fill_cap_px <= 0 else _cap(p.scale_cap, p.fill_cap_px, depth / fx[:, None, None])[..., None]
+            cap = (p.scale_cap if p.fill_cap_px <= 0
+                   else _cap(p.scale_cap, p.fill_cap_px, depth / fx[:, None, None])[..., None])
         else:
             raw = self.heads(feat)
             cap = p.scale_cap
