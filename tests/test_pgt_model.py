@@ -100,7 +100,8 @@ def test_prediction_moves_with_the_world_frame():
 
 #: issue 18's budget stage: importance head, coverage input, stratified selection, density target, fill cap
 ISSUE18 = TINY.replace(selection="stratified", importance_head=True, coverage_input=True, target="density",
-                       fill_cap_px=8.0, kappa_schedule="log_uniform", kappa_min=0.02, budget_colour=True)
+                       fill_cap_px=8.0, kappa_schedule="log_uniform", kappa_min=0.02, budget_colour=True,
+                       learned_fill=True)
 
 
 @pytest.mark.parametrize("preset", [TINY, ISSUE18], ids=["ecosplat", "issue18"])
@@ -172,6 +173,12 @@ def test_issue18_heads_start_as_the_base_and_select_by_importance(model):
     for f in ("quats", "opacities", "sh"):
         assert torch.equal(getattr(o, f), getattr(base, f)), f
     torch.testing.assert_close(o.importance, base.opacities)
+    assert o.fill_log is not None and o.fill_log.eq(0).all()  # the learned fill starts as the fill
+    with torch.no_grad():
+        m.budget.fill[2].bias.copy_(torch.tensor([1.0, -1.0, 0.0]))
+        wide = m(images, Ks, c2w, kappa=0.1)
+    a, b = o.gaussians().scales, wide.gaussians().scales
+    assert (b[:, 0] >= a[:, 0]).all() and (b[:, 1] <= a[:, 1]).all() and not torch.equal(a, b)
     assert o.coverage is not None and o.coverage.min() >= 1
     topk = base.opacities[0][o.keep[0]].min() >= base.opacities[0][~o.keep[0]].max()
     assert not topk

@@ -45,6 +45,25 @@ from clsplat.models.pgt.model import PGT
 from clsplat.models.pgt.training import render_views
 
 
+def prefiltered(base, keep: torch.Tensor, images: torch.Tensor, window: int):
+    """The base output's kept Gaussians with each colour replaced by the source image blurred at
+    the scale the Gaussian is widened to (σ = g/2 px, g = fill gain; nearest of a few levels):
+    the oracle of what a colour head could learn (anti-aliasing before thinning)."""
+    import kornia
+    from clsplat.models.common.gaussians import rgb_to_sh
+    from clsplat.models.pgt.budget import fill_gain
+    V, _, H, W = images.shape
+    sig = 0.5 * fill_gain(keep, window)  # [V, H, W]
+    levels = [0.0, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0]
+    blurred = [images] + [kornia.filters.gaussian_blur2d(images, (2 * int(3 * s) + 1,) * 2, (s, s),
+                                                         border_type="reflect") for s in levels[1:]]
+    idx = torch.argmin((sig[None] - torch.tensor(levels)[:, None, None, None]).abs(), 0)  # [V, H, W]
+    stack = torch.stack(blurred)  # [L, V, 3, H, W]
+    col = torch.gather(stack, 0, idx[None, :, None].expand(1, V, 3, H, W))[0].permute(0, 2, 3, 1)
+    out = dataclasses.replace(base, sh=rgb_to_sh(col.reshape(-1, 3)).reshape(V, H, W, 1, 3))
+    return out.gaussians(keep)
+
+
 def load(path: str, sets: list[str] | None = None, **changes) -> tuple[PGT, object]:
     ck = load_checkpoint(path, "pgt")
     preset = apply_sets(preset_from_saved("pgt", ck["preset"]), sets or [])
@@ -65,6 +84,7 @@ def main() -> None:
     ap.add_argument("--num-scenes", type=int, default=4)
     ap.add_argument("--targets", default="1:0.1,0:0.1", help="w_redundancy:floor pairs of oracle rows ('' none)")
     ap.add_argument("--compare", nargs="*", default=[], help="other budget checkpoints (training-time ablations)")
+    ap.add_argument("--prefilter", action="store_true", help="add the colour-prefilter oracle rows")
     ap.add_argument("--no-variants", action="store_true", help="skip the topk / nofillcap rows")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--seed", type=int, default=0)
@@ -116,6 +136,9 @@ def main() -> None:
                          for m in BASELINES}
                 for m, keep in masks.items():
                     score(m, kappa, base.gaussians(keep), s, covered)
+                    if args.prefilter and m in ("random", "grid"):
+                        score(f"{m}:prefilter", kappa, prefiltered(base, keep, s.images, preset.fill_window), s,
+                              covered)
                     if not args.no_variants and preset.fill_cap_px > 0 and m in ("random", "grid"):
                         base.fill_cap_px = 0.0
                         score(f"{m}:nofillcap", kappa, base.gaussians(keep), s, covered)
@@ -124,6 +147,9 @@ def main() -> None:
                     dens = density_target(s.images, 1.0 / count.float(), fl, w)
                     keep = stratified_mask(dens, K)
                     score(f"target:w={w:g},floor={fl:g}", kappa, base.gaussians(keep), s, covered)
+                    if args.prefilter:
+                        score(f"target:w={w:g},floor={fl:g}:prefilter", kappa,
+                              prefiltered(base, keep, s.images, preset.fill_window), s, covered)
                 if has_budget:
                     out = model(s.images, s.Ks, s.cam_to_world, kappa=kappa)
                     score("finetuned", kappa, out.gaussians(), s, covered)

@@ -64,14 +64,16 @@ class BudgetHeads(nn.Module):
     1/n (:func:`cross_view_coverage`, from the model's own depth) is added to the features too.
     With ``colour`` and base heads without a colour head (colour from the source pixel), a
     zero-initialised colour residual head lets a kept Gaussian take the colour of what it stands
-    for (its pruned neighbours), not only its own pixel's.
+    for (its pruned neighbours), not only its own pixel's. With ``fill``, a zero-initialised head
+    gives per-axis log-multipliers of the fill widening (:meth:`~.model.PGTOutput.gaussians`), so a
+    kept Gaussian can stretch along an edge and stay thin across it instead of growing round.
 
     forward(feat [V, C, H, W], kappa float, share [V, H, W] or None) -> :class:`RawGaussians`
     (``importance`` [V, 1, H, W] logits when the head exists).
     """
 
     def __init__(self, heads: GaussianHeads, channels: int, kernel: int = 7, importance: bool = False,
-                 coverage: bool = False, colour: bool = False) -> None:
+                 coverage: bool = False, colour: bool = False, fill: bool = False) -> None:
         super().__init__()
         self.heads = copy.deepcopy(heads)
         self.rate = nn.Conv2d(1, channels, kernel, padding=kernel // 2)
@@ -89,6 +91,12 @@ class BudgetHeads(nn.Module):
                                         nn.Conv2d(channels, 3, 1))
             nn.init.zeros_(self.colour[2].weight)
             nn.init.zeros_(self.colour[2].bias)
+        self.fill = None
+        if fill:
+            self.fill = nn.Sequential(nn.Conv2d(channels, channels, 3, padding=1), nn.ReLU(inplace=True),
+                                      nn.Conv2d(channels, 3, 1))
+            nn.init.zeros_(self.fill[2].weight)
+            nn.init.zeros_(self.fill[2].bias)
 
     def forward(self, feat: Tensor, kappa: float, share: Tensor | None = None) -> RawGaussians:
         V, _, H, W = feat.shape
@@ -101,6 +109,8 @@ class BudgetHeads(nn.Module):
         raw = self.heads(x)
         if self.colour is not None:
             raw.colour = self.colour(x)
+        if self.fill is not None:
+            raw.fill = self.fill(x)
         if self.importance is not None:
             raw.importance = self.importance(x)
         return raw

@@ -76,13 +76,15 @@ class DepthResidualHead(nn.Module):
 class RawGaussians:
     """Raw head outputs per pixel: rotation [V, 4, H, W], scale [V, 3, H, W], opacity [V, 1, H, W],
     colour [V, 3K, H, W] or None (colour taken from the source pixel); importance [V, 1, H, W]
-    logits of the budget stage's selection score when it has its own head (else None)."""
+    logits of the budget stage's selection score when it has its own head (else None); fill
+    [V, 3, H, W] the budget stage's per-axis log-multipliers of the fill widening (else None)."""
 
     rotation: Tensor
     scale: Tensor
     opacity: Tensor
     colour: Tensor | None
     importance: Tensor | None = None
+    fill: Tensor | None = None
 
 
 class GaussianHeads(nn.Module):

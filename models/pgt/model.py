@@ -49,7 +49,8 @@ class PGTOutput:
     footprint: [V, H, W] one pixel's width at the Gaussian's depth (depth / fx, metres);
     fill_window, scale_cap, fill_cap_px: see :meth:`gaussians`; importance: [V, H, W] the
     selection score in [0, 1] (None at κ = 1); coverage: long [V, H, W] views seeing each pixel's
-    point (None unless the budget path computed it).
+    point (None unless the budget path computed it); fill_log: [V, H, W, 3] per-axis log-multipliers
+    of the fill widening from the budget heads (None: 0).
     """
 
     u0: Tensor
@@ -71,6 +72,7 @@ class PGTOutput:
     fill_cap_px: float = 0.0
     importance: Tensor | None = None
     coverage: Tensor | None = None
+    fill_log: Tensor | None = None
 
     def gaussians(self, keep: Tensor | None = None) -> GaussianSet:
         """The kept Gaussians (``keep`` [V, H, W] bool overrides :attr:`keep`; None keeps all),
@@ -81,14 +83,17 @@ class PGTOutput:
         ``fill_window`` square around it) (:func:`~.budget.fill_gain`), its variance grows by
         (g² - 1)·(footprint/2)², i.e. from one pixel's area to g² pixels' (capped at ``scale_cap``
         metres, or at ``fill_cap_px`` footprints where that is larger). The same for every pruning
-        method; nothing changes without a mask (or where g = 1).
+        method; nothing changes without a mask (or where g = 1). With learned ``fill_log`` (the
+        budget heads', ``learned_fill``) the added variance is multiplied by exp(2·fill_log) per axis.
         """
         keep = self.keep if keep is None else keep
         scales = self.scales
         if keep is not None and self.fill_window > 0 and self.footprint is not None:
             g2 = fill_gain(keep, self.fill_window) ** 2
-            extra = (g2 - 1.0) * (0.5 * self.footprint) ** 2
-            scales = (scales ** 2 + extra[..., None]).sqrt()
+            extra = ((g2 - 1.0) * (0.5 * self.footprint) ** 2)[..., None]
+            if self.fill_log is not None:
+                extra = extra * torch.exp(2.0 * self.fill_log)
+            scales = (scales ** 2 + extra).sqrt()
             scales = torch.minimum(scales, _cap(self.scale_cap, self.fill_cap_px, self.footprint)[..., None])
         g = GaussianSet(self.means.reshape(-1, 3), self.quats.reshape(-1, 4), scales.reshape(-1, 3),
                         self.opacities.reshape(-1), self.sh.reshape(-1, *self.sh.shape[-2:]))
@@ -149,7 +154,7 @@ class PGT(nn.Module):
         if self.budget is None:
             p = self.preset
             self.budget = BudgetHeads(self.heads, p.head_channels, p.rate_kernel, importance=p.importance_head,
-                                      coverage=p.coverage_input, colour=p.budget_colour)
+                                      coverage=p.coverage_input, colour=p.budget_colour, fill=p.learned_fill)
         for name, prm in self.named_parameters():
             prm.requires_grad_(name.startswith("budget."))
         return self
@@ -182,7 +187,7 @@ class PGT(nn.Module):
         feat = self.decoder(matched, u0_8, f2, f4, images, u0)
         u = self.depth_head(feat, u0) if self.depth_head is not None else u0
         depth = u_to_depth(u, p.min_depth, p.max_depth)
-        keep = budgets = importance = coverage = None
+        keep = budgets = importance = coverage = fill_log = None
         fx = Ks[:, 0, 0]
         if kappa < 1.0:
             share = None
@@ -201,6 +206,8 @@ class PGT(nn.Module):
             importance = g["opacities"] if raw.importance is None else torch.sigmoid(raw.importance[:, 0])
             keep = (topk_mask(importance, budgets) if p.selection == "topk"
                     else stratified_mask(importance, budgets))
+            if raw.fill is not None:  # bounded: at most e^1.5 = 4.5x wider or narrower per axis
+                fill_log = 1.5 * torch.tanh(raw.fill.permute(0, 2, 3, 1))
         means = unproject(depth, Ks, cam_to_world)
         R = cam_to_world[:, :3, :3]
         quats = quat_multiply(matrix_to_quat(R)[:, None, None].expand(V, H, W, 4), g["quats"])
@@ -212,7 +219,7 @@ class PGT(nn.Module):
                          quats=quats, scales=g["scales"], opacities=g["opacities"], sh=sh, keep=keep,
                          budgets=budgets, kappa=kappa, footprint=depth / Ks[:, 0, 0, None, None],
                          fill_window=p.fill_window, scale_cap=p.scale_cap, fill_cap_px=p.fill_cap_px,
-                         importance=importance, coverage=coverage)
+                         importance=importance, coverage=coverage, fill_log=fill_log)
 
     @staticmethod
     def expected_count(kappa: float, views: int, height: int, width: int) -> int:

@@ -28,7 +28,7 @@ KAPPA_SCHEDULES = ("progressive", "log_uniform")
 #: from a base checkpoint written with other values of these
 BUDGET_FIELDS = ("budget_steps", "budget_lr", "kappa_start", "kappa_decay", "kappa_interval", "kappa_min",
                  "kappa_max", "hf_temperature", "patch", "rate_kernel", "fill_window", "w_io", "w_io_opacity",
-                 "budget_views", "selection", "importance_head", "budget_colour", "coverage_input", "coverage_tol", "target",
+                 "budget_views", "selection", "importance_head", "budget_colour", "learned_fill", "coverage_input", "coverage_tol", "target",
                  "target_floor", "w_redundancy", "kappa_schedule", "fill_cap_px")
 
 
@@ -62,7 +62,8 @@ class PGTPreset(Preset):
     opacity left to rendering; ``coverage_input``: the heads also read the cross-view share 1/n
     (from the model's own depth, ``coverage_tol`` relative depth agreement); ``budget_colour``:
     with ``colour="pixel"``, the budget heads add a colour residual (zero at the start) so a kept
-    Gaussian can take its pruned neighbours' colour; ``target``
+    Gaussian can take its pruned neighbours' colour; ``learned_fill``: the budget heads scale the
+    fill widening per axis (anisotropic growth, zero = the fill as is); ``target``
     ``"merge"`` (EcoSplat's patch merging) or ``"density"`` (:func:`~.budget.density_target`
     with ``target_floor`` and ``w_redundancy``); ``kappa_schedule`` ``"progressive"`` or
     ``"log_uniform"`` over [``kappa_min``, ``kappa_max``]; ``fill_cap_px`` (0 = off): a pruned
@@ -126,6 +127,7 @@ class PGTPreset(Preset):
     selection: str = "topk"
     importance_head: bool = False
     budget_colour: bool = False
+    learned_fill: bool = False
     coverage_input: bool = False
     coverage_tol: float = 0.05
     target: str = "merge"
@@ -198,8 +200,9 @@ TINY = register("pgt", PGTPreset(
 #: log-uniform down to 0.02 from the first step, far Gaussians free to widen to 8 footprints
 SMALL = register("pgt", PGTPreset(
     name="small", height=64, width=112, num_depths=32, attn_heads=8, cost_channels=48,
-    steps=1200, budget_steps=400, kappa_interval=20, chamfer_points=4096,
-    budget_views=8, selection="stratified", importance_head=True, budget_colour=True, coverage_input=True,
+    steps=1200, budget_steps=400, budget_lr=1e-3, kappa_interval=20, chamfer_points=4096,
+    budget_views=8, selection="stratified", importance_head=True, budget_colour=True, learned_fill=True,
+    coverage_input=True,
     target="density",
     kappa_schedule="log_uniform", kappa_min=0.02, fill_cap_px=8.0))
 PAPER = register("pgt", PGTPreset(
