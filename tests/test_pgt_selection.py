@@ -146,3 +146,22 @@ def test_log_uniform_kappa_covers_the_whole_range_from_the_first_step():
     assert 0.3 < below / 2000 < 0.52 and 0.1 < above / 2000 < 0.25  # log(5)/log(47.5), log(1.9)/log(47.5)
     with pytest.raises(ValueError, match="schedule"):
         sample_kappa(0, g, schedule="linear")
+
+
+def test_a_checkpoint_from_before_issue_18_keeps_ecosplats_budget_stage():
+    """small's budget stage changed in issue 18; a record without the new fields (an older
+    checkpoint) is read with the class defaults (EcoSplat's stage 2), which is how it was trained,
+    and it still matches its preset."""
+    from clsplat.models.common.presets import check_preset_matches
+    from clsplat.models.pgt.presets import BUDGET_FIELDS, SMALL, PGTPreset, saved_preset
+    new = {"budget_views", "selection", "importance_head", "budget_colour", "learned_fill", "coverage_input",
+           "coverage_tol", "target", "target_floor", "w_redundancy", "kappa_schedule", "fill_cap_px"}
+    assert new <= set(BUDGET_FIELDS)
+    old = {k: v for k, v in SMALL.to_dict().items() if k not in new}
+    old["kappa_min"] = 0.05
+    got = saved_preset(old)
+    assert got.selection == "topk" and not got.importance_head and got.budget_views == 2 and got.fill_cap_px == 0
+    assert got.height == SMALL.height and got.steps == SMALL.steps
+    check_preset_matches(old, got, "old.pt")
+    assert saved_preset(SMALL.to_dict()) == SMALL
+    assert PGTPreset.__dataclass_fields__["selection"].default == "topk"

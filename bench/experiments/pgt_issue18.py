@@ -35,13 +35,14 @@ import torch
 
 from clsplat.models.common.data import parse_data
 from clsplat.models.common.metrics import psnr, ssim
-from clsplat.models.common.presets import apply_sets, preset_from_saved
+from clsplat.models.common.presets import apply_sets
 from clsplat.models.common.train import load_checkpoint, set_threads
 from clsplat.models.pgt.budget import (cross_view_coverage, density_target, per_view_budgets, stratified_mask,
                                        topk_mask, view_weights)
 from clsplat.models.pgt.data import make_views_sample
 from clsplat.models.pgt.evaluate import BASELINES, baseline_mask, covered_mask
 from clsplat.models.pgt.model import PGT
+from clsplat.models.pgt.presets import saved_preset
 from clsplat.models.pgt.training import render_views
 
 
@@ -66,7 +67,7 @@ def prefiltered(base, keep: torch.Tensor, images: torch.Tensor, window: int):
 
 def load(path: str, sets: list[str] | None = None, **changes) -> tuple[PGT, object]:
     ck = load_checkpoint(path, "pgt")
-    preset = apply_sets(preset_from_saved("pgt", ck["preset"]), sets or [])
+    preset = apply_sets(saved_preset(ck["preset"]), sets or [])
     if changes:
         preset = dataclasses.replace(preset, **changes)
     model = PGT(preset)

@@ -24,13 +24,13 @@ from clsplat.argparser import ArgumentParser
 from clsplat.models.common.cli import (add_common_args, add_eval_args, add_eval_scenes_arg, add_view_args,
                                       lpips_from_args, no_weights)
 from clsplat.models.common.data import parse_data
-from clsplat.models.common.presets import apply_sets, check_preset_matches, get_preset, preset_from_saved
+from clsplat.models.common.presets import apply_sets, check_preset_matches, get_preset
 from clsplat.models.common.train import TrainSpec, load_checkpoint, seed_everything, set_threads
 from clsplat.models.common.train import train as run_train
 
 from .budget import check_kappa
 from .model import PGT
-from .presets import BUDGET_FIELDS
+from .presets import BUDGET_FIELDS, saved_preset
 
 __all__ = ["train", "evaluate", "parse_budgets", "check_views_arg"]
 
@@ -162,7 +162,7 @@ def evaluate(argv: list[str]) -> int:
         if args.repeats < 1:
             raise ValueError(f"--repeats: expected at least 1, got {args.repeats}")
         ck = load_checkpoint(args.checkpoint, FAMILY)
-        preset = preset_from_saved(FAMILY, ck["preset"])   # with the run's --set changes
+        preset = saved_preset(ck["preset"])   # with the run's --set changes
         check_preset_matches(ck["preset"], preset, str(args.checkpoint))
         source = parse_data(args.data, seed=args.seed, safe_pickle=not args.trust_pickle)
         lpips = lpips_from_args(args)

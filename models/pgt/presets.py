@@ -16,7 +16,8 @@ from typing import ClassVar
 
 from clsplat.models.common.presets import Preset, register
 
-__all__ = ["PGTPreset", "MATCHINGS", "COLOURS", "SELECTIONS", "TARGETS", "KAPPA_SCHEDULES", "BUDGET_FIELDS"]
+__all__ = ["PGTPreset", "MATCHINGS", "COLOURS", "SELECTIONS", "TARGETS", "KAPPA_SCHEDULES", "BUDGET_FIELDS",
+           "saved_preset"]
 
 MATCHINGS = ("plane_sweep", "epipolar_attention")
 COLOURS = ("pixel", "sh")
@@ -208,3 +209,21 @@ SMALL = register("pgt", PGTPreset(
 PAPER = register("pgt", PGTPreset(
     name="paper", height=176, width=320, num_depths=64, cost_channels=64, steps=30000,
     budget_steps=10000, kappa_interval=1000, colour="sh", sh_degree=1))
+
+
+def saved_preset(saved: dict) -> PGTPreset:
+    """The preset a PGT checkpoint was written with (:func:`~clsplat.models.common.presets.preset_from_saved`),
+    except that a budget-stage field its record lacks (a checkpoint from before the field existed)
+    takes the class default, the behaviour of the code that wrote it, not the registered preset's
+    current value (``small`` changed its budget stage in issue 18)."""
+    import dataclasses
+    from clsplat.models.common.presets import preset_from_saved
+    preset = preset_from_saved("pgt", saved)
+    record = PGTPreset.upgrade(saved) if isinstance(saved, dict) else {}
+    defaults = {f.name: f.default for f in dataclasses.fields(PGTPreset) if f.default is not dataclasses.MISSING}
+    missing = {k: defaults[k] for k in BUDGET_FIELDS if k not in record and getattr(preset, k) != defaults[k]}
+    if not missing:
+        return preset
+    if "kappa_min" in missing or "kappa_start" in missing:  # keep kappa_min <= kappa_start valid
+        missing.setdefault("kappa_min", defaults["kappa_min"])
+    return dataclasses.replace(preset, **missing)
