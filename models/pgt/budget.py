@@ -2,7 +2,8 @@
 
 * :class:`BudgetHeads`: copies of the parameter heads plus a zero-initialised 7x7 "rate
   embedding" of the κ map added into their input features (at initialisation the copies return
-  exactly what the base heads return).
+  exactly what the base heads return); optionally (issue 18) an importance head, colour and
+  per-axis fill residual heads and a cross-view-share embedding, all starting as the base.
 * :func:`high_frequency_energy` -> :func:`view_weights` (softmax of the max-normalised energy at
   temperature 0.3) -> :func:`per_view_budgets`: integers K_v <= H·W summing to exactly
   round(κ·V·H·W) (overflow of a full view goes to the others; rounding by largest remainder).
@@ -15,8 +16,8 @@
   depth), and whether an earlier view does.
 * :func:`importance_target`: the 0/1 mask of pixels that survive when the lowest-gradient 4x4
   patches are merged into one pixel each, as many as K_v needs (EcoSplat's, ``target="merge"``);
-  :func:`density_target`: a soft density from geometric detail and cross-view redundancy
-  (``target="density"``, issue 18).
+  :func:`density_target`: a soft density from image detail (local Sobel energy) and, with
+  ``w_redundancy`` > 0, the cross-view share (``target="density"``, issue 18).
 * :func:`fill_gain`: how much a kept Gaussian grows to cover its pruned neighbours (not in
   EcoSplat; applied to every pruning method alike, see :meth:`~.model.PGTOutput.gaussians`).
 * :func:`io_loss`: w_io·(w_op·BCE(opacity, target) + BCE(rendered alpha, 1)).
@@ -30,7 +31,6 @@ import functools
 import math
 
 import numpy as np
-
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
