@@ -36,6 +36,27 @@ def test_stages_write_runs_and_only_the_budget_heads_change(runs):
     assert (runs / "base" / "loss.png").is_file()
 
 
+def test_issue18_budget_stage_trains_on_many_views_from_a_base_with_other_budget_fields(runs, tmp_path):
+    """The budget stage with issue 18's fields (multi-view samples, importance head, coverage
+    input, density target, log-uniform κ) starts from the base checkpoint written with the
+    defaults: only the base network has to match; its importance head trains."""
+    out = tmp_path / "b18"
+    sets = ["budget_views=4", "selection='stratified'", "importance_head=True", "coverage_input=True",
+            "target='density'", "kappa_schedule='log_uniform'", "kappa_min=0.02", "fill_cap_px=8.0",
+            "budget_colour=True"]
+    assert train(["--stage", "budget", "--init", str(runs / "base" / "checkpoint.pt"), "--preset", "tiny",
+                  "--steps", "2", "--eval-scenes", "0", "--out", str(out)] + [a for s in sets for a in ("--set", s)]) == 0
+    ck = torch.load(out / "checkpoint.pt", weights_only=True)
+    base = torch.load(runs / "base" / "checkpoint.pt", weights_only=True)["model"]
+    assert not torch.equal(ck["model"]["budget.importance.2.weight"], base["heads.opacity.2.weight"])
+    assert "budget.cover.weight" in ck["model"] and "budget.colour.2.weight" in ck["model"]
+    logs = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert all(0.02 <= r["kappa"] <= 0.95 for r in logs)
+    # another base network is still refused by name
+    assert train(["--stage", "budget", "--init", str(runs / "base" / "checkpoint.pt"), "--preset", "tiny",
+                  "--set", "head_channels=8", "--steps", "1", "--out", str(tmp_path / "bad")]) == 2
+
+
 def test_base_stage_resumes_bitwise(runs, tmp_path, monkeypatch):
     """A run interrupted after its step-1 checkpoint and resumed ends where the uninterrupted one did."""
     from clsplat.models.pgt import training
@@ -64,18 +85,20 @@ def test_base_stage_resumes_bitwise(runs, tmp_path, monkeypatch):
     assert all(torch.equal(a[k], b[k]) for k in b)
 
 
-def test_eval_writes_the_budget_curve(runs):
-    out = runs / "eval"
+@pytest.mark.parametrize("views", [8, 2])
+def test_eval_writes_the_budget_curve(runs, views):
+    out = runs / f"eval{views}"
     assert evaluate(["--checkpoint", str(runs / "budget" / "checkpoint.pt"), "--budgets", "1,0.2,0.05",
-                     "--num-scenes", "1", "--repeats", "1", "--out", str(out)]) == 0
+                     "--num-scenes", "1", "--repeats", "1", "--views", str(views), "--out", str(out)]) == 0
     rows = json.loads((out / "budget.json").read_text())
-    assert {(r["method"], r["budget"]) for r in rows} == {(m, k) for m in ("finetuned", "random", "opacity")
-                                                        for k in (1.0, 0.2, 0.05)}
-    P = 2 * 32 * 48
+    assert {(r["method"], r["budget"]) for r in rows} == {
+        (m, k) for m in ("finetuned", "random", "opacity", "grid", "dedup") for k in (1.0, 0.2, 0.05)}
+    P = views * 32 * 48
     for r in rows:
-        assert set(r) == {"method", "budget", "n_gaussians", "psnr", "ssim", "render_ms"}
-        assert abs(r["n_gaussians"] - round(r["budget"] * P)) <= 2
-        assert r["render_ms"] > 0 and 0 < r["psnr"] < 60 and -1 <= r["ssim"] <= 1
+        assert set(r) == {"method", "budget", "views", "n_gaussians", "psnr", "psnr_covered", "ssim", "render_ms"}
+        assert r["views"] == views
+        assert r["n_gaussians"] == round(r["budget"] * P)  # exact: every method, every sample
+        assert r["render_ms"] > 0 and 0 < r["psnr"] < 60 and -1 <= r["ssim"] <= 1 and 0 < r["psnr_covered"] < 60
     full = [r for r in rows if r["budget"] == 1.0]
     assert len({(r["psnr"], r["n_gaussians"]) for r in full}) == 1  # κ = 1 is the base model for all
     m = json.loads((out / "metrics.json").read_text())
@@ -88,7 +111,8 @@ def test_eval_of_a_base_checkpoint_has_only_the_baselines(runs):
     out = runs / "eval-base"
     assert evaluate(["--checkpoint", str(runs / "base" / "checkpoint.pt"), "--budgets", "0.5",
                      "--num-scenes", "1", "--repeats", "1", "--out", str(out)]) == 0
-    assert {r["method"] for r in json.loads((out / "budget.json").read_text())} == {"random", "opacity"}
+    assert {r["method"] for r in json.loads((out / "budget.json").read_text())} == {"random", "opacity", "grid",
+                                                                                   "dedup"}
 
 
 def test_bad_arguments_are_clear_errors(runs, tmp_path, capsys):
@@ -98,6 +122,10 @@ def test_bad_arguments_are_clear_errors(runs, tmp_path, capsys):
     assert evaluate(["--checkpoint", str(runs / "base" / "checkpoint.pt"), "--budgets", "2",
                      "--out", str(tmp_path / "e")]) == 2
     assert "--budgets" in capsys.readouterr().err
+    for views in ("1", "25"):
+        assert evaluate(["--checkpoint", str(runs / "base" / "checkpoint.pt"), "--views", views,
+                         "--out", str(tmp_path / "e")]) == 2
+        assert "--views" in capsys.readouterr().err
     assert train(["--stage", "budget", "--preset", "tiny", "--steps", "1", "--out", str(tmp_path / "b")]) == 2
     assert "--init" in capsys.readouterr().err
     assert train(["--stage", "budget", "--init", str(tmp_path / "missing.pt"), "--preset", "tiny", "--steps", "1",

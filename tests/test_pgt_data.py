@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from clsplat.models.common.data import parse_data
-from clsplat.models.pgt.data import make_sample
+from clsplat.models.pgt.data import SPREAD, make_rig_sample, make_sample, rig_layout
 from clsplat.models.pgt.losses import chamfer_term, depth_term, render_terms
 from clsplat.models.pgt.presets import TINY
 
@@ -57,3 +57,36 @@ def test_losses(sample):
     assert float(chamfer_term(torch.stack([pts[0], pts[0]]), 64)) == 0
     moved = torch.stack([pts[0], pts[0] + torch.tensor([0.0, 0.0, 0.5])])
     assert float(chamfer_term(moved, 64)) == pytest.approx(0.5, rel=0.01)  # 2 x 0.25 when 0.5 m apart
+
+
+def test_rig_layout():
+    assert [rig_layout(n) for n in (3, 8, 12, 18, 24)] == [(2, 2), (2, 4), (2, 6), (3, 6), (4, 6)]
+    for bad in (2, 25, 0, 8.0):
+        with pytest.raises(ValueError, match="views"):
+            rig_layout(bad)
+
+
+@pytest.mark.parametrize("views", [8, 18])
+def test_multi_view_sample_sources_and_targets_between_them(views):
+    """N source frames from several cameras at instants 0, 2, 4, ..; the same cameras at the
+    instants between as targets (never a source pose)."""
+    T, c = rig_layout(views)
+    s = make_rig_sample(parse_data("synthetic"), TINY, 1, views, "test")
+    H, W = TINY.height, TINY.width
+    assert s.images.shape == (views, 3, H, W) and s.depths.shape == (views, H, W)
+    assert s.target_images.shape == (c * (T - 1), 3, H, W) and len(s.target_cameras) == c * (T - 1)
+    assert s.target_cameras[:c] == tuple(SPREAD[(1 + k) % 6] for k in range(c))  # start camera: index mod 6
+    torch.testing.assert_close(s.cam_to_world[0], torch.eye(4), atol=1e-6, rtol=0)
+    src = s.cam_to_world[:, :3, 3]
+    tgt = torch.linalg.inv(s.target_viewmats)[:, :3, 3]
+    # camera k at instant t+1 (a target) lies half-way between itself at instants t and t+2 (sources)
+    for t in range(T - 1):
+        for k in range(c):
+            a, b = t * c + k, (t + 1) * c + k
+            if b < views:
+                torch.testing.assert_close(tgt[t * c + k], 0.5 * (src[a] + src[b]), atol=0.05, rtol=0)
+    # never a source pose: every target is a frame (0.8 m at 8 m/s) from its camera's sources
+    src_cams = [s.target_cameras[k % c] for k in range(views)]
+    for j, cam in enumerate(s.target_cameras):
+        same = torch.tensor([k for k in range(views) if src_cams[k] == cam])
+        assert (tgt[j] - src[same]).norm(dim=1).min() > 0.7

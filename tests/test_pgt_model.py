@@ -98,11 +98,18 @@ def test_prediction_moves_with_the_world_frame():
     torch.testing.assert_close(quat_to_matrix(b.quats), T[:3, :3] @ quat_to_matrix(a.quats))
 
 
-def test_kappa_one_is_the_base_model_bitwise(model):
+#: issue 18's budget stage: importance head, coverage input, stratified selection, density target, fill cap
+ISSUE18 = TINY.replace(selection="stratified", importance_head=True, coverage_input=True, target="density",
+                       fill_cap_px=8.0, kappa_schedule="log_uniform", kappa_min=0.02, budget_colour=True,
+                       learned_fill=True)
+
+
+@pytest.mark.parametrize("preset", [TINY, ISSUE18], ids=["ecosplat", "issue18"])
+def test_kappa_one_is_the_base_model_bitwise(model, preset):
     images, Ks, c2w = _views(seed=3)
     with torch.no_grad():
         base = model(images, Ks, c2w)
-    m = PGT(TINY)
+    m = PGT(preset)
     m.load_state_dict(model.state_dict())
     m.enable_budget()
     with torch.no_grad():  # finetuned heads that differ from the base heads
@@ -133,10 +140,11 @@ def test_fresh_budget_heads_copy_the_base_heads_exactly(model):
         assert kept.min() >= dropped.max()
 
 
+@pytest.mark.parametrize("preset", [TINY, ISSUE18], ids=["ecosplat", "issue18"])
 @pytest.mark.parametrize("views", [2, 3])
-def test_gaussian_count_for_every_kappa(model, views):
+def test_gaussian_count_for_every_kappa(model, views, preset):
     images, Ks, c2w = _views(V=views, seed=5)
-    m = PGT(TINY)
+    m = PGT(preset)
     m.load_state_dict(model.state_dict())
     m.enable_budget()
     P = TINY.height * TINY.width
@@ -148,6 +156,39 @@ def test_gaussian_count_for_every_kappa(model, views):
             assert len(o.gaussians()) == PGT.expected_count(kappa, views, TINY.height, TINY.width)
             if kappa < 1:
                 assert o.keep.sum(dim=(1, 2)).tolist() == o.budgets.tolist()
+                assert o.importance.shape == o.opacities.shape
+
+
+def test_issue18_heads_start_as_the_base_and_select_by_importance(model):
+    """Fresh issue-18 budget heads return the base parameters; the importance head starts as the
+    base opacity; the selection spreads the budget (no top-K by opacity); the fill cap lets a
+    widened far Gaussian grow past ``scale_cap`` metres."""
+    images, Ks, c2w = _views(seed=4)
+    m = PGT(ISSUE18)
+    m.load_state_dict(model.state_dict())
+    m.enable_budget()
+    with torch.no_grad():
+        base = m(images, Ks, c2w)
+        o = m(images, Ks, c2w, kappa=0.1)
+    for f in ("quats", "opacities", "sh"):
+        assert torch.equal(getattr(o, f), getattr(base, f)), f
+    torch.testing.assert_close(o.importance, base.opacities)
+    assert o.fill_log is not None and o.fill_log.eq(0).all()  # the learned fill starts as the fill
+    with torch.no_grad():
+        m.budget.fill[2].bias.copy_(torch.tensor([1.0, -1.0, 0.0]))
+        wide = m(images, Ks, c2w, kappa=0.1)
+    a, b = o.gaussians().scales, wide.gaussians().scales
+    assert (b[:, 0] >= a[:, 0]).all() and (b[:, 1] <= a[:, 1]).all() and not torch.equal(a, b)
+    assert o.coverage is not None and o.coverage.min() >= 1
+    topk = base.opacities[0][o.keep[0]].min() >= base.opacities[0][~o.keep[0]].max()
+    assert not topk
+    g = o.gaussians()
+    cap = torch.maximum(torch.full_like(o.footprint, ISSUE18.scale_cap), 8.0 * o.footprint)[o.keep]
+    assert (g.scales <= cap[:, None] + 1e-6).all()
+    no_cap = PGT(ISSUE18.replace(fill_cap_px=0.0)).enable_budget()
+    no_cap.load_state_dict(m.state_dict())
+    with torch.no_grad():
+        assert no_cap(images, Ks, c2w, kappa=0.1).gaussians().scales.max() <= ISSUE18.scale_cap + 1e-6
 
 
 def test_gradients_reach_the_encoder_through_the_renderer():

@@ -3,14 +3,16 @@
     clsplat train pgt --stage base   --data synthetic --preset small --steps 1200 --out runs/pgt-base
     clsplat train pgt --stage budget --init runs/pgt-base/checkpoint.pt --data synthetic \\
                       --preset small --steps 400 --out runs/pgt-budget
-    clsplat eval pgt --checkpoint runs/pgt-budget/checkpoint.pt --data synthetic \\
+    clsplat eval pgt --checkpoint runs/pgt-budget/checkpoint.pt --data synthetic --views 8 \\
                      --budgets 1,0.5,0.2,0.1,0.05 --out runs/pgt-eval
 
 ``train`` (``--view``: watch it in the browser, clsplat view) writes the run folder of
 :func:`clsplat.models.common.train.train` (checkpoint.pt, log.jsonl, loss.png) and the evaluation
-on ``--eval-scenes`` held-out samples (as ``eval`` does, at κ = 1 after the base stage). ``eval``
-writes budget.json (rows: method, budget, n_gaussians, psnr, ssim,
-render_ms), budget.png (quality against Gaussian count and render time, Pareto front),
+on ``--eval-scenes`` held-out samples (as ``eval`` does: at κ = 1 on the base protocol after the
+base stage, on ``budget_views`` views after the budget stage). ``eval --views N`` (default 8: the
+multi-view protocol; 2: the base stage's two frames) writes budget.json (rows: method one of
+finetuned, random, opacity, grid, dedup; budget, views, n_gaussians, psnr, psnr_covered, ssim,
+[lpips], render_ms), budget.png (quality against Gaussian count and render time, Pareto front),
 metrics.json (full-set quality in the shared schema of :mod:`clsplat.models.common.report`,
 depth with and without the residual head, seconds per prediction) and contact_sheet.png.
 """
@@ -22,14 +24,15 @@ from clsplat.argparser import ArgumentParser
 from clsplat.models.common.cli import (add_common_args, add_eval_args, add_eval_scenes_arg, add_view_args,
                                       lpips_from_args, no_weights)
 from clsplat.models.common.data import parse_data
-from clsplat.models.common.presets import apply_sets, check_preset_matches, get_preset, preset_from_saved
+from clsplat.models.common.presets import apply_sets, check_preset_matches, get_preset
 from clsplat.models.common.train import TrainSpec, load_checkpoint, seed_everything, set_threads
 from clsplat.models.common.train import train as run_train
 
 from .budget import check_kappa
 from .model import PGT
+from .presets import BUDGET_FIELDS, saved_preset
 
-__all__ = ["train", "evaluate", "parse_budgets"]
+__all__ = ["train", "evaluate", "parse_budgets", "check_views_arg"]
 
 FAMILY = "pgt"
 
@@ -52,6 +55,17 @@ def parse_budgets(text: str) -> list[float]:
 
 #: the budgets κ of ``eval pgt`` (and of the evaluation after a budget-stage run)
 DEFAULT_BUDGETS = (1.0, 0.5, 0.2, 0.1, 0.05)
+#: source views of ``eval pgt`` by default: the multi-view protocol (EcoSplat's regime)
+DEFAULT_VIEWS = 8
+
+
+def check_views_arg(views: int) -> int:
+    """--views: 2 or 3..24; ValueError naming it otherwise."""
+    from .data import MAX_VIEWS
+    if not (views == 2 or 3 <= views <= MAX_VIEWS):
+        raise ValueError(f"--views: expected 2 (the base protocol) or 3..{MAX_VIEWS} (the multi-view protocol), "
+                         f"got {views}")
+    return views
 
 
 def _summary(m: dict) -> str:
@@ -83,7 +97,11 @@ def train(argv: list[str]) -> int:
         model = PGT(preset)
         if args.stage == "budget":
             if args.init is not None:
-                ck = load_checkpoint(args.init, FAMILY, preset)
+                ck = load_checkpoint(args.init, FAMILY)
+                # the base network must match; the budget stage's own fields may differ
+                saved = dict(ck.get("preset") or {})
+                saved.update({k: v for k, v in preset.to_dict().items() if k in BUDGET_FIELDS})
+                check_preset_matches(saved, preset, str(args.init))
                 state = {k: v for k, v in ck["model"].items() if not k.startswith("budget.")}
                 model.load_state_dict(state)
             model.enable_budget()
@@ -115,7 +133,8 @@ def train(argv: list[str]) -> int:
                 from .evaluate import evaluate_model, write_results
                 res = evaluate_model(model, source, preset, [1.0] if args.stage == "base" else DEFAULT_BUDGETS,
                                      args.eval_scenes, args.seed, sheet=rf.stage / "contact_sheet.png",
-                                     lpips=lpips, step=steps)
+                                     lpips=lpips, step=steps,
+                                     views=2 if args.stage == "base" else preset.budget_views)
                 write_results(res, rf.stage, f"PGT {preset.name} ({args.stage}, step {steps}) on held-out "
                                              f"{source.name}")
                 print(_summary(res["metrics"]), flush=True)
@@ -133,11 +152,17 @@ def evaluate(argv: list[str]) -> int:
     p.add_argument("--budgets", default=",".join(f"{k:g}" for k in DEFAULT_BUDGETS),
                    help="comma-separated κ in (0, 1]")
     p.add_argument("--repeats", type=int, default=3, help="timed renders per point (median)")
+    p.add_argument("--views", type=int, default=DEFAULT_VIEWS,
+                   help="source views per sample: 2 (the base protocol: two frames of one camera) or 3..24 "
+                        "(the multi-view protocol: rig cameras at several instants, targets between them)")
     args = p.parse_args(argv)
     try:
         budgets = parse_budgets(args.budgets)
+        views = check_views_arg(args.views)
+        if args.repeats < 1:
+            raise ValueError(f"--repeats: expected at least 1, got {args.repeats}")
         ck = load_checkpoint(args.checkpoint, FAMILY)
-        preset = preset_from_saved(FAMILY, ck["preset"])   # with the run's --set changes
+        preset = saved_preset(ck["preset"])   # with the run's --set changes
         check_preset_matches(ck["preset"], preset, str(args.checkpoint))
         source = parse_data(args.data, seed=args.seed, safe_pickle=not args.trust_pickle)
         lpips = lpips_from_args(args)
@@ -150,13 +175,14 @@ def evaluate(argv: list[str]) -> int:
         from .evaluate import evaluate_model, write_results
         with staged_group(args.out) as stage:  # the four files replace an earlier evaluation's together
             res = evaluate_model(model, source, preset, budgets, args.num_scenes, args.seed, args.repeats,
-                                 sheet=stage / "contact_sheet.png", lpips=lpips, step=int(ck["step"]))
+                                 sheet=stage / "contact_sheet.png", lpips=lpips, step=int(ck["step"]), views=views)
             res["metrics"]["checkpoint"] = str(args.checkpoint)
-            write_results(res, stage, f"PGT {preset.name} (step {ck['step']}) on held-out {source.name}")
+            write_results(res, stage, f"PGT {preset.name} (step {ck['step']}) on held-out {source.name}, "
+                                      f"{views} views")
         print(_summary(res["metrics"]))
         for r in res["rows"]:
             print(f"  {r['method']:>9} kappa={r['budget']:<5g} n={r['n_gaussians']:>8.0f} PSNR {r['psnr']:.2f} "
-                  f"SSIM {r['ssim']:.3f} render {r['render_ms']:.1f} ms")
+                  f"(covered {r['psnr_covered']:.2f}) SSIM {r['ssim']:.3f} render {r['render_ms']:.1f} ms")
     except ValueError as e:
         print(f"clsplat eval pgt: {e}", file=sys.stderr)
         return 2

@@ -1,15 +1,26 @@
 """Held-out evaluation of a PGT checkpoint: image quality, depth and the budget curve.
 
-For each held-out sample: the base prediction renders the target view(s) (PSNR, SSIM), its depth
-is compared with ground truth before (u0) and after the residual head; then for every budget κ the
-same number of Gaussians per view, K_v from the high-frequency weighting, is kept three ways:
+Protocol (``views``): 2 is the base stage's own (two frames of one camera, the frame between
+them as target); 3..24 the multi-view protocol of :func:`~.data.make_rig_sample` (source frames
+of several rig cameras at several instants, targets half-way between), where EcoSplat's budget
+claim lives: cross-view redundancy.
+
+For each held-out sample: the base prediction renders the targets (PSNR, SSIM[, LPIPS]), its
+depth is compared with ground truth before (u0) and after the residual head; then for every
+budget κ the same number of Gaussians per view, K_v from the high-frequency weighting, is kept
+five ways (:data:`METHODS`):
 
 * ``finetuned``: EcoSplat's stage-2 heads at κ (only with a budget checkpoint),
-* ``opacity``: top-K_v by the base model's opacity, no finetuning,
 * ``random``: K_v uniformly random pixels per view,
+* ``opacity``: top-K_v by the base model's opacity, no finetuning,
+* ``grid``: uniform grid thinning, one pixel per cell (:func:`~.budget.grid_mask`),
+* ``dedup``: cross-view de-duplication (pixels whose point an earlier view already has, within
+  a pixel in that view, go last), then uniform (:func:`~.budget.dedup_mask`),
 
-and rendered (PSNR, SSIM, median render milliseconds of the forward rasterisation). κ = 1 is
-the base model for every method. Rows are averaged over samples.
+each rendered (PSNR over all pixels and over the pixels the full model covers, alpha > 0.5;
+SSIM; median render milliseconds of the forward rasterisation). κ = 1 is the base model for
+every method. Per-view counts are checked equal across methods (a ValueError otherwise). Rows are
+means over samples.
 """
 from __future__ import annotations
 
@@ -26,50 +37,90 @@ from clsplat.io.atomic import atomic_write, write_text_atomic
 from clsplat.models.common.metrics import depth_metrics, psnr, ssim
 from clsplat.models.common.report import camera_blocks, image_scores, metrics_report, write_metrics
 
-from .budget import per_view_budgets, random_mask, topk_mask, view_weights
-from .data import make_sample
+from .budget import (cross_view_coverage, dedup_mask, grid_mask, per_view_budgets, random_mask, topk_mask,
+                     view_weights)
+from .data import make_views_sample
 from .model import PGT
 from .presets import PGTPreset
 from .training import render_views
 
-__all__ = ["evaluate_model", "plot_budget", "pareto_front", "write_results", "METHODS"]
+__all__ = ["evaluate_model", "plot_budget", "pareto_front", "write_results", "covered_mask", "baseline_mask",
+           "METHODS", "BASELINES", "COVERED_ALPHA"]
 
-METHODS = ("finetuned", "opacity", "random")
+METHODS = ("finetuned", "random", "opacity", "grid", "dedup")
+BASELINES = METHODS[1:]
+#: a target pixel is "covered" when the full model's rendered alpha exceeds this
+COVERED_ALPHA = 0.5
 
 
-def _timed_render(g, s, preset: PGTPreset, repeats: int) -> tuple[torch.Tensor, float]:
+def covered_mask(alpha) -> torch.Tensor:
+    """bool [C, H, W]: the target pixels the full model covers (rendered alpha [C, H, W, 1] > 0.5)."""
+    return alpha[..., 0] > COVERED_ALPHA
+
+
+def baseline_mask(method: str, base, budgets: torch.Tensor, Ks: torch.Tensor, cam_to_world: torch.Tensor,
+                  generator: torch.Generator | None = None, coverage_tol: float = 0.05) -> torch.Tensor:
+    """bool [V, H, W]: the pixels ``method`` (one of :data:`BASELINES`) keeps of the base output
+    ``base`` (:class:`~.model.PGTOutput`), ``budgets[v]`` per view exactly."""
+    V, H, W = base.opacities.shape
+    if method == "random":
+        return random_mask(budgets, H, W, generator)
+    if method == "opacity":
+        return topk_mask(base.opacities, budgets)
+    if method == "grid":
+        return grid_mask(budgets, H, W)
+    if method == "dedup":
+        earlier = cross_view_coverage(base.depth, Ks, cam_to_world, coverage_tol)[1]
+        return dedup_mask(earlier, budgets, generator)
+    raise ValueError(f"method: expected one of {BASELINES}, got {method!r}")
+
+
+def _timed_render(g, s, preset: PGTPreset, repeats: int) -> tuple[torch.Tensor, torch.Tensor, float]:
     times = []
-    rgb = None
+    rgb = alpha = None
     for _ in range(repeats):
         t0 = time.perf_counter()
-        rgb, _ = render_views(g, s.target_viewmats, s.target_Ks, preset.width, preset.height)
+        rgb, alpha = render_views(g, s.target_viewmats, s.target_Ks, preset.width, preset.height)
         times.append(time.perf_counter() - t0)
-    return rgb, 1000.0 * statistics.median(times)
+    return rgb, alpha, 1000.0 * statistics.median(times)
+
+
+def _check_counts(keep: torch.Tensor, budgets: torch.Tensor, method: str) -> None:
+    got = keep.reshape(keep.shape[0], -1).sum(1).cpu()
+    if not torch.equal(got, budgets.cpu().long()):
+        raise ValueError(f"{method}: kept {got.tolist()} Gaussians per view, the budget is {budgets.tolist()}")
 
 
 def evaluate_model(model: PGT, source, preset: PGTPreset, budgets: list[float], num_scenes: int = 4,
                    seed: int = 0, repeats: int = 3, sheet: str | Path | None = None, lpips=None,
-                   step: int = 0) -> dict:
-    """Evaluate ``model`` on held-out samples 0..num_scenes-1 (split "test").
+                   step: int = 0, views: int = 2, methods: tuple[str, ...] | None = None) -> dict:
+    """Evaluate ``model`` on held-out samples 0..num_scenes-1 (split "test") with ``views``
+    source views (2: the base protocol; 3..24: the multi-view protocol).
 
-    Returns {"rows": budget rows (method, budget, n_gaussians, psnr, ssim, render_ms),
-    "metrics": the ``metrics.json`` dict (:mod:`clsplat.models.common.report`) of the full set:
-    PSNR/SSIM[/LPIPS] and depth (with the residual head) overall and per target camera, the depth
-    without the residual head, render and prediction times}. With ``sheet``, a contact sheet of
-    sample 0 (full set and each method at the smallest budget against the ground truth).
+    Returns {"rows": budget rows (method, budget, views, n_gaussians, psnr, psnr_covered, ssim,
+    [lpips], render_ms), "metrics": the ``metrics.json`` dict
+    (:mod:`clsplat.models.common.report`) of the full set: PSNR/SSIM[/LPIPS] and depth (with the
+    residual head) overall and per target camera, the depth without the residual head, render and
+    prediction times}. ``methods``: a subset of :data:`METHODS` (default all; ``finetuned`` only
+    with a budget checkpoint). With ``sheet``, a contact sheet of sample 0 (full set and each
+    method at the smallest budget against the ground truth).
     """
     model.eval()
-    methods = [m for m in METHODS if m != "finetuned" or model.budget is not None]
+    methods = [m for m in (methods or METHODS) if m != "finetuned" or model.budget is not None]
+    for m in methods:
+        if m not in METHODS:
+            raise ValueError(f"methods: expected names from {METHODS}, got {m!r}")
     acc: dict[tuple[str, float], list[dict]] = {}
     full, full_gt, cams, d_coarse, d_fine, pred_s, render_ms = [], [], [], [], [], [], []
     for i in range(num_scenes):
-        s = make_sample(source, preset, i, "test", None)
+        s = make_views_sample(source, preset, i, views, "test", None)
         V, _, H, W = s.images.shape
         with torch.no_grad():
             t0 = time.perf_counter()
             base = model(s.images, s.Ks, s.cam_to_world)
             pred_s.append(time.perf_counter() - t0)
-            rgb, ms = _timed_render(base.gaussians(), s, preset, repeats)
+            rgb, alpha, ms = _timed_render(base.gaussians(), s, preset, repeats)
+            covered = covered_mask(alpha)
             full.append(rgb)
             full_gt.append(s.target_images)
             cams += list(s.target_cameras)
@@ -86,16 +137,21 @@ def evaluate_model(model: PGT, source, preset: PGTPreset, budgets: list[float], 
                         g, r, t = base.gaussians(), rgb, ms
                     else:
                         if m == "finetuned":
-                            g = model(s.images, s.Ks, s.cam_to_world, kappa=kappa).gaussians()
-                        elif m == "opacity":
-                            g = base.gaussians(topk_mask(base.opacities, K))
+                            out = model(s.images, s.Ks, s.cam_to_world, kappa=kappa)
+                            _check_counts(out.keep, K, m)
+                            g = out.gaussians()
                         else:
                             gen = torch.Generator().manual_seed(seed * 1_000_003 + i * 1009 + int(kappa * 1e6))
-                            g = base.gaussians(random_mask(K, H, W, gen))
-                        r, t = _timed_render(g, s, preset, repeats)
-                    acc.setdefault((m, kappa), []).append({
-                        "n_gaussians": len(g), "psnr": float(psnr(r, s.target_images).mean()),
-                        "ssim": float(ssim(r, s.target_images).mean()), "render_ms": t})
+                            keep = baseline_mask(m, base, K, s.Ks, s.cam_to_world, gen, preset.coverage_tol)
+                            _check_counts(keep, K, m)
+                            g = base.gaussians(keep)
+                        r, _, t = _timed_render(g, s, preset, repeats)
+                    row = {"n_gaussians": len(g), "psnr": float(psnr(r, s.target_images).mean()),
+                           "psnr_covered": float(psnr(r, s.target_images, covered).nanmean()),
+                           "ssim": float(ssim(r, s.target_images).mean()), "render_ms": t}
+                    if lpips is not None:
+                        row["lpips"] = float(lpips(r.clamp(0, 1), s.target_images).mean())
+                    acc.setdefault((m, kappa), []).append(row)
                     if kappa == min(budgets) and i == 0:
                         sheet_rows.append(r[0])
             if sheet is not None and i == 0:
@@ -104,8 +160,8 @@ def evaluate_model(model: PGT, source, preset: PGTPreset, budgets: list[float], 
                 names = ["full"] + [f"{m} k={min(budgets)}" for m in methods]
                 make_contact_sheet(rows, s.target_images[:1].permute(0, 2, 3, 1).expand_as(rows), sheet, names=names,
                                    title=f"PGT {preset.name}: {s.name}")
-    rows = [{"method": m, "budget": k, **{key: float(np.mean([r[key] for r in v]))
-                                          for key in ("n_gaussians", "psnr", "ssim", "render_ms")}}
+    keys = ("n_gaussians", "psnr", "psnr_covered", "ssim", "render_ms") + (("lpips",) if lpips is not None else ())
+    rows = [{"method": m, "budget": k, "views": views, **{key: float(np.mean([r[key] for r in v])) for key in keys}}
             for (m, k), v in acc.items()]
 
     def mean_depth(ds: list[dict]) -> dict:
@@ -115,8 +171,11 @@ def evaluate_model(model: PGT, source, preset: PGTPreset, budgets: list[float], 
     all_, per_camera = camera_blocks(image_scores(torch.cat(full), torch.cat(full_gt), lpips), cams)
     all_.update(mean_depth(d_fine))
     protocol = {"data": source.name, "split": "test", "scenes": num_scenes, "images": len(cams),
-                "cameras": list(dict.fromkeys(cams)), "views": f"{preset.num_views} source views ({preset.views})",
+                "cameras": list(dict.fromkeys(cams)),
+                "views": (f"{preset.num_views if views == 2 else views} source views "
+                          f"({preset.views if views == 2 else 'multi-view: rig cameras x instants'})"),
                 "lpips": "on" if lpips is not None else "off (no weights given)",
+                "psnr_covered": f"PSNR over the target pixels the full model covers (alpha > {COVERED_ALPHA})",
                 "depth": "source views' depth after the residual head against the data's depth (mean over samples)",
                 "render_ms": "median over samples of the median of timed forward renders"}
     metrics = metrics_report(
@@ -144,7 +203,7 @@ def plot_budget(rows: list[dict], png: str | Path, title: str = "PGT budget curv
     import matplotlib.pyplot as plt
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), dpi=110)
     for ax, xkey, xlabel in ((axes[0], "n_gaussians", "Gaussians kept"), (axes[1], "render_ms", "render time (ms)")):
-        for m, style in zip(METHODS, ("o-", "s--", "^:")):
+        for m, style in zip(METHODS, ("o-", "s--", "^:", "d-.", "v--")):
             rs = sorted((r for r in rows if r["method"] == m), key=lambda r: r[xkey])
             if rs:
                 ax.plot([r[xkey] for r in rs], [r["psnr"] for r in rs], style, label=m)

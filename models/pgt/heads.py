@@ -75,12 +75,16 @@ class DepthResidualHead(nn.Module):
 @dataclass
 class RawGaussians:
     """Raw head outputs per pixel: rotation [V, 4, H, W], scale [V, 3, H, W], opacity [V, 1, H, W],
-    colour [V, 3K, H, W] or None (colour taken from the source pixel)."""
+    colour [V, 3K, H, W] or None (colour taken from the source pixel); importance [V, 1, H, W]
+    logits of the budget stage's selection score when it has its own head (else None); fill
+    [V, 3, H, W] the budget stage's per-axis log-multipliers of the fill widening (else None)."""
 
     rotation: Tensor
     scale: Tensor
     opacity: Tensor
     colour: Tensor | None
+    importance: Tensor | None = None
+    fill: Tensor | None = None
 
 
 class GaussianHeads(nn.Module):
@@ -101,7 +105,7 @@ class GaussianHeads(nn.Module):
                             None if self.colour is None else self.colour(feat))
 
 
-def activate(raw: RawGaussians, depth: Tensor, images: Tensor, fx: Tensor, scale_cap_m: float,
+def activate(raw: RawGaussians, depth: Tensor, images: Tensor, fx: Tensor, scale_cap_m: float | Tensor,
              sh_degree: int) -> dict[str, Tensor]:
     """Raw outputs -> camera-frame Gaussian parameters per pixel.
 
@@ -110,7 +114,7 @@ def activate(raw: RawGaussians, depth: Tensor, images: Tensor, fx: Tensor, scale
         depth: [V, H, W] z-depth (metres).
         images: [V, 3, H, W] source pixels in [0, 1].
         fx: [V] focal lengths (pixels).
-        scale_cap_m: largest scale (metres).
+        scale_cap_m: largest scale (metres): a number, or [V, H, W, 1] per pixel.
         sh_degree: SH degree of the colour head (0 with pixel colour).
     Returns:
         quats [V, H, W, 4] (unit, camera frame), scales [V, H, W, 3] in (0, cap] metres:
@@ -122,7 +126,8 @@ def activate(raw: RawGaussians, depth: Tensor, images: Tensor, fx: Tensor, scale
     V, _, H, W = images.shape
     quats = F.normalize(raw.rotation.permute(0, 2, 3, 1), dim=-1, eps=1e-8)
     footprint = (depth / fx[:, None, None])[..., None]
-    scales = (F.softplus(raw.scale.permute(0, 2, 3, 1)) * footprint).clamp_max(scale_cap_m)
+    scales = F.softplus(raw.scale.permute(0, 2, 3, 1)) * footprint
+    scales = torch.minimum(scales, scale_cap_m) if isinstance(scale_cap_m, Tensor) else scales.clamp_max(scale_cap_m)
     opac = torch.sigmoid(raw.opacity[:, 0])
     K = (sh_degree + 1) ** 2
     dc = rgb_to_sh(images.permute(0, 2, 3, 1).reshape(-1, 3)).reshape(V, H, W, 1, 3)

@@ -8,8 +8,11 @@ its own ray (world frame = the frame of ``cam_to_world``) and rotation of the ca
 quaternions and SH into that frame.
 
 With κ < 1 (after :meth:`PGT.enable_budget`), the copied heads (:class:`~.budget.BudgetHeads`)
-give the parameters and the top-K_v pixels per view by their opacity are kept, K_v from the
-views' high-frequency energy. κ = 1 (or None) never runs the copies: it is the base model, bitwise.
+give the parameters and K_v pixels per view are kept (K_v from the views' high-frequency
+energy): the top-K_v by their opacity (EcoSplat, ``selection="topk"``) or, with
+``selection="stratified"``, spread in proportion to the score (:func:`~.budget.stratified_mask`);
+the score is the opacity, or the importance head's when the preset has one. κ = 1 (or None)
+never runs the copies: it is the base model, bitwise.
 """
 from __future__ import annotations
 
@@ -23,7 +26,8 @@ from clsplat.models.common.backbones import ResidualUNetEncoder
 from clsplat.models.common.gaussians import GaussianSet, rotate_sh
 from clsplat.models.common.geometry import check_rigid, matrix_to_quat, quat_multiply, unproject
 
-from .budget import BudgetHeads, check_kappa, fill_gain, per_view_budgets, topk_mask, view_weights
+from .budget import (BudgetHeads, check_kappa, cross_view_coverage, fill_gain, per_view_budgets, stratified_mask,
+                     topk_mask, view_weights)
 from .heads import Decoder, DepthResidualHead, GaussianHeads, activate
 from .matching import make_matcher, u_to_depth
 from .presets import PGTPreset
@@ -43,7 +47,10 @@ class PGTOutput:
     sh [V, H, W, K, 3]: Gaussians in the world frame; keep: bool [V, H, W] (None: all kept);
     budgets: long [V] per-view counts (None without a budget); kappa: the budget used;
     footprint: [V, H, W] one pixel's width at the Gaussian's depth (depth / fx, metres);
-    fill_window, scale_cap: see :meth:`gaussians`.
+    fill_window, scale_cap, fill_cap_px: see :meth:`gaussians`; importance: [V, H, W] the
+    selection score in [0, 1] (None at κ = 1); coverage: long [V, H, W] views seeing each pixel's
+    point (None unless the budget path computed it); fill_log: [V, H, W, 3] per-axis log-multipliers
+    of the fill widening from the budget heads (None: 0).
     """
 
     u0: Tensor
@@ -62,6 +69,10 @@ class PGTOutput:
     footprint: Tensor | None = None
     fill_window: int = 0
     scale_cap: float = float("inf")
+    fill_cap_px: float = 0.0
+    importance: Tensor | None = None
+    coverage: Tensor | None = None
+    fill_log: Tensor | None = None
 
     def gaussians(self, keep: Tensor | None = None) -> GaussianSet:
         """The kept Gaussians (``keep`` [V, H, W] bool overrides :attr:`keep`; None keeps all),
@@ -70,18 +81,30 @@ class PGTOutput:
         With a pruning mask and ``fill_window`` > 0, a kept Gaussian that stands for its pruned
         neighbours is widened to cover them: with g = 1/sqrt(share of kept pixels in the
         ``fill_window`` square around it) (:func:`~.budget.fill_gain`), its variance grows by
-        (g² - 1)·(footprint/2)², i.e. from one pixel's area to g² pixels' (capped at ``scale_cap``).
-        The same for every pruning method; nothing changes without a mask (or where g = 1).
+        (g² - 1)·(footprint/2)², i.e. from one pixel's area to g² pixels' (capped at ``scale_cap``
+        metres, or at ``fill_cap_px`` footprints where that is larger). The same for every pruning
+        method; nothing changes without a mask (or where g = 1). With learned ``fill_log`` (the
+        budget heads', ``learned_fill``) the added variance is multiplied by exp(2·fill_log) per axis.
         """
         keep = self.keep if keep is None else keep
         scales = self.scales
         if keep is not None and self.fill_window > 0 and self.footprint is not None:
             g2 = fill_gain(keep, self.fill_window) ** 2
-            extra = (g2 - 1.0) * (0.5 * self.footprint) ** 2
-            scales = (scales ** 2 + extra[..., None]).sqrt().clamp_max(self.scale_cap)
+            extra = ((g2 - 1.0) * (0.5 * self.footprint) ** 2)[..., None]
+            if self.fill_log is not None:
+                extra = extra * torch.exp(2.0 * self.fill_log)
+            scales = (scales ** 2 + extra).sqrt()
+            scales = torch.minimum(scales, _cap(self.scale_cap, self.fill_cap_px, self.footprint)[..., None])
         g = GaussianSet(self.means.reshape(-1, 3), self.quats.reshape(-1, 4), scales.reshape(-1, 3),
                         self.opacities.reshape(-1), self.sh.reshape(-1, *self.sh.shape[-2:]))
         return g if keep is None else g.index(keep.reshape(-1))
+
+
+def _cap(scale_cap: float, fill_cap_px: float, footprint: Tensor) -> Tensor:
+    """[V, H, W] the largest scale of a pruned set's Gaussian: ``scale_cap`` metres, or
+    ``fill_cap_px`` pixel footprints where that is larger (0: the metric cap alone)."""
+    cap = torch.full_like(footprint, scale_cap)
+    return torch.maximum(cap, fill_cap_px * footprint) if fill_cap_px > 0 else cap
 
 
 def check_views(images: Tensor, Ks: Tensor, cam_to_world: Tensor) -> None:
@@ -129,7 +152,9 @@ class PGT(nn.Module):
         """Add EcoSplat's stage-2 heads (copies of the current parameter heads + zero rate
         embedding) and freeze everything else. Idempotent."""
         if self.budget is None:
-            self.budget = BudgetHeads(self.heads, self.preset.head_channels, self.preset.rate_kernel)
+            p = self.preset
+            self.budget = BudgetHeads(self.heads, p.head_channels, p.rate_kernel, importance=p.importance_head,
+                                      coverage=p.coverage_input, colour=p.budget_colour, fill=p.learned_fill)
         for name, prm in self.named_parameters():
             prm.requires_grad_(name.startswith("budget."))
         return self
@@ -162,15 +187,27 @@ class PGT(nn.Module):
         feat = self.decoder(matched, u0_8, f2, f4, images, u0)
         u = self.depth_head(feat, u0) if self.depth_head is not None else u0
         depth = u_to_depth(u, p.min_depth, p.max_depth)
-        keep = budgets = None
+        keep = budgets = importance = coverage = fill_log = None
+        fx = Ks[:, 0, 0]
         if kappa < 1.0:
-            raw = self.budget(feat, kappa)
+            share = None
+            if p.coverage_input or (p.target == "density" and p.w_redundancy):
+                coverage = cross_view_coverage(depth, Ks, cam_to_world, p.coverage_tol)[0]
+                share = 1.0 / coverage.to(depth.dtype)
+            raw = self.budget(feat, kappa, share)
+            cap = (p.scale_cap if p.fill_cap_px <= 0
+                   else _cap(p.scale_cap, p.fill_cap_px, depth / fx[:, None, None])[..., None])
         else:
             raw = self.heads(feat)
-        g = activate(raw, depth, images, Ks[:, 0, 0], p.scale_cap, p.sh_degree if p.colour == "sh" else 0)
+            cap = p.scale_cap
+        g = activate(raw, depth, images, fx, cap, p.sh_degree if p.colour == "sh" else 0)
         if kappa < 1.0:
             budgets = per_view_budgets(kappa, view_weights(images, p.hf_temperature), H, W)
-            keep = topk_mask(g["opacities"], budgets)
+            importance = g["opacities"] if raw.importance is None else torch.sigmoid(raw.importance[:, 0])
+            keep = (topk_mask(importance, budgets) if p.selection == "topk"
+                    else stratified_mask(importance, budgets))
+            if raw.fill is not None:  # bounded: at most e^1.5 = 4.5x wider or narrower per axis
+                fill_log = 1.5 * torch.tanh(raw.fill.permute(0, 2, 3, 1))
         means = unproject(depth, Ks, cam_to_world)
         R = cam_to_world[:, :3, :3]
         quats = quat_multiply(matrix_to_quat(R)[:, None, None].expand(V, H, W, 4), g["quats"])
@@ -181,7 +218,8 @@ class PGT(nn.Module):
         return PGTOutput(u0=u0, u=u, depth0=u_to_depth(u0, p.min_depth, p.max_depth), depth=depth, prob=prob, means=means,
                          quats=quats, scales=g["scales"], opacities=g["opacities"], sh=sh, keep=keep,
                          budgets=budgets, kappa=kappa, footprint=depth / Ks[:, 0, 0, None, None],
-                         fill_window=p.fill_window, scale_cap=p.scale_cap)
+                         fill_window=p.fill_window, scale_cap=p.scale_cap, fill_cap_px=p.fill_cap_px,
+                         importance=importance, coverage=coverage, fill_log=fill_log)
 
     @staticmethod
     def expected_count(kappa: float, views: int, height: int, width: int) -> int:

@@ -16,10 +16,21 @@ from typing import ClassVar
 
 from clsplat.models.common.presets import Preset, register
 
-__all__ = ["PGTPreset", "MATCHINGS", "COLOURS"]
+__all__ = ["PGTPreset", "MATCHINGS", "COLOURS", "SELECTIONS", "TARGETS", "KAPPA_SCHEDULES", "BUDGET_FIELDS",
+           "saved_preset"]
 
 MATCHINGS = ("plane_sweep", "epipolar_attention")
 COLOURS = ("pixel", "sh")
+SELECTIONS = ("topk", "stratified")
+TARGETS = ("merge", "density")
+KAPPA_SCHEDULES = ("progressive", "log_uniform")
+
+#: fields only the budget stage and the evaluation read: a budget stage may start (``--init``)
+#: from a base checkpoint written with other values of these
+BUDGET_FIELDS = ("budget_steps", "budget_lr", "kappa_start", "kappa_decay", "kappa_interval", "kappa_min",
+                 "kappa_max", "hf_temperature", "patch", "rate_kernel", "fill_window", "w_io", "w_io_opacity",
+                 "budget_views", "selection", "importance_head", "budget_colour", "learned_fill", "coverage_input", "coverage_tol", "target",
+                 "target_floor", "w_redundancy", "kappa_schedule", "fill_cap_px")
 
 
 @dataclass(frozen=True)
@@ -43,6 +54,22 @@ class PGTPreset(Preset):
     target) + BCE(alpha, 1)) plus the render loss. ``fill_window`` (0 = off): a pruned set's kept
     Gaussians widen to cover the pixels pruned around them in that window (our addition, every
     method alike; :meth:`~.model.PGTOutput.gaussians`).
+
+    Issue 18 (departures from EcoSplat's stage 2, each an ablation row in bench/RESULTS.md):
+    ``budget_views`` source views per budget-stage sample (> 2: the multi-view protocol of
+    :func:`~.data.make_rig_sample`, where cross-view redundancy exists); ``selection``
+    ``"topk"`` (EcoSplat) or ``"stratified"`` (density-proportional, spread:
+    :func:`~.budget.stratified_mask`); ``importance_head``: a separate selection-score head, the
+    opacity left to rendering; ``coverage_input``: the heads also read the cross-view share 1/n
+    (from the model's own depth, ``coverage_tol`` relative depth agreement); ``budget_colour``:
+    with ``colour="pixel"``, the budget heads add a colour residual (zero at the start) so a kept
+    Gaussian can take its pruned neighbours' colour; ``learned_fill``: the budget heads scale the
+    fill widening per axis (anisotropic growth, zero = the fill as is); ``target``
+    ``"merge"`` (EcoSplat's patch merging) or ``"density"`` (:func:`~.budget.density_target`
+    with ``target_floor`` and ``w_redundancy``); ``kappa_schedule`` ``"progressive"`` or
+    ``"log_uniform"`` over [``kappa_min``, ``kappa_max``]; ``fill_cap_px`` (0 = off): a pruned
+    set's Gaussians may grow to that many pixel footprints even where that exceeds ``scale_cap``
+    metres (far scenery), for every method alike.
     """
 
     #: fields renamed since checkpoints were first written (issue 20: one name per meaning across
@@ -97,6 +124,18 @@ class PGTPreset(Preset):
     fill_window: int = 9
     w_io: float = 0.1
     w_io_opacity: float = 0.1
+    budget_views: int = 2
+    selection: str = "topk"
+    importance_head: bool = False
+    budget_colour: bool = False
+    learned_fill: bool = False
+    coverage_input: bool = False
+    coverage_tol: float = 0.05
+    target: str = "merge"
+    target_floor: float = 0.1
+    w_redundancy: float = 1.0
+    kappa_schedule: str = "progressive"
+    fill_cap_px: float = 0.0
 
     def __post_init__(self) -> None:
         def bad(field: str, why: str) -> ValueError:
@@ -130,6 +169,22 @@ class PGTPreset(Preset):
             raise bad("fill_window", "must be 0 (off) or odd")
         if self.height % self.patch or self.width % self.patch:
             raise bad("patch", "must divide height and width")
+        if self.budget_views != 2 and not 3 <= self.budget_views <= 24:
+            raise bad("budget_views", "expected 2 (the base protocol) or 3..24 (the multi-view protocol)")
+        if self.selection not in SELECTIONS:
+            raise bad("selection", f"expected one of {SELECTIONS}")
+        if self.target not in TARGETS:
+            raise bad("target", f"expected one of {TARGETS}")
+        if self.kappa_schedule not in KAPPA_SCHEDULES:
+            raise bad("kappa_schedule", f"expected one of {KAPPA_SCHEDULES}")
+        if not 0 < self.target_floor <= 1:
+            raise bad("target_floor", "must be in (0, 1]")
+        if self.w_redundancy < 0:
+            raise bad("w_redundancy", "must be >= 0")
+        if not 0 < self.coverage_tol < 1:
+            raise bad("coverage_tol", "must be in (0, 1)")
+        if self.fill_cap_px < 0:
+            raise bad("fill_cap_px", "must be >= 0 (0 = off)")
 
     @property
     def sh_coeffs(self) -> int:
@@ -141,9 +196,34 @@ TINY = register("pgt", PGTPreset(
     name="tiny", height=32, width=48, channels=(16, 24, 32), num_depths=8, attn_layers=1,
     attn_heads=4, cost_channels=16, decoder_channels=(32, 24, 16), head_channels=16,
     chamfer_points=512, steps=20, budget_steps=10, kappa_interval=5))
+#: small's budget stage is issue 18's (bench/RESULTS.md "Issue 18"): multi-view samples, a separate
+#: importance head, the density target (detail only: its cross-view term measured worse, floor 0.3
+#: better than 0.1), stratified selection, colour and per-axis fill residuals, κ log-uniform down
+#: to 0.02 from the first step, far Gaussians free to widen to 8 footprints
 SMALL = register("pgt", PGTPreset(
     name="small", height=64, width=112, num_depths=32, attn_heads=8, cost_channels=48,
-    steps=1200, budget_steps=400, kappa_interval=20, chamfer_points=4096))
+    steps=1200, budget_steps=400, budget_lr=1e-3, kappa_interval=20, chamfer_points=4096,
+    budget_views=8, selection="stratified", importance_head=True, budget_colour=True, learned_fill=True,
+    target="density", target_floor=0.3, w_redundancy=0.0,
+    kappa_schedule="log_uniform", kappa_min=0.02, fill_cap_px=8.0))
 PAPER = register("pgt", PGTPreset(
     name="paper", height=176, width=320, num_depths=64, cost_channels=64, steps=30000,
     budget_steps=10000, kappa_interval=1000, colour="sh", sh_degree=1))
+
+
+def saved_preset(saved: dict) -> PGTPreset:
+    """The preset a PGT checkpoint was written with (:func:`~clsplat.models.common.presets.preset_from_saved`),
+    except that a budget-stage field its record lacks (a checkpoint from before the field existed)
+    takes the class default, the behaviour of the code that wrote it, not the registered preset's
+    current value (``small`` changed its budget stage in issue 18)."""
+    import dataclasses
+    from clsplat.models.common.presets import preset_from_saved
+    preset = preset_from_saved("pgt", saved)
+    record = PGTPreset.upgrade(saved) if isinstance(saved, dict) else {}
+    defaults = {f.name: f.default for f in dataclasses.fields(PGTPreset) if f.default is not dataclasses.MISSING}
+    missing = {k: defaults[k] for k in BUDGET_FIELDS if k not in record and getattr(preset, k) != defaults[k]}
+    if not missing:
+        return preset
+    if "kappa_min" in missing or "kappa_start" in missing:  # keep kappa_min <= kappa_start valid
+        missing.setdefault("kappa_min", defaults["kappa_min"])
+    return dataclasses.replace(preset, **missing)

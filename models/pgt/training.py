@@ -4,8 +4,11 @@
   views render the target views and the source views; loss = render terms + w_depth·depth L1
   (data with depth) or + w_chamfer·Chamfer (without). AdamW(lr, wd), one-cycle, clip 1.0.
 * stage ``budget`` (EcoSplat stage 2): starts from a base checkpoint; only the copied heads and
-  the rate embedding train; κ follows the progressive schedule; the kept Gaussians render the
-  same views; loss = render terms + L_io.
+  the rate embedding train; κ follows ``kappa_schedule``; samples have ``budget_views`` source
+  views (> 2: the multi-view protocol, :func:`~.data.make_rig_sample`); the kept Gaussians render
+  the target and source views; loss = render terms + L_io against ``target`` (EcoSplat's merged
+  patches, or :func:`~.budget.density_target` with the cross-view share), on the importance
+  head's score when there is one, else on the opacity.
 
 Everything random in a sample (camera, t0, κ, Chamfer points) comes from
 ``sample_generator(seed, index)``, so resume and data parallelism are exact.
@@ -19,8 +22,8 @@ from torch import Tensor, nn
 
 from clsplat.models.common.train import sample_generator
 
-from .budget import importance_target, io_loss, sample_kappa
-from .data import make_sample
+from .budget import density_target, importance_target, io_loss, sample_kappa
+from .data import make_sample, make_views_sample
 from .losses import chamfer_term, depth_term, render_terms
 from .model import PGT
 from .presets import PGTPreset
@@ -54,9 +57,12 @@ def make_sample_loss(source, preset: PGTPreset, stage: str, seed: int, lpips=Non
 
     def sample_loss(model: PGT, step: int, index: int) -> dict[str, Tensor]:
         gen = sample_generator(seed, index)
-        s = make_sample(source, preset, index, "train", gen)
+        if stage == "budget" and preset.budget_views != 2:
+            s = make_views_sample(source, preset, index, preset.budget_views, "train", gen)
+        else:
+            s = make_sample(source, preset, index, "train", gen)
         kappa = sample_kappa(step, gen, preset.kappa_start, preset.kappa_decay, preset.kappa_interval,
-                             preset.kappa_min, preset.kappa_max) if stage == "budget" else None
+                             preset.kappa_min, preset.kappa_max, preset.kappa_schedule) if stage == "budget" else None
         out = model(s.images, s.Ks, s.cam_to_world, kappa=kappa)
         viewmats = torch.cat([s.target_viewmats, torch.linalg.inv(s.cam_to_world)])
         Ks = torch.cat([s.target_Ks, s.Ks])
@@ -71,8 +77,12 @@ def make_sample_loss(source, preset: PGTPreset, stage: str, seed: int, lpips=Non
                 terms["chamfer"] = chamfer_term(out.means, preset.chamfer_points, gen)
                 loss = loss + preset.w_chamfer * terms["chamfer"]
         else:
-            target = importance_target(s.images, out.budgets, preset.patch)
-            terms["io"] = io_loss(out.opacities, target, alpha, preset.w_io, preset.w_io_opacity)
+            if preset.target == "density":
+                share = None if out.coverage is None else 1.0 / out.coverage.to(out.depth.dtype)
+                target = density_target(s.images, share, preset.target_floor, preset.w_redundancy)
+            else:
+                target = importance_target(s.images, out.budgets, preset.patch)
+            terms["io"] = io_loss(out.importance, target, alpha, preset.w_io, preset.w_io_opacity)
             terms["kappa"] = torch.tensor(out.kappa)
             loss = loss + terms["io"]
         terms["loss"] = loss

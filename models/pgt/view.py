@@ -10,10 +10,11 @@ import numpy as np
 from clsplat.viewer.scene import ViewCamera, ViewScene
 
 from ..common.data import parse_data
-from ..common.presets import check_preset_matches, preset_from_saved
+from ..common.presets import check_preset_matches
 from ..common.view import VARIANT_SAMPLES, depth_colour, gaussians_scene, model_snapshot, run_data
 from .data import RING, make_sample
 from .model import PGT
+from .presets import saved_preset
 
 __all__ = ["checkpoint_scene", "model_scene"]
 
@@ -58,7 +59,7 @@ def checkpoint_scene(ck: dict, ck_path: Path, run: Path, data: str | None, sampl
     synthetic; ``safe_pickle=False`` trusts the data's pickles)."""
     data = data or run_data(run) or "synthetic"
 
-    preset = preset_from_saved("pgt", ck["preset"])   # with the run's --set changes
+    preset = saved_preset(ck["preset"])   # with the run's --set changes
     check_preset_matches(ck["preset"], preset, str(ck_path))
     model = PGT(preset)
     if any(k.startswith("budget.") for k in ck["model"]):
