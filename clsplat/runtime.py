@@ -129,6 +129,9 @@ class Runtime:
     _limits: tuple = field(default=(), init=False, repr=False)  # (max alloc, global mem) bytes
     _in_host_memory: bool | None = field(default=None, init=False, repr=False)
     _shares: bool | None = field(default=None, init=False, repr=False)  # shares_host_memory, cached
+    # whether the tuned compositing kernels' inline exp is this device's library exp bit for
+    # bit (clsplat.stages.inline_exp_exact; None until probed)
+    inline_exp_exact: bool | None = field(default=None, init=False, repr=False)
     # Commands that may write device memory, counted: an array read back (or created) after
     # the last of them needs no wait on the queue to be read again.
     launches: int = field(default=0, init=False, repr=False)

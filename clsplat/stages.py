@@ -333,11 +333,41 @@ def composite_tuned(rt: Runtime, cfg: RenderConfig) -> bool:
     return (cfg.composite_impl or ("tuned" if rt.is_cpu else "baseline")) == "tuned"
 
 
+#: inputs of the inline-exp probe: every argument compositing can pass (exp(-sigma), sigma >= 0,
+#: and the zero/overflow cut-offs), dense enough to meet every branch of the polynomial's range
+#: reduction; a multiple of every PIX
+EXP_PROBE_INPUTS = 1 << 18
+
+
+def inline_exp_exact(rt: Runtime, cfg: RenderConfig, defines: dict) -> bool:
+    """Whether the tuned kernels' inline float exp (kernels/common.h, SLEEF's expf_u10 as PoCL's
+    library on this host has it) equals this device's library exp bit for bit, so that the tuned
+    kernels give the baseline kernels' images exactly; decided once per runtime by the probe
+    kernel of composite.cl, built with ``defines`` (a float vector layout). Where it does not
+    (another PoCL build or CPU variant), the tuned kernels call the library's exp."""
+    if rt.inline_exp_exact is None:
+        k = rt.kernel("composite", "exp_probe", defines, cfg.fast_math)
+        x = torch.linspace(-110.0, 10.0, EXP_PROBE_INPUTS, dtype=torch.float32)
+        x[:8] = torch.tensor([0.0, -0.0, -1e-30, -1e-7, -87.3, -103.9, -104.1, 1e-7])
+        xs, out = rt.array(x, read_only=True), rt.empty((EXP_PROBE_INPUTS,), torch.int32, zero=False)
+        rt.launch(k, EXP_PROBE_INPUTS // defines["PIX"], LOCAL_1D, xs.buffer, out.buffer)
+        rt.inline_exp_exact = not bool(out.host().any())
+    return rt.inline_exp_exact
+
+
 def _composite_kernel(rt: Runtime, cfg: RenderConfig, stage: str, defines: dict, group: int,
                       tile_size: int) -> cl.Kernel:
     name = stage if stage == "composite_bwd" else "composite_fwd"
     if composite_tuned(rt, cfg):
         defines = defines | {"CLS_POCL_CPU": rt.is_pocl_cpu}
+        if rt.is_pocl_cpu and defines["PIX"] > 1 and cfg.precision == "float32":
+            # the forward's own program holds the probe (no extra build); the backward, which
+            # follows a forward, finds the answer cached, else builds a forward-like program
+            fwd = defines if stage == "composite" else cfg.defines(tile_size) | {
+                "PIX": defines["PIX"], "BATCH": defines["BATCH"], "CHANNELS": defines["CHANNELS"],
+                "CCHUNK": defines["CCHUNK"], "SAVE_LAST": False, "CLS_POCL_CPU": True}
+            if not inline_exp_exact(rt, cfg, fwd):
+                defines = defines | {"CLS_INLINE_EXP": 0}
     else:
         stage += "_base"
     k = rt.kernel(stage, name, defines, cfg.fast_math)

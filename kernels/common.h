@@ -155,7 +155,13 @@ inline int cls_vall(VMASK m) { return CAT(CLS_LANES, PIX)(m, &) < 0; }
 #define CLS_VANY(m) cls_vany(m)
 #define CLS_VALL(m) cls_vall(m)
 #endif
-#if REAL_DOUBLE || PIX == 1
+/* CLS_INLINE_EXP (default on): the host turns it off where the inline exp does not reproduce
+ * this device's library exp bit for bit (clsplat.stages.inline_exp_exact runs exp_probe in
+ * composite.cl once per device): another PoCL build or CPU variant may link another exp. */
+#ifndef CLS_INLINE_EXP
+#define CLS_INLINE_EXP 1
+#endif
+#if REAL_DOUBLE || PIX == 1 || !CLS_INLINE_EXP
 /* float64 keeps the library's exp, and so does the scalar layout: the library's scalar expf
  * is SLEEF's other variant (no fused multiply-adds, rint by adding 0.5 and truncating). */
 #define CLS_VEXP(x) exp(x)

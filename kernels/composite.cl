@@ -154,3 +154,15 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
         }
     }
 }
+
+#if CLS_INLINE_MATH && !REAL_DOUBLE && PIX > 1
+/* The inline exp against the library's, lane by lane, as built here (same options): out[i] is
+ * the XOR of their bit patterns at x[i], so all zeros means the inline exp is the library's on
+ * these inputs. clsplat.stages.inline_exp_exact runs it once per device. */
+__kernel void exp_probe(__global const REAL *x, __global uint *out) {
+    const int i = get_global_id(0) * PIX;
+    const VREAL v = CAT(vload, PIX)(0, x + i);
+    const VREAL a = CLS_VEXP(v), b = exp(v);
+    CAT(vstore, PIX)(CAT(as_, CAT(uint, PIX))(a) ^ CAT(as_, CAT(uint, PIX))(b), 0, out + i);
+}
+#endif

@@ -83,3 +83,39 @@ def test_default_impl_by_device():
 def test_bad_impl_is_rejected():
     with pytest.raises(ValueError, match="composite_impl"):
         RenderConfig(composite_impl="fast")
+
+
+def test_the_library_exp_is_used_where_the_inline_one_differs(monkeypatch):
+    """On a device whose library exp the inline exp does not reproduce (another PoCL build or
+    CPU variant), the probe's answer makes the tuned kernels call the library's exp: they still
+    give the baseline's images and gradients bit for bit."""
+    rt = get_runtime()
+    sc = _scene(None, torch.float32, n=400)
+    want = _run(sc, RenderConfig(composite_impl="baseline"), 16, "RGB", False, False)
+    if rt.is_pocl_cpu:
+        assert rt.inline_exp_exact is not None  # the probe ran with the first tuned render
+    monkeypatch.setattr(rt, "inline_exp_exact", False)
+    got = _run(sc, RenderConfig(composite_impl="tuned"), 16, "RGB", False, False)
+    for k, v in want.items():
+        assert torch.equal(got[k], v), k
+
+
+def test_exp_probe_answers_and_is_exact_against_itself():
+    """The probe runs on the device and gives a bool; with the inline exp built out, both of its
+    sides are the library's exp and it must report them equal (a spurious 'different' would send
+    the tuned kernels to the slower library exp for nothing)."""
+    rt = get_runtime()
+    if not rt.is_pocl_cpu:
+        pytest.skip("the inline exp is only built on PoCL's CPU device (elsewhere the library's is used)")
+    cfg = RenderConfig()
+    defines = cfg.defines(16) | {"PIX": 8, "BATCH": 32, "CHANNELS": 3, "CCHUNK": 3, "SAVE_LAST": False,
+                                 "CLS_POCL_CPU": True}
+    saved = rt.inline_exp_exact
+    try:
+        rt.inline_exp_exact = None
+        exact = stages.inline_exp_exact(rt, cfg, defines)
+        assert isinstance(exact, bool)
+        rt.inline_exp_exact = None  # with the inline exp off both sides are the library's: exact
+        assert stages.inline_exp_exact(rt, cfg, defines | {"CLS_INLINE_EXP": 0}) is True
+    finally:
+        rt.inline_exp_exact = saved
