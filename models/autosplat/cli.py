@@ -145,7 +145,7 @@ def train(argv: list[str]) -> int:
     if a.masks:
         from .init import load_mask_folder
         load_mask_folder(seq, a.masks, list(range(*(frames or (0, len(seq.frames))))))
-    data = prepare_data(seq, a.cameras, preset.holdout)
+    data = prepare_data(seq, a.cameras, preset.holdout, preset.dynamic_threshold)
     load_s = time.perf_counter() - t0
     if not a.no_progress:
         print(preset.describe())

@@ -13,11 +13,13 @@ from clsplat.data.scene import SEMANTIC_CLASSES, DrivingSequence
 
 from ..common.metrics import SSIM_WINDOW
 from .background import foreground_mask
-from .init import ROAD, UNKNOWN, pixel_classes, project_to_pixels
+from .init import ROAD, UNKNOWN, moving_track_ids, pixel_classes, project_to_pixels
 
 __all__ = ["load_sequence", "parse_frames", "SYNTHETIC_DT", "RunData", "prepare_data", "ROAD_SEMANTIC"]
 
 ROAD_SEMANTIC = SEMANTIC_CLASSES.index("road")
+#: the presets' default ``dynamic_threshold`` (metres a track's centre moves before it is decomposed)
+DYNAMIC_THRESHOLD_M = 0.5
 
 #: frame interval of the built-in street (seconds): 16 frames cover 3 s of driving.
 SYNTHETIC_DT = 0.2
@@ -82,7 +84,8 @@ class RunData:
     """Tensors of one sequence, for the selected cameras.
 
     images [F,C,H,W,3], viewmats [F,C,4,4], Ks [C,3,3]; classes [F,C,H,W] uint8 (``BG_CLASSES``
-    or 255 = unknown); foreground [F,C,H,W] bool; train / test frame indices.
+    or 255 = unknown); foreground [F,C,H,W] bool, the pixels of the moving tracks (those
+    AutoSplat decomposes); train / test frame indices.
     """
 
     seq: DrivingSequence
@@ -116,9 +119,11 @@ def _lidar_classes(seq: DrivingSequence, i: int, cam: str) -> np.ndarray:
     return out
 
 
-def prepare_data(seq: DrivingSequence, cameras: list[str] | None, holdout: int) -> RunData:
+def prepare_data(seq: DrivingSequence, cameras: list[str] | None, holdout: int,
+                 dynamic_threshold: float = DYNAMIC_THRESHOLD_M) -> RunData:
     """Select cameras, split frames (every ``holdout``-th frame, offset ``holdout // 2``, is held
-    out) and build the per-frame tensors. ValueError naming the argument on bad input."""
+    out) and build the per-frame tensors; the foreground masks cover the tracks that move more
+    than ``dynamic_threshold`` metres (the preset's). ValueError naming the argument on bad input."""
     if cameras is None:
         cameras = seq.camera_names
     if not cameras:
@@ -147,6 +152,7 @@ def prepare_data(seq: DrivingSequence, cameras: list[str] | None, holdout: int) 
         for j, c in enumerate(cameras):
             pc = pixel_classes(seq.frames[i], c)
             classes[i, j] = pc if pc is not None else _lidar_classes(seq, i, c)
-    fg = np.stack([foreground_mask(seq, i, cameras) for i in range(F)])
+    moving = moving_track_ids(seq, dynamic_threshold)
+    fg = np.stack([foreground_mask(seq, i, cameras, moving) for i in range(F)])
     return RunData(seq, list(cameras), train, test, images, viewmats, Ks, torch.from_numpy(classes),
                    torch.from_numpy(fg), W, H)
