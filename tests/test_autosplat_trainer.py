@@ -69,8 +69,9 @@ def test_cli_writes_the_run_folder(tmp_path):
     for block in (m["all"], m["train"]):
         assert np.isfinite(block["psnr"]) and np.isfinite(block["ssim"])
     assert set(m["per_camera"]) == {"CAM_FRONT", "CAM_BACK"} == set(m["train"]["per_camera"])
-    assert set(m["lateral_shift"]) == {"1m", "2m", "3m"} and m["lateral_shift"]["2m"]["psnr"] > 5
-    assert m["lateral_shift"]["2m"]["frames"] == m["protocol"]["test_frames"] and m["lateral_shift"]["2m"]["psnr_road"] > 5
+    assert set(m["lane_change"]) == {"1m", "2m", "3m"} and m["lane_change"]["2m"]["psnr"] > 5
+    assert m["lane_change"]["2m"]["frames"] == m["protocol"]["test_frames"] and m["lane_change"]["2m"]["psnr_road"] > 5
+    assert 0 < m["lane_change"]["2m"]["road_depth_mae_m"] < 5
     assert np.isfinite(m["all"]["psnr_objects"]) and np.isfinite(m["train"]["psnr_objects"])
     assert m["gaussians"]["road"] > 0 and m["gaussians"]["sky"] > 0 and m["gaussians"]["objects"] > 0
     assert set(m["seconds_per_stage"]) >= {"load", "init", "bg_phase1", "bg_phase2", "foreground", "fusion"}

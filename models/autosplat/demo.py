@@ -99,7 +99,7 @@ def command(argv: list[str]) -> int:
     print(f"held-out PSNR {m['all']['psnr']:.2f} dB  SSIM {m['all']['ssim']:.3f}   "
           f"(oracle-depth baseline, pixel_recon: PSNR {b['psnr']:.2f} dB  SSIM {b['ssim']:.3f})")
     print("lane-change renders (rig shifted left), PSNR vs the generator: "
-          + "  ".join(f"{k} {v['psnr']:.2f} dB" for k, v in m["lateral_shift"].items()))
+          + "  ".join(f"{k} {v['psnr']:.2f} dB" for k, v in m["lane_change"].items()))
     print("seconds per stage: " + json.dumps({k: round(v, 1) for k, v in m["seconds_per_stage"].items()}))
     print(f"outputs in {a.out} (contact_sheet.png, lateral_shift_*m.png, scene.ply, metrics.json, loss.png)")
     return 0
