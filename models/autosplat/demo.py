@@ -4,8 +4,9 @@
    change, two moving vehicles, one with blinking hazard lights, six parked ones), at the demo
    preset's scale (88 x 160 per camera); every 4th frame (2, 6, 10, 14) is held out.
 2. Reconstruct it with the ``demo`` preset (:func:`.cli.reconstruct`): LiDAR-initialised
-   background in two phases with flatness, one Gaussian set per track with mirror copies,
-   residual SH for the moving ones, fusion with pose corrections, densification.
+   background in two phases with flatness (the parked cars in it, as LiDAR points), one Gaussian
+   set per moving track with mirror copies and residual SH, fusion with pose corrections,
+   densification.
 3. The baseline it replaces (:mod:`clsplat.pixel_recon`): every pixel of the previous (training)
    frame lifted with the generator's **ground-truth depth** and rendered into the held-out frame.
 4. Print and store held-out PSNR / SSIM of both, write the contact sheet and the lateral-shift

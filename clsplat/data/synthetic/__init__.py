@@ -47,6 +47,8 @@ The package, by concern:
 * :mod:`~clsplat.data.synthetic.street` -- :class:`StreetScene`: the layout and the analytic ray
   caster (trace, shade, render, LiDAR);
 * :mod:`~clsplat.data.synthetic.rig` -- the camera rig, the ego trajectory, :func:`render_view`;
+* :mod:`~clsplat.data.synthetic.views` -- novel viewpoints with exact ground truth (the rig
+  mirrored across a vehicle, moved sideways) and correlated tracker noise on the boxes;
 * this module -- :func:`generate_sequence`, which puts them together into a
   :class:`~clsplat.data.scene.DrivingSequence`.
 
