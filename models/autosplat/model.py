@@ -1,4 +1,4 @@
-"""The AutoSplat scene model: background set, one set per track, residual SH, pose corrections.
+"""The AutoSplat scene model: background set, one set per moving track, residual SH, pose corrections.
 
 :class:`AutoSplatModel` holds every trainable part and assembles, for one frame, the world-frame
 :class:`GaussianSet` that is rendered: the background (or its road / sky subsets), and each track

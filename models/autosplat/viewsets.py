@@ -28,6 +28,7 @@ import torch
 
 from clsplat.data.synthetic.views import mirror_across_box, shift_sideways
 
+from ..common.metrics import psnr as psnr_metric, ssim as ssim_metric
 from .data import ROAD_SEMANTIC
 from .init import moving_track_ids
 
@@ -169,7 +170,6 @@ def lane_change(trainer, show: int, sheets: Path | None = None) -> dict:
                 views = _generator_views(trainer, frame, c2w)
                 gt = np.stack([v.rgb for v in views])
                 g = torch.from_numpy(gt)
-                from ..common.metrics import psnr as psnr_metric, ssim as ssim_metric
                 rr, gg = r.permute(0, 3, 1, 2), g.permute(0, 3, 1, 2)
                 ps.append(psnr_metric(rr, gg))
                 ss.append(ssim_metric(rr, gg))
