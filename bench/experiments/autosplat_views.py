@@ -69,12 +69,12 @@ def get(m: dict, path: tuple):
     return m
 
 
-def run(out: Path, row: str, seed: int, preset: str, threads: int | None) -> dict:
+def run(out: Path, row: str, seed: int, preset: str, threads: int | None, data: str = "synthetic:views") -> dict:
     """Train and score one (row, seed) with the CLI; returns its metrics (cached in its folder)."""
     d = out / row.replace(", ", "_").replace(" ", "_") / f"seed{seed}"
     if (d / "metrics.json").is_file():
         return json.loads((d / "metrics.json").read_text())
-    cmd = [str(Path(sys.executable).parent / "clsplat"), "train", "autosplat", "--data", "synthetic:views", "--preset", preset,
+    cmd = [str(Path(sys.executable).parent / "clsplat"), "train", "autosplat", "--data", data, "--preset", preset,
            "--seed", str(seed), "--views", "recorded", "far-side", "lane-change", "appearance", "--no-progress",
            "--out", str(d), *ROWS[row]] + ([] if threads is None else ["--threads", str(threads)])
     if (d / "checkpoint.pt").is_file() or (d / ".staging").exists():
@@ -135,6 +135,8 @@ def main() -> None:
     ap.add_argument("--rows", nargs="+", default=list(ROWS)[:7], choices=list(ROWS),
                     help="rows to run (default: the full model, plain 3DGS and each switch off)")
     ap.add_argument("--threads", type=int, default=None, help="torch threads of each run")
+    ap.add_argument("--data", default="synthetic:views", choices=["synthetic:views", "synthetic:views-exact"],
+                    help="the street (synthetic:views-exact: the same without tracker noise; use another --out)")
     ap.add_argument("--table-only", action="store_true", help="only rewrite views.md from the finished runs")
     a = ap.parse_args()
     out = Path(a.out)
@@ -142,7 +144,7 @@ def main() -> None:
     if not a.table_only:
         for seed in a.seeds:
             for row in a.rows:
-                run(out, row, seed, a.preset, a.threads)
+                run(out, row, seed, a.preset, a.threads, a.data)
                 table(out, a.seeds)
     print(table(out, a.seeds))
 
