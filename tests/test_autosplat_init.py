@@ -4,7 +4,7 @@ import pytest
 
 from clsplat.data.scene import project_points
 from clsplat.data.synthetic import generate_sequence
-from clsplat.models.autosplat.init import OTHER, ROAD, SKY, _SEM_TO_BG, init_background
+from clsplat.models.autosplat.init import OTHER, ROAD, SKY, _SEM_TO_BG, init_background, moving_track_ids
 from clsplat.models.common.presets import get_preset
 
 
@@ -46,13 +46,20 @@ def test_every_background_gaussian_projects_onto_a_pixel_of_its_own_class(street
     assert total > 1000 and agree / total > 0.97, agree / total
 
 
-def test_points_in_tracked_boxes_are_removed(street):
+def test_points_in_moving_tracks_boxes_are_removed_static_ones_stay(street):
     seq, init, _ = street
     lidar = init.source[:, 0] >= 0
+    moving = moving_track_ids(seq, get_preset("autosplat", "tiny").dynamic_threshold)
+    assert moving == {1, 2}
+    parked_points = 0
     for i, f in enumerate(seq.frames):
-        frame_pts = init.source[:, 0] == i
+        frame_pts = init.means[lidar & (init.source[:, 0] == i)].astype(np.float64)
         for b in f.boxes:
-            assert not b.contains(init.means[lidar & frame_pts].astype(np.float64)).any()
+            inside = int(b.contains(frame_pts).sum())
+            if b.track_id in moving:
+                assert inside == 0
+            parked_points += inside
+    assert parked_points > 0   # parked cars stay in the background (issue 19)
 
 
 def test_sky_dome_is_far_coloured_and_radial(street):

@@ -126,9 +126,9 @@ def main() -> None:
         train_s = sum(it)
         res = {"name": name, "switches": Switches(**sw).to_dict(), "overrides": over,
                "test_psnr": m["all"]["psnr"], "test_ssim": m["all"]["ssim"], "train_psnr": m["train"]["psnr"],
-               "test_psnr_objects": m["all"]["psnr_objects"], "lateral_shift": m["lateral_shift"],
-               "lateral_psnr": {k: v["psnr"] for k, v in m["lateral_shift"].items()},
-               "lateral_ssim": {k: v["ssim"] for k, v in m["lateral_shift"].items()},
+               "test_psnr_objects": m["all"]["psnr_objects"], "lane_change": m["lane_change"],
+               "lateral_psnr": {k: v["psnr"] for k, v in m["lane_change"].items()},
+               "lateral_ssim": {k: v["ssim"] for k, v in m["lane_change"].items()},
                "seconds_per_iteration_median": float(np.median(it)),
                "renderer_device_share": sum(x["renderer_device_s"] for x in log) / train_s,
                "renderer_wall_share": sum(x["render_wall_s"] + x["backward_s"] for x in log) / train_s,
@@ -164,7 +164,7 @@ def write_table(results: dict, path: Path) -> None:
     for k in sorted(results, key=int):
         r = results[k]
         lat = " / ".join(f"{r['lateral_psnr'][s]:.2f}" for s in ("1m", "2m", "3m"))
-        two = r.get("lateral_shift", {}).get("2m", {})
+        two = r.get("lane_change", r.get("lateral_shift", {})).get("2m", {})
         lines.append(f"| {r['name']} | {r['test_psnr']:.2f} | {r['test_ssim']:.3f} | {f(r.get('test_psnr_objects'))} | "
                      f"{r['train_psnr']:.2f} | {lat} | {f(two.get('psnr_objects'))} / {f(two.get('psnr_road'))} | "
                      f"{r['seconds_per_iteration_median']:.2f} | {100 * r['renderer_wall_share']:.0f}% / "

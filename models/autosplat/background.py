@@ -89,25 +89,28 @@ def _box_pixel_rect(box, w2c: np.ndarray, K: np.ndarray, width: int, height: int
     return y0, y1, x0, x1
 
 
-def foreground_mask(seq: DrivingSequence, frame: int, cameras: list[str]) -> np.ndarray:
-    """``[C, H, W]`` bool: pixels of tracked objects at ``frame`` (instance masks when the data has
-    them, else pixels whose ray hits a tracked box)."""
+def foreground_mask(seq: DrivingSequence, frame: int, cameras: list[str],
+                    tracks: set[int] | None = None) -> np.ndarray:
+    """``[C, H, W]`` bool: pixels of the tracked objects ``tracks`` (None: every track) at
+    ``frame`` (instance masks when the data has them, else pixels whose ray hits the box)."""
     f = seq.frames[frame]
+    boxes = [b for b in f.boxes if tracks is None or b.track_id in tracks]
     out = []
     for c in cameras:
         cam = seq.camera(c)
         if c in f.instances:
-            out.append(f.instances[c] > 0)
+            inst = f.instances[c]
+            out.append(inst > 0 if tracks is None else np.isin(inst, sorted(tracks)))
             continue
         m = np.zeros((cam.height, cam.width), bool)
-        if f.boxes:
+        if boxes:
             T = seq.cam_to_world(frame, c)
             u, v = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
             d = np.stack([(u - cam.K[0, 2]) / cam.K[0, 0], (v - cam.K[1, 2]) / cam.K[1, 1], np.ones_like(u)], -1)
             d = d @ T[:3, :3].T
             o = T[:3, 3]
             w2c = np.linalg.inv(T)
-            for b in f.boxes:
+            for b in boxes:
                 rect = _box_pixel_rect(b, w2c, cam.K, cam.width, cam.height)
                 if rect is None:
                     continue

@@ -4,19 +4,27 @@
     clsplat train autosplat --data synthetic|pandaset:PATH|nuscenes:PATH [--cameras CAM ...]
         [--frames A:B] [--scale S] [--preset NAME] [--steps N] [--set FIELD=VALUE] [--holdout K]
         [--no-flatness] [--no-symmetry] [--no-residual-sh] [--no-pose-correction] [--no-densify]
-        [--no-decompose] [--masks DIR] [--batch-size B] --out DIR [--resume] [--stop-after N]
+        [--no-decompose] [--masks DIR] [--views SET ...] [--batch-size B] --out DIR [--resume]
+        [--stop-after N]
         [--view [--view-port P] [--view-every N]]
     clsplat eval autosplat --checkpoint RUN/checkpoint.pt --out DIR [--data ...]
+        [--views recorded|far-side|lane-change|appearance ...]
 
 ``--no-decompose`` is plain 3DGS from LiDAR (one static set, no objects, no phase 1). ``--steps N``
 rescales the preset's four stages to N iterations in all, each keeping its share. ``--batch-size B``
 trains on B frames per iteration (default 1); under ``torchrun`` the ranks share them (data
-parallel on the shared loop, so B must be at least the number of processes).
+parallel on the shared loop, so B must be at least the number of processes). ``--views``
+picks the test sets scored (:mod:`.viewsets`; default ``recorded lane-change``): ``far-side``
+(metrics.json ``far_side``: the moving vehicles' far side, ``psnr_objects``), ``lane-change``
+(``lane_change``: keys ``1m``, ``2m``, ``3m``), ``appearance`` (``appearance``:
+``psnr_changing_pixels``), ``recorded`` (``train``, and ``pose_correction`` under tracker noise);
+``all``/``per_camera`` always hold the held-out frames of the recorded path. ``--data
+synthetic:views`` is the street those sets are built for (signal lamps, a shadow, tracker noise).
 
 Writes ``DIR/metrics.json`` (:mod:`clsplat.models.common.report`'s schema: held-out PSNR, SSIM
 per camera and overall with PSNR over object pixels, LPIPS when weights are given; ``train`` the
-same on the training frames; lateral-shift errors over the held-out frames, Gaussian counts per
-class, seconds per stage), ``DIR/scene.ply``,
+same on the training frames; the view sets' sections, Gaussian counts per class, seconds per
+stage), ``DIR/scene.ply``,
 ``DIR/checkpoint.pt``, ``DIR/log.jsonl``, ``DIR/loss.png``, ``DIR/contact_sheet.png`` and
 ``DIR/lateral_shift_{1,2,3}m.png``.
 """
@@ -44,6 +52,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--scale", type=float, default=None, help="image scale (default: the preset's)")
     p.add_argument("--holdout", type=int, default=None, help="hold out every K-th frame (default: the preset's)")
     p.add_argument("--masks", default=None, help="folder of semantic masks <CAM>/<NN>.png (class indices)")
+    _add_views_arg(p)
     for flag in ("decompose", "flatness", "symmetry", "residual-sh", "pose-correction", "densify"):
         p.add_argument(f"--no-{flag}", action="store_true", help=f"switch the {flag.replace('-', ' ')} constraint off")
     add_view_args(p)
@@ -52,23 +61,34 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+def _add_views_arg(p: argparse.ArgumentParser) -> None:
+    from .evaluate import DEFAULT_VIEWS
+    from .viewsets import VIEW_SETS
+    p.add_argument("--views", nargs="+", default=list(DEFAULT_VIEWS), choices=VIEW_SETS, metavar="SET",
+                   help=f"test sets to score, some of {', '.join(VIEW_SETS)} (default: {' '.join(DEFAULT_VIEWS)}); "
+                        "far-side and appearance need generated data")
+
+
 def reconstruct(data, preset, switches, out: Path, *, device=None, progress: bool = True,
                 checkpoint_every: int = 100, resume: bool = False, stop_after: int | None = None,
                 lpips=(None, "LPIPS off: no weights given"), extra: dict | None = None,
-                view: dict | None = None, batch_size: int = 1) -> dict | None:
+                view: dict | None = None, batch_size: int = 1, views=None) -> dict | None:
     """Train (or resume) and evaluate one run; writes metrics.json and scene.ply into ``out``.
     With ``view`` ({"host", "port", "every"}) the run is served to the browser as it trains.
 
     ``out`` is written in place; the commands (``clsplat train autosplat``, ``clsplat demo``) pass
     the staging folder of a :class:`~..common.runfolder.RunFolder`, which publishes it as a group.
+    ``views``: the test sets scored (default :data:`.evaluate.DEFAULT_VIEWS`).
     Returns the metrics, or None when ``stop_after`` stopped the schedule early or on a rank > 0
     under ``torchrun`` (rank 0 evaluates and writes the outputs).
     """
     from ..common.report import metrics_report, write_metrics
     from ..common.train import distributed_info, read_log
-    from .evaluate import evaluate_run
+    from .evaluate import DEFAULT_VIEWS, evaluate_run
     from .trainer import Trainer
+    from .viewsets import check_views
 
+    views = check_views(DEFAULT_VIEWS if views is None else views, data.seq)   # before minutes of training
     t_start = time.perf_counter()
     trainer = Trainer(data, preset, switches, out, device=device, progress=progress,
                       checkpoint_every=checkpoint_every, batch_size=batch_size)
@@ -92,7 +112,7 @@ def reconstruct(data, preset, switches, out: Path, *, device=None, progress: boo
     steps = read_log(out / "log.jsonl")
     it = [r["time_s"] for r in steps]
     train_s = sum(it)
-    ev = evaluate_run(trainer, lpips=lpips[0])
+    ev = evaluate_run(trainer, lpips=lpips[0], views=views)
     recorded = ("data", "scale", "frames")   # what eval autosplat and the viewer rebuild the run from
     ev["protocol"].update({k: extra[k] for k in recorded if extra and k in extra})
     sections = {k: v for k, v in ev.items() if k not in ("protocol", "all", "per_camera", "eval_seconds")}
@@ -153,7 +173,9 @@ def train(argv: list[str]) -> int:
     if a.masks:
         from .init import load_mask_folder
         load_mask_folder(seq, a.masks, list(range(*(frames or (0, len(seq.frames))))))
-    data = prepare_data(seq, a.cameras, preset.holdout)
+    data = prepare_data(seq, a.cameras, preset.holdout, preset.dynamic_threshold)
+    from .viewsets import check_views
+    views = check_views(a.views, seq)
     load_s = time.perf_counter() - t0
     if a.stop_after is not None and a.stop_after < 1:
         raise ValueError(f"--stop-after: expected a positive number of iterations, got {a.stop_after}")
@@ -168,7 +190,7 @@ def train(argv: list[str]) -> int:
                               lpips=(lp, msg), extra={"data": a.data, "scale": scale, "frames": list(frames) if frames else None,
                                      "load_seconds": load_s},
                               view={"host": a.view_host, "port": a.view_port, "every": a.view_every}
-                              if a.view else None, batch_size=batch)
+                              if a.view else None, batch_size=batch, views=views)
         if metrics is None:
             return 0
         rf.publish()
@@ -189,6 +211,7 @@ def evaluate(argv: list[str]) -> int:
 
     p = ArgumentParser(prog="clsplat eval autosplat", description=evaluate.__doc__.split("\n")[0])
     add_eval_args(p, scenes=False)
+    _add_views_arg(p)
     p.set_defaults(data=None)
     a = p.parse_args(argv)
     ck_path = Path(a.checkpoint)
@@ -202,7 +225,7 @@ def evaluate(argv: list[str]) -> int:
     out.mkdir(parents=True, exist_ok=True)
     tr = trainer_from_checkpoint(ck, ck_path, run, a.data, out_dir=out, device=a.device, arg="--checkpoint")
     lpips = lpips_from_args(a)
-    ev = evaluate_run(tr, lpips=lpips)
+    ev = evaluate_run(tr, lpips=lpips, views=a.views)
     ev["protocol"]["checkpoint"] = str(ck_path)
     sections = {k: v for k, v in ev.items() if k not in ("protocol", "all", "per_camera", "eval_seconds")}
     m = metrics_report("autosplat", tr.preset.name, tr.step, ev["protocol"], ev["all"], ev["per_camera"],

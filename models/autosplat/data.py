@@ -1,5 +1,6 @@
-"""The data of one AutoSplat run: the sequence (``--data``: the built-in street, PandaSet,
-nuScenes) cut to ``--frames`` and scaled by ``--scale``, each argument named when it is wrong;
+"""The data of one AutoSplat run: the sequence (``--data``: the built-in street, the street of the
+novel-view protocol, PandaSet, nuScenes) cut to ``--frames`` and scaled by ``--scale``, each
+argument named when it is wrong;
 and its tensors (:class:`RunData`: images, cameras, per-pixel classes from masks or labelled
 LiDAR, foreground masks of the tracked boxes, the train / held-out split)."""
 from __future__ import annotations
@@ -13,14 +14,24 @@ from clsplat.data.scene import SEMANTIC_CLASSES, DrivingSequence
 
 from ..common.metrics import SSIM_WINDOW
 from .background import foreground_mask
-from .init import ROAD, UNKNOWN, pixel_classes, project_to_pixels
+from .init import ROAD, UNKNOWN, moving_track_ids, pixel_classes, project_to_pixels
 
-__all__ = ["load_sequence", "parse_frames", "SYNTHETIC_DT", "RunData", "prepare_data", "ROAD_SEMANTIC"]
+__all__ = ["load_sequence", "parse_frames", "SYNTHETIC_DT", "SYNTHETIC_SPECS", "RunData", "prepare_data",
+           "ROAD_SEMANTIC", "DYNAMIC_THRESHOLD_M"]
 
 ROAD_SEMANTIC = SEMANTIC_CLASSES.index("road")
+#: the presets' default ``dynamic_threshold`` (metres a track's centre moves before it is decomposed)
+DYNAMIC_THRESHOLD_M = 0.5
 
 #: frame interval of the built-in street (seconds): 16 frames cover 3 s of driving.
 SYNTHETIC_DT = 0.2
+#: ``--data`` values of the generated street: ``synthetic`` (``make demo``'s) and ``synthetic:views``,
+#: the street of the novel-view protocol (issue 19): moving vehicles with brake lights and
+#: indicators, a footbridge whose shadow they drive through, and tracked boxes with correlated
+#: tracker noise (:class:`clsplat.data.synthetic.views.TrackerNoise`'s defaults; the exact boxes
+#: kept for scoring); ``synthetic:views-exact`` is the same street with exact boxes (the far-side and
+#: appearance sets without the tracker noise that dominates the object pixels' error)
+SYNTHETIC_SPECS = ("synthetic", "synthetic:views", "synthetic:views-exact")
 _SYNTHETIC_FRAMES = 16
 
 
@@ -43,14 +54,19 @@ def load_sequence(spec: str, cameras: list[str] | None, frames: tuple[int, int] 
     pickles allow-listed unless ``safe_pickle=False``, ``--trust-pickle``)."""
     if not (isinstance(scale, (int, float)) and 0 < scale <= 4):
         raise ValueError(f"--scale: expected a number in (0, 4], got {scale!r}")
-    if spec == "synthetic":
+    synthetic = spec in SYNTHETIC_SPECS
+    if synthetic:
         from clsplat.data.synthetic import SyntheticConfig, generate_sequence
         a, b = frames or (0, _SYNTHETIC_FRAMES)
+        views = spec in ("synthetic:views", "synthetic:views-exact")
         cfg = SyntheticConfig(height=max(8, round(176 * scale)), width=max(8, round(320 * scale)), num_frames=b,
-                              seed=seed, dt=SYNTHETIC_DT)
+                              seed=seed, dt=SYNTHETIC_DT, signals=views, shadow=views)
         seq = generate_sequence(cfg)
         if a:
             seq = DrivingSequence(seq.cameras, seq.frames[a:b], seq.name, seq.metadata)
+        if spec == "synthetic:views":   # after the cut: the exact boxes are keyed by the run's frame indices
+            from clsplat.data.synthetic.views import TrackerNoise, add_tracker_noise
+            add_tracker_noise(seq, TrackerNoise(), seed=seed)
     elif spec.startswith("pandaset:"):
         from clsplat.data.pandaset import load_pandaset
         idx = None if frames is None else list(range(*frames))
@@ -63,10 +79,11 @@ def load_sequence(spec: str, cameras: list[str] | None, frames: tuple[int, int] 
                 raise ValueError(f"--frames: {frames[0]}:{frames[1]} is past the scene's {len(seq.frames)} frames")
             seq = DrivingSequence(seq.cameras, seq.frames[frames[0]:frames[1]], seq.name, seq.metadata)
     else:
-        raise ValueError(f"--data: expected synthetic, pandaset:PATH or nuscenes:PATH, got {spec!r}")
-    if frames is not None and spec != "synthetic" and not seq.frames:
+        raise ValueError(f"--data: expected one of {', '.join(SYNTHETIC_SPECS)}, pandaset:PATH or nuscenes:PATH, "
+                         f"got {spec!r}")
+    if frames is not None and not synthetic and not seq.frames:
         raise ValueError(f"--frames: {frames[0]}:{frames[1]} selects no frame")
-    if spec != "synthetic" and scale != 1:
+    if not synthetic and scale != 1:
         from ..common.data import resize_sequence
         c0 = seq.cameras[0]
         seq = resize_sequence(seq, max(8, round(c0.height * scale)), max(8, round(c0.width * scale)))
@@ -82,7 +99,8 @@ class RunData:
     """Tensors of one sequence, for the selected cameras.
 
     images [F,C,H,W,3], viewmats [F,C,4,4], Ks [C,3,3]; classes [F,C,H,W] uint8 (``BG_CLASSES``
-    or 255 = unknown); foreground [F,C,H,W] bool; train / test frame indices.
+    or 255 = unknown); foreground [F,C,H,W] bool, the pixels of the moving tracks (those
+    AutoSplat decomposes); train / test frame indices.
     """
 
     seq: DrivingSequence
@@ -116,9 +134,11 @@ def _lidar_classes(seq: DrivingSequence, i: int, cam: str) -> np.ndarray:
     return out
 
 
-def prepare_data(seq: DrivingSequence, cameras: list[str] | None, holdout: int) -> RunData:
+def prepare_data(seq: DrivingSequence, cameras: list[str] | None, holdout: int,
+                 dynamic_threshold: float = DYNAMIC_THRESHOLD_M) -> RunData:
     """Select cameras, split frames (every ``holdout``-th frame, offset ``holdout // 2``, is held
-    out) and build the per-frame tensors. ValueError naming the argument on bad input."""
+    out) and build the per-frame tensors; the foreground masks cover the tracks that move more
+    than ``dynamic_threshold`` metres (the preset's). ValueError naming the argument on bad input."""
     if cameras is None:
         cameras = seq.camera_names
     if not cameras:
@@ -147,6 +167,7 @@ def prepare_data(seq: DrivingSequence, cameras: list[str] | None, holdout: int) 
         for j, c in enumerate(cameras):
             pc = pixel_classes(seq.frames[i], c)
             classes[i, j] = pc if pc is not None else _lidar_classes(seq, i, c)
-    fg = np.stack([foreground_mask(seq, i, cameras) for i in range(F)])
+    moving = moving_track_ids(seq, dynamic_threshold)
+    fg = np.stack([foreground_mask(seq, i, cameras, moving) for i in range(F)])
     return RunData(seq, list(cameras), train, test, images, viewmats, Ks, torch.from_numpy(classes),
                    torch.from_numpy(fg), W, H)

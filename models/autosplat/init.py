@@ -31,7 +31,7 @@ import torch
 from clsplat.data.scene import SEMANTIC_CLASSES, DrivingSequence, Frame
 
 __all__ = ["BG_CLASSES", "ROAD", "SKY", "OTHER", "UNKNOWN", "BackgroundInit", "pixel_classes",
-           "init_background", "knn_mean_distance", "load_mask_folder", "accumulate_lidar"]
+           "init_background", "knn_mean_distance", "load_mask_folder", "accumulate_lidar", "moving_track_ids"]
 
 BG_CLASSES: tuple[str, ...] = ("road", "sky", "other")
 ROAD, SKY, OTHER, UNKNOWN = 0, 1, 2, 255
@@ -143,9 +143,22 @@ def _knn_normals(points: torch.Tensor, k: int = 12, chunk: int = 2048) -> torch.
     return normals
 
 
-def accumulate_lidar(seq: DrivingSequence, frame_ids: Sequence[int], box_margin: float | None):
-    """World-frame LiDAR of ``frame_ids`` without points in tracked boxes (``box_margin`` None:
-    keep them, for a single static set as in plain 3DGS).
+def moving_track_ids(seq: DrivingSequence, threshold: float) -> set[int]:
+    """Track ids whose box centre moves more than ``threshold`` metres (from its first box) over
+    the sequence: the tracks AutoSplat decomposes; the others (parked cars) stay in the background
+    as the LiDAR points they are."""
+    centres: dict[int, list] = {}
+    for f in seq.frames:
+        for b in f.boxes:
+            centres.setdefault(b.track_id, []).append(np.asarray(b.center, np.float64))
+    return {t for t, c in centres.items() if float(np.linalg.norm(np.array(c) - c[0], axis=1).max()) > threshold}
+
+
+def accumulate_lidar(seq: DrivingSequence, frame_ids: Sequence[int], box_margin: float | None,
+                     remove: set[int] | None = None):
+    """World-frame LiDAR of ``frame_ids`` without points in the boxes of the tracks ``remove``
+    (None: every tracked box; ``box_margin`` None: keep them all, for a single static set as in
+    plain 3DGS).
 
     Returns ``[(frame index, kept points [M,3] float64, their dataset labels [M] uint8 or None,
     all points of the sweep [M', 3] (the occluders for the visibility test)), ...]``.
@@ -165,7 +178,8 @@ def accumulate_lidar(seq: DrivingSequence, frame_ids: Sequence[int], box_margin:
             raise ValueError(f"data: frame {i} has {lab.shape[0]} LiDAR labels for {pts.shape[0]} points")
         keep = np.ones(len(pts), dtype=bool)
         for b in (f.boxes if box_margin is not None else []):
-            keep &= ~b.contains(pts, margin=box_margin)
+            if remove is None or b.track_id in remove:
+                keep &= ~b.contains(pts, margin=box_margin)
         out.append((i, pts[keep], None if lab is None else lab[keep], pts))
     return out
 
@@ -250,12 +264,14 @@ def _sky_dome(seq: DrivingSequence, frame_ids: Sequence[int], cams: Sequence[str
 
 def init_background(seq: DrivingSequence, frame_ids: Sequence[int], cameras: Sequence[str], preset,
                     generator: np.random.Generator, remove_boxes: bool = True) -> tuple[BackgroundInit, np.ndarray]:
-    """Initial background Gaussians from the LiDAR of ``frame_ids`` seen by ``cameras`` (with
-    ``remove_boxes`` False the points of tracked objects stay in: plain 3DGS's single set).
+    """Initial background Gaussians from the LiDAR of ``frame_ids`` seen by ``cameras``: the
+    points in the boxes of moving tracks (``preset.dynamic_threshold``) are left out, those of
+    static tracks stay (with ``remove_boxes`` False every point stays in: plain 3DGS's single set).
 
     Returns ``(BackgroundInit, mean_sky_colour [3])``.
     """
-    sweeps = accumulate_lidar(seq, frame_ids, preset.box_margin if remove_boxes else None)
+    sweeps = accumulate_lidar(seq, frame_ids, preset.box_margin if remove_boxes else None,
+                              moving_track_ids(seq, preset.dynamic_threshold))
     P, C, L, S = [], [], [], []
     for i, pts, lab, occluders in sweeps:
         if len(pts) == 0:

@@ -1,4 +1,4 @@
-"""The AutoSplat scene model: background set, one set per track, residual SH, pose corrections.
+"""The AutoSplat scene model: background set, one set per moving track, residual SH, pose corrections.
 
 :class:`AutoSplatModel` holds every trainable part and assembles, for one frame, the world-frame
 :class:`GaussianSet` that is rendered: the background (or its road / sky subsets), and each track
@@ -19,7 +19,7 @@ from clsplat.data.scene import DrivingSequence
 from ..common.gaussians import GaussianSet
 from .densify import GaussianParams
 from .fusion import PoseCorrection, place
-from .init import ROAD, SKY
+from .init import ROAD, SKY, moving_track_ids
 from .objects import ResidualSH, mirror_means, mirror_quats, mirror_sh
 
 __all__ = ["Switches", "TrackInfo", "AutoSplatModel", "collect_tracks"]
@@ -54,13 +54,16 @@ class TrackInfo:
     dynamic: bool
 
 
-def collect_tracks(seq: DrivingSequence, train_frames: list[int], dynamic_threshold: float) -> list[TrackInfo]:
-    """Tracks with a box in at least one training frame, in track-id order.
+def collect_tracks(seq: DrivingSequence, train_frames: list[int], dynamic_threshold: float,
+                   moving_only: bool = True) -> list[TrackInfo]:
+    """The tracks AutoSplat decomposes, in track-id order: those with a box in at least one
+    training frame whose centre moves more than ``dynamic_threshold`` metres over the sequence
+    (with ``moving_only`` False every track, static ones marked ``dynamic=False``). Static
+    tracks stay in the background (:func:`.init.init_background`), as the seed has it.
 
     Raises ValueError when a frame holds two boxes with the same track id (boxes that are not
     tracks).
     """
-    centres: dict[int, list] = {}
     first: dict[int, object] = {}
     for i, f in enumerate(seq.frames):
         ids = [b.track_id for b in f.boxes]
@@ -68,16 +71,16 @@ def collect_tracks(seq: DrivingSequence, train_frames: list[int], dynamic_thresh
             dup = sorted({t for t in ids if ids.count(t) > 1})
             raise ValueError(f"data: frame {i} holds several boxes with track id(s) {dup}; AutoSplat needs tracked "
                              "boxes (one box per track and frame, ids stable over time)")
-        for b in f.boxes:
-            if i in train_frames:
+        if i in train_frames:
+            for b in f.boxes:
                 first.setdefault(b.track_id, b)
-            centres.setdefault(b.track_id, []).append(b.center)
+    moving = moving_track_ids(seq, dynamic_threshold)
     out = []
     for tid in sorted(first):
-        c = np.array(centres[tid])
-        moved = float(np.linalg.norm(c - c[0], axis=1).max())
         b = first[tid]
-        out.append(TrackInfo(tid, b.label, tuple(float(s) for s in b.size), moved > dynamic_threshold))
+        if moving_only and tid not in moving:
+            continue
+        out.append(TrackInfo(tid, b.label, tuple(float(s) for s in b.size), tid in moving))
     return out
 
 

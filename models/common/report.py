@@ -14,7 +14,7 @@ Layout (``METRICS_SCHEMA`` = 1)::
       "all": {"psnr": ..., "ssim": ..., ["lpips"], [depth: "abs_rel", "sq_rel", "rmse", "delta1",
               "scale_ratio"], ...},      # over every evaluated image
       "per_camera": {"CAM_FRONT": {"psnr": ..., "ssim": ..., ...}, ...},
-      ...                                 # family sections (AutoSplat "train", "lateral_shift", ...)
+      ...                                 # family sections (AutoSplat "train", "lane_change", ...)
     }
 
 The same key means the same quantity in every family: ``psnr`` is the mean over images of

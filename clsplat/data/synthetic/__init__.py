@@ -19,8 +19,11 @@ Scene content (world frame, metres, z up, road along +x; see :mod:`clsplat.data.
   has hazard lights (both sides) blinking with period ``blink_period`` seconds;
 * optional poles and trees (class ``other``) on the sidewalks.
 
-Shading is Lambertian with one directional sun plus ambient; no shadows; lamps are
-emissive.  Colours are in ``[0, 1]``.
+Shading is Lambertian with one directional sun plus ambient; lamps are emissive; no shadows,
+except with ``shadow=True``: a footbridge across the street casts the one shadow the moving
+vehicles drive through. ``signals=True`` gives the moving vehicles brake lights and side
+indicators at a size the cameras resolve (time-varying appearance to score; each view's
+``changing`` mask marks those pixels).  Colours are in ``[0, 1]``.
 
 Ground truth per camera: RGB (optionally supersampled ``s x s`` per pixel), **z-depth**
 (distance along the optical axis, at the pixel centre; ``inf`` for sky), semantic class
@@ -44,6 +47,8 @@ The package, by concern:
 * :mod:`~clsplat.data.synthetic.street` -- :class:`StreetScene`: the layout and the analytic ray
   caster (trace, shade, render, LiDAR);
 * :mod:`~clsplat.data.synthetic.rig` -- the camera rig, the ego trajectory, :func:`render_view`;
+* :mod:`~clsplat.data.synthetic.views` -- novel viewpoints with exact ground truth (the rig
+  mirrored across a vehicle, moved sideways) and correlated tracker noise on the boxes;
 * this module -- :func:`generate_sequence`, which puts them together into a
   :class:`~clsplat.data.scene.DrivingSequence`.
 
@@ -108,7 +113,7 @@ def generate_sequence(config: SyntheticConfig | None = None, **overrides) -> Dri
     cfg.validate()
     duration = cfg.t0 + cfg.dt * (cfg.num_frames - 1)
     scene = StreetScene(cfg.seed, (-80.0, cfg.speed * duration + 160.0), cfg.num_parked, cfg.num_moving,
-                        cfg.poles, cfg.trees, cfg.blink_period, cfg.speed)
+                        cfg.poles, cfg.trees, cfg.blink_period, cfg.speed, cfg.signals, cfg.shadow)
     cams = make_rig(cfg.width, cfg.height, cfg.hfov_deg, cfg.back_hfov_deg, cfg.lateral_shift)
     if cfg.cameras is not None:
         by_name = {c.name: c for c in cams}

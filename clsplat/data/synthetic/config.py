@@ -24,6 +24,14 @@ ROAD_HALF = 7.0
 SIDEWALK_OUT = 10.0
 _SUN = np.array([0.35, 0.45, 0.82]) / np.linalg.norm([0.35, 0.45, 0.82])
 _AMBIENT = 0.55
+#: ``shadow``: the footbridge's centre x (m), deck half-extents (x, y, z) and deck centre height;
+#: placed so that the shadow band (offset by the sun towards -x, -y) is crossed by both moving
+#: vehicles of the default layout within the first 3 s (vehicle 2 near t = 0, vehicle 1 near t = 1.6 s)
+FOOTBRIDGE_X = 29.0
+FOOTBRIDGE_HALF = (2.0, 12.0, 0.3)
+FOOTBRIDGE_Z = 5.3
+#: ``signals``: brake lights are on for the first half of every period (seconds)
+BRAKE_PERIOD = 2.0
 
 
 @dataclass
@@ -49,6 +57,12 @@ class SyntheticConfig:
         cameras: names of the cameras to render (a subset of CAMERA_NAMES, in any order); the
             default renders all six. Cameras left out are never rendered.
         t0: time of frame 0 in seconds (frame k is at ``t0 + k * dt``).
+        signals: moving vehicles carry brake lights (two panels across the rear, about 0.6 x
+            0.35 m each, on for half of every ``BRAKE_PERIOD`` seconds, phase per vehicle) and
+            side indicators (0.9 x 0.35 m at each end of both sides, blinking with
+            ``blink_period``): time-varying appearance at a size a camera resolves.
+        shadow: a footbridge across the street at ``x = FOOTBRIDGE_X`` casts the only shadow of
+            the scene (sun direction fixed), which the moving vehicles drive through.
     """
 
     height: int = 176
@@ -71,6 +85,8 @@ class SyntheticConfig:
     blink_period: float = 1.0
     cameras: tuple[str, ...] | None = None
     t0: float = 0.0
+    signals: bool = False
+    shadow: bool = False
 
     def validate(self) -> None:
         """Raise ValueError naming the first bad field."""
@@ -120,6 +136,8 @@ class VehicleSpec:
     speed: float
     heading: float  # 0 = +x, pi = -x
     blink: bool = False
+    signals: bool = False     # brake lights and side indicators
+    brake_phase: float = 0.0  # seconds: brake lights are on while (t + phase) mod BRAKE_PERIOD < half of it
 
     def pose(self, t: float) -> np.ndarray:
         """``[4, 4]`` box-centre-to-world transform at time ``t``."""
@@ -141,15 +159,21 @@ class _Box:
     color: np.ndarray  # [3]
     key: int = 0  # texture key
     blink_on: bool = False
+    signals: bool = False     # brake lights and side indicators (``SyntheticConfig.signals``)
+    brake_on: bool = False
+    indicator_on: bool = False
 
 
 @dataclass
 class RenderOutput:
     """Ground truth of one view: ``rgb`` [H,W,3] float32, ``depth`` [H,W] float32 z-depth
-    (inf = sky), ``semantic`` [H,W] uint8, ``instance`` [H,W] int32."""
+    (inf = sky), ``semantic`` [H,W] uint8, ``instance`` [H,W] int32, ``changing`` [H,W] bool:
+    pixels whose colour changes with time in the object's own frame (signal lamps, on or off,
+    and vehicle surfaces in shadow)."""
 
     rgb: np.ndarray
     depth: np.ndarray
     semantic: np.ndarray
     instance: np.ndarray
+    changing: np.ndarray | None = None
 

@@ -11,8 +11,9 @@ import math
 import numpy as np
 
 from ..scene import Box3D, LidarPoints, invert_transform, make_transform, rotmat_to_quat
-from .config import _AMBIENT, _SUN, LIDAR_MOUNT, ROAD_HALF, SEM, SIDEWALK_OUT, RenderOutput, VehicleSpec, _Box
-from .textures import _box_albedo, _ground_albedo, _sky
+from .config import (_AMBIENT, _SUN, BRAKE_PERIOD, FOOTBRIDGE_HALF, FOOTBRIDGE_X, FOOTBRIDGE_Z, LIDAR_MOUNT,
+                     ROAD_HALF, SEM, SIDEWALK_OUT, RenderOutput, VehicleSpec, _Box)
+from .textures import _box_albedo, _ground_albedo, _signal_lamps, _sky
 
 class StreetScene:
     """A procedural street; deterministic from ``seed``.
@@ -20,7 +21,7 @@ class StreetScene:
     Args:
         seed: layout / texture seed.
         x_range: ``(xmin, xmax)`` world extent of buildings and street furniture.
-        num_parked, num_moving, poles, trees, blink_period: see
+        num_parked, num_moving, poles, trees, blink_period, signals, shadow: see
             :class:`~clsplat.data.synthetic.config.SyntheticConfig`.
         ego_speed: speed of the ego vehicle; moving vehicles drive at speeds relative to it.
     """
@@ -35,6 +36,8 @@ class StreetScene:
         trees: bool = True,
         blink_period: float = 1.0,
         ego_speed: float = 8.0,
+        signals: bool = False,
+        shadow: bool = False,
     ) -> None:
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ValueError(f"seed must be a non-negative int, got {seed!r}")
@@ -87,7 +90,7 @@ class StreetScene:
         for y, dx, dv, blink in moving[:num_moving]:
             size = (rng.uniform(4.2, 4.8), rng.uniform(1.8, 2.0), rng.uniform(1.45, 1.6))
             self.vehicles.append(VehicleSpec(tid, size, tuple(rng.uniform(0.1, 0.9, 3)), dx, y, ego_speed + dv, 0.0,
-                                             blink=blink))
+                                             blink=blink, signals=bool(signals), brake_phase=0.5 + 0.8 * (tid - 1)))
             tid += 1
         slots = rng.permutation(np.arange(-30.0, 60.0, 7.0))
         for i in range(num_parked):
@@ -97,13 +100,23 @@ class StreetScene:
             heading = 0.0 if rng.uniform() < 0.5 else math.pi
             self.vehicles.append(VehicleSpec(tid, size, tuple(rng.uniform(0.1, 0.9, 3)), x, side * 5.25, 0.0, heading))
             tid += 1
+        # the footbridge (``shadow``): the only shadow caster, appended last so the layout above is unchanged
+        self.casters: list[_Box] = []
+        if shadow:
+            deck = _Box(make_transform(t=[FOOTBRIDGE_X, 0.0, FOOTBRIDGE_Z]), np.array(FOOTBRIDGE_HALF), "bridge",
+                        SEM["building"], 0, np.array([0.5, 0.5, 0.52]))
+            self.static.append(deck)
+            self.casters.append(deck)
+        self.moving_ids = {v.track_id for v in self.vehicles if v.speed != 0}
 
     # ----------------------------------------------------------------------------------
     def vehicle_parts(self, v: VehicleSpec, t: float) -> list[_Box]:
         """Box primitives of vehicle ``v`` at time ``t``, all inside its tracked box."""
         L, W, H = v.size
         T = v.pose(t)
-        on = v.blink and (math.floor(t / (self.blink_period / 2) + 1e-9) % 2 == 0)
+        phase_on = math.floor(t / (self.blink_period / 2) + 1e-9) % 2 == 0
+        on = v.blink and phase_on
+        brake = v.signals and ((t + v.brake_phase) % BRAKE_PERIOD) < BRAKE_PERIOD / 2
         col = np.asarray(v.color)
         parts = []
         body_h = 0.58 * H
@@ -120,7 +133,8 @@ class StreetScene:
         for kind, c, half, colr in parts:
             Tl = T @ make_transform(t=c)
             out.append(_Box(Tl, np.asarray(half, dtype=np.float64), kind, SEM["vehicle"], v.track_id,
-                            np.asarray(colr, dtype=np.float64), v.track_id, on))
+                            np.asarray(colr, dtype=np.float64), v.track_id, on, v.signals, brake,
+                            v.signals and phase_on))
         return out
 
     def primitives(self, t: float) -> list[_Box]:
@@ -191,10 +205,27 @@ class StreetScene:
                 pid[y0:y1, x0:x1][upd] = i
         return s, pid
 
+    def in_shadow(self, points: np.ndarray) -> np.ndarray:
+        """``[N]`` bool: world ``points [N, 3]`` whose ray towards the sun hits a shadow caster."""
+        out = np.zeros(points.shape[0], dtype=bool)
+        for b in self.casters:
+            R = b.T[:3, :3]
+            ol = (points - b.T[:3, 3]) @ R
+            dl = R.T @ _SUN
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t1 = (-b.half - ol) / dl
+                t2 = (b.half - ol) / dl
+            tn = np.nanmax(np.minimum(t1, t2), axis=-1)
+            tf = np.nanmin(np.maximum(t1, t2), axis=-1)
+            out |= (tn <= tf) & (tf > 1e-6)
+        return out
+
     def shade(self, origin, dirs, s, pid, t, prims=None, lighting: bool = True):
         """Colour, semantics, instance ids and (unlit) albedo of traced rays.
 
-        Returns ``(rgb [H,W,3], sem [H,W] uint8, inst [H,W] int32, albedo [H,W,3], emissive [H,W])``.
+        Returns ``(rgb [H,W,3], sem [H,W] uint8, inst [H,W] int32, albedo [H,W,3], emissive [H,W],
+        changing [H,W])``; ``changing`` marks hits on signal lamps (on or off) and on moving
+        vehicles in shadow.
         """
         if prims is None:
             prims = self.primitives(t)
@@ -206,6 +237,7 @@ class StreetScene:
         rgb = np.zeros((n, 3))
         alb = np.zeros((n, 3))
         emis = np.zeros(n, dtype=bool)
+        changing = np.zeros(n, dtype=bool)
         sem = np.full(n, SEM["sky"], dtype=np.uint8)
         inst = np.zeros(n, dtype=np.int32)
         sky = pf == -2
@@ -217,7 +249,10 @@ class StreetScene:
             a, sm = _ground_albedo(p[:, 0], p[:, 1], self.seed)
             alb[gi] = a
             sem[gi] = sm
-            rgb[gi] = a * (_AMBIENT + (1 - _AMBIENT) * _SUN[2] if lighting else 1.0)
+            lit = np.full(gi.size, 1.0)
+            if lighting and self.casters:
+                lit[self.in_shadow(p)] = 0.0
+            rgb[gi] = a * ((_AMBIENT + (1 - _AMBIENT) * _SUN[2] * lit)[:, None] if lighting else 1.0)
         hit = np.nonzero(pf >= 0)[0]
         if hit.size:
             order = hit[np.argsort(pf[hit], kind="stable")]
@@ -232,6 +267,8 @@ class StreetScene:
                 a, em = _box_albedo(b, pl, self.seed)
                 alb[idx] = a
                 emis[idx] = em
+                brake, indicator = _signal_lamps(b, pl)
+                changing[idx] = brake | indicator
                 sem[idx] = b.sem
                 inst[idx] = b.inst
                 if lighting:
@@ -240,6 +277,11 @@ class StreetScene:
                     nl[np.arange(idx.size), axis] = np.sign(pl[np.arange(idx.size), axis])
                     nw = nl @ b.T[:3, :3].T
                     lam = _AMBIENT + (1 - _AMBIENT) * np.clip(nw @ _SUN, 0, None)
+                    if self.casters:
+                        shadowed = self.in_shadow(p)
+                        lam[shadowed] = _AMBIENT
+                        if b.inst in self.moving_ids:
+                            changing[idx] |= shadowed
                     c = a * lam[:, None]
                     c[em] = a[em]
                     rgb[idx] = c
@@ -248,7 +290,7 @@ class StreetScene:
         if not lighting:
             rgb[pf == -1] = alb[pf == -1]
         return (np.clip(rgb, 0, 1).reshape(shape + (3,)), sem.reshape(shape), inst.reshape(shape),
-                alb.reshape(shape + (3,)), emis.reshape(shape))
+                alb.reshape(shape + (3,)), emis.reshape(shape), changing.reshape(shape))
 
     # ----------------------------------------------------------------------------------
     def render(self, K, cam_to_world, width: int, height: int, t: float, supersample: int = 1,
@@ -300,7 +342,7 @@ class StreetScene:
 
         d = dirs_at(0.5, 0.5)
         s, pid = self.trace(origin, d, t, rects, prims)
-        rgb, sem, inst, _, _ = self.shade(origin, d, s, pid, t, prims, lighting)
+        rgb, sem, inst, _, _, changing = self.shade(origin, d, s, pid, t, prims, lighting)
         if supersample > 1:
             acc = np.zeros_like(rgb)
             for j in range(supersample):
@@ -310,7 +352,7 @@ class StreetScene:
                     acc += self.shade(origin, dj, sj, pj, t, prims, lighting)[0]
             rgb = acc / supersample**2
         depth = np.where(pid == -2, np.inf, s).astype(np.float32)
-        return RenderOutput(rgb.astype(np.float32), depth, sem.astype(np.uint8), inst.astype(np.int32))
+        return RenderOutput(rgb.astype(np.float32), depth, sem.astype(np.uint8), inst.astype(np.int32), changing)
 
     def lidar(self, ego_to_world, t: float, n_beams: int = 32, az_step_deg: float = 0.5,
               max_range: float = 80.0) -> LidarPoints:
@@ -331,7 +373,7 @@ class StreetScene:
         origin = E[:3, :3] @ LIDAR_MOUNT + E[:3, 3]
         prims = self.primitives(t)
         s, pid = self.trace(origin, dw, t, None, prims)
-        _, _, _, alb, em = self.shade(origin, dw, s, pid, t, prims, lighting=False)
+        _, _, _, alb, em, _ = self.shade(origin, dw, s, pid, t, prims, lighting=False)
         keep = (pid != -2) & (s < max_range)
         pts = LIDAR_MOUNT + s[keep, None] * dl[keep]
         inten = alb[keep] @ np.array([0.2126, 0.7152, 0.0722])

@@ -82,6 +82,26 @@ _LIGHT_TAIL = np.array([0.95, 0.08, 0.06])
 _BLINK_ON = np.array([1.0, 0.6, 0.05])
 _BLINK_OFF = np.array([0.35, 0.22, 0.08])
 _GLASS = np.array([0.10, 0.13, 0.17])
+_BRAKE_ON = np.array([1.0, 0.12, 0.08])
+_BRAKE_OFF = np.array([0.32, 0.06, 0.05])
+
+
+def _signal_lamps(b: _Box, pl: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(brake [N], indicator [N])`` bool: local hit points ``pl`` [N,3] on the signal lamps of a
+    vehicle body with ``signals`` (``SyntheticConfig.signals``): two brake panels across the rear
+    above the tail lamps, an indicator at each end of both sides; both depend on ``|y|`` only."""
+    n = pl.shape[0]
+    if b.kind != "body" or not b.signals:
+        z = np.zeros(n, dtype=bool)
+        return z, z
+    h = b.half
+    axis = np.argmax(np.abs(pl) / h, axis=1)
+    sign = np.sign(pl[np.arange(n), axis])
+    zr = pl[:, 2] + h[2]
+    band = (zr > 0.48) & (zr < 0.83)
+    brake = band & (axis == 0) & (sign < 0) & (np.abs(pl[:, 1]) > 0.3)
+    indicator = band & (axis == 1) & (np.abs(pl[:, 0]) > h[0] - 0.9)
+    return brake, indicator
 
 
 def _box_albedo(b: _Box, pl: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -134,6 +154,10 @@ def _box_albedo(b: _Box, pl: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndar
         side = axis == 1
         stripe = side & (zr > 0.32) & (zr < 0.38)
         alb[stripe] = b.color * 0.55
+        brake, indicator = _signal_lamps(b, pl)
+        alb[brake] = _BRAKE_ON if b.brake_on else _BRAKE_OFF
+        alb[indicator] = _BLINK_ON if b.indicator_on else _BLINK_OFF
+        emis |= (brake & b.brake_on) | (indicator & b.indicator_on)
     elif b.kind == "cabin":
         vert = axis != 2
         glass = vert & (zr > 0.08) & (zr < 2 * h[2] - 0.06)

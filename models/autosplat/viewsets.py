@@ -1,0 +1,261 @@
+"""The novel-view test sets of an AutoSplat run (issue 19), each aimed at one claim and scored
+against the generator's exact renders (``seq.metadata["scene"]``):
+
+* ``far-side`` (symmetry): the rig mirrored across each moving vehicle's plane of symmetry
+  (:func:`clsplat.data.synthetic.views.mirror_across_box`, exact box), every frame; PSNR pooled
+  over that vehicle's pixels in the mirrored views (``psnr_objects``), beside the same vehicles'
+  pixels in the recorded views of those frames (``psnr_objects_recorded``);
+* ``lane-change`` (flatness): the rig moved 1, 2, 3 m left at the held-out frames; per shift
+  (keys ``1m``, ``2m``, ``3m``) PSNR / SSIM over whole images, PSNR pooled over road and moving
+  object pixels, and road depth error (expected depth against the generator's z-depth on road
+  pixels: ``road_depth_mae_m``, ``road_depth_abs_rel``);
+* ``appearance`` (residual SH): the recorded rig at the held-out frames, PSNR pooled over the
+  pixels whose colour changes with time in the object's frame (signal lamps, vehicles in the
+  footbridge's shadow: ``RenderOutput.changing``);
+* ``pose`` (pose correction, with ``recorded`` when the data carries tracker noise): the learnt
+  per-frame corrections of the decomposed tracks against the injected box errors (correlation of
+  the needed and learnt world x/y corrections, centre error before and after, in metres).
+
+Without the generator (real data), ``lane-change`` only draws its sheets and the other sets are
+not defined (ValueError naming ``--views``).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from clsplat.data.synthetic.views import mirror_across_box, shift_sideways
+
+from ..common.metrics import psnr as psnr_metric, ssim as ssim_metric
+from .data import ROAD_SEMANTIC
+from .init import moving_track_ids
+
+__all__ = ["VIEW_SETS", "LATERAL_SHIFTS_M", "MIN_OBJECT_PIXELS", "check_views", "far_side", "lane_change",
+           "appearance", "pose_corrections", "render_views"]
+
+VIEW_SETS: tuple[str, ...] = ("recorded", "far-side", "lane-change", "appearance")
+LATERAL_SHIFTS_M: tuple[float, ...] = (1.0, 2.0, 3.0)
+#: a mirrored view counts for a vehicle when the vehicle covers at least this many pixels of it
+MIN_OBJECT_PIXELS = 16
+
+
+def check_views(views, seq) -> tuple[str, ...]:
+    """``views`` as a tuple, each one of :data:`VIEW_SETS`, those that need the generator only on
+    generated data; ValueError naming ``--views`` otherwise."""
+    views = tuple(dict.fromkeys(views))
+    bad = [v for v in views if v not in VIEW_SETS]
+    if bad:
+        raise ValueError(f"--views: {bad[0]!r} is not a view set; expected some of {list(VIEW_SETS)}")
+    need = [v for v in views if v in ("far-side", "appearance")]
+    if need and seq.metadata.get("scene") is None:
+        raise ValueError(f"--views: {need[0]} is scored against the generator's renders; the data "
+                         f"{seq.name!r} is not generated (use --data synthetic or synthetic:views)")
+    return views
+
+
+def _sq_err(render: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """``[2]`` float64 (sum of squared errors, values counted) of ``[C, H, W, 3]`` images over ``mask [C, H, W]``."""
+    m = mask[..., None].to(torch.float64)
+    err = (render.clamp(0, 1) - target.clamp(0, 1)).to(torch.float64) ** 2
+    return torch.stack([(err * m).sum(), m.sum() * render.shape[-1]])
+
+
+def _pooled_psnr(acc: torch.Tensor) -> float | None:
+    return None if float(acc[1]) == 0 else float(-10 * torch.log10(acc[0] / acc[1]))
+
+
+@torch.no_grad()
+def render_views(trainer, frame: int, cam_to_world: np.ndarray, depth: bool = False):
+    """The model at ``frame`` seen from ``cam_to_world [C, 4, 4]`` (the run's intrinsics):
+    ``[C, H, W, 3]`` colours (and ``[C, H, W]`` expected depth with ``depth``)."""
+    d = trainer.data
+    vm = torch.from_numpy(np.linalg.inv(cam_to_world).astype(np.float32))
+    gs, _ = trainer.model.scene_at(frame)
+    bg = torch.sigmoid(trainer.model.sky_color).expand(vm.shape[0], 3)
+    out, _, _ = gs.render(vm, d.Ks, d.width, d.height, backgrounds=bg, packed=False, device=trainer.device,
+                          render_mode="RGB+ED" if depth else "RGB")
+    col = out[..., :3].clamp(0, 1)
+    return (col, out[..., 3]) if depth else col
+
+
+def _generator_views(trainer, frame: int, cam_to_world: np.ndarray):
+    """The generator's exact renders of ``cam_to_world [C, 4, 4]`` at ``frame``'s time."""
+    d = trainer.data
+    scene = d.seq.metadata["scene"]
+    t = d.seq.frames[frame].timestamp
+    return [scene.render(d.seq.camera(c).K, cam_to_world[j], d.width, d.height, t) for j, c in enumerate(d.cameras)]
+
+
+def _exact_box(seq, frame: int, track: int):
+    exact = seq.metadata.get("exact_boxes")
+    if exact is not None:
+        return exact[frame].get(track)
+    return next((b for b in seq.frames[frame].boxes if b.track_id == track), None)
+
+
+def _rig(seq, frame: int, cameras: list[str]) -> np.ndarray:
+    return np.stack([seq.cam_to_world(frame, c) for c in cameras])
+
+
+@torch.no_grad()
+def far_side(trainer, sheet: Path | None = None) -> dict:
+    """The ``far_side`` section: mirrored rigs of every frame and moving vehicle (see the module)."""
+    from clsplat.io.contact_sheet import make_contact_sheet
+
+    d = trainer.data
+    moving = sorted(moving_track_ids(d.seq, trainer.preset.dynamic_threshold))
+    far, near = torch.zeros(2, dtype=torch.float64), torch.zeros(2, dtype=torch.float64)
+    per_track = {t: torch.zeros(2, dtype=torch.float64) for t in moving}
+    views, best = 0, (0, None)
+    frames = list(range(len(d.seq.frames)))
+    for i in frames:
+        inst_rec = torch.from_numpy(np.stack([d.seq.frames[i].instances[c] for c in d.cameras]))
+        rec = None
+        for t in moving:
+            box = _exact_box(d.seq, i, t)
+            if box is None:
+                continue
+            c2w = mirror_across_box(_rig(d.seq, i, d.cameras), box.box_to_world)
+            gt = _generator_views(trainer, i, c2w)
+            mask = torch.from_numpy(np.stack([g.instance == t for g in gt]))
+            keep = mask.flatten(1).sum(1) >= MIN_OBJECT_PIXELS
+            if not bool(keep.any()):
+                continue
+            r = render_views(trainer, i, c2w)
+            g = torch.from_numpy(np.stack([v.rgb for v in gt]))
+            e = _sq_err(r[keep], g[keep], mask[keep])
+            far += e
+            per_track[t] += e
+            views += int(keep.sum())
+            if rec is None:
+                rec = trainer.render_frame(i)
+            near += _sq_err(rec, d.images[i], inst_rec == t)
+            n = int(mask.sum())
+            if sheet is not None and n > best[0]:
+                best = (n, (r.numpy(), g.numpy(), i, t))
+    if sheet is not None and best[1] is not None:
+        r, g, i, t = best[1]
+        make_contact_sheet(r, g, sheet, names=d.cameras,
+                           title=f"rig mirrored across vehicle {t}, frame {i}: render | generator ground truth | error")
+    return {"psnr_objects": _pooled_psnr(far), "psnr_objects_recorded": _pooled_psnr(near),
+            "per_track": {str(t): _pooled_psnr(a) for t, a in per_track.items()},
+            "pixels": int(far[1] // 3), "views": views, "frames": frames, "tracks": moving}
+
+
+@torch.no_grad()
+def lane_change(trainer, show: int, sheets: Path | None = None) -> dict:
+    """The ``lane_change`` section, keys ``1m``, ``2m``, ``3m`` (see the module); sheets of frame
+    ``show`` (``lateral_shift_{s}m.png``) into ``sheets``. Without the generator: sheets against
+    the unshifted images, each key None."""
+    from clsplat.io.contact_sheet import make_contact_sheet
+
+    d = trainer.data
+    scene = d.seq.metadata.get("scene")
+    moving = sorted(moving_track_ids(d.seq, trainer.preset.dynamic_threshold))
+    frames = d.test_frames or [show]
+    res: dict = {}
+    for shift in LATERAL_SHIFTS_M:
+        ps, ss = [], []
+        obj, road = torch.zeros(2, dtype=torch.float64), torch.zeros(2, dtype=torch.float64)
+        dep_abs, dep_rel, dep_n = 0.0, 0.0, 0
+        for frame in (frames if scene is not None else [show]):
+            c2w = shift_sideways(_rig(d.seq, frame, d.cameras), d.seq.frames[frame].ego_to_world, shift)
+            r, depth = render_views(trainer, frame, c2w, depth=True)
+            if scene is None:
+                gt = d.images[frame].numpy()
+                title = f"rig shifted {shift:g} m left, frame {frame}: render | unshifted image (no ground truth) | diff"
+            else:
+                views = _generator_views(trainer, frame, c2w)
+                gt = np.stack([v.rgb for v in views])
+                g = torch.from_numpy(gt)
+                rr, gg = r.permute(0, 3, 1, 2), g.permute(0, 3, 1, 2)
+                ps.append(psnr_metric(rr, gg))
+                ss.append(ssim_metric(rr, gg))
+                obj += _sq_err(r, g, torch.from_numpy(np.stack([np.isin(v.instance, moving) for v in views])))
+                rm = np.stack([v.semantic == ROAD_SEMANTIC for v in views]) & np.isfinite(np.stack([v.depth for v in views]))
+                road += _sq_err(r, g, torch.from_numpy(rm))
+                gd = np.stack([v.depth for v in views])[rm].astype(np.float64)
+                pd = depth.numpy()[rm].astype(np.float64)
+                dep_abs += float(np.abs(pd - gd).sum())
+                dep_rel += float((np.abs(pd - gd) / gd).sum())
+                dep_n += int(rm.sum())
+                title = f"rig shifted {shift:g} m left, frame {frame}: render | generator ground truth | error"
+            if frame == show and sheets is not None:
+                make_contact_sheet(r.numpy(), gt, sheets / f"lateral_shift_{shift:g}m.png", names=d.cameras,
+                                   title=title)
+        res[f"{shift:g}m"] = None if scene is None else {
+            "psnr": float(torch.cat(ps).mean()), "ssim": float(torch.cat(ss).mean()),
+            "psnr_objects": _pooled_psnr(obj), "psnr_road": _pooled_psnr(road),
+            "road_depth_mae_m": dep_abs / dep_n if dep_n else None,
+            "road_depth_abs_rel": dep_rel / dep_n if dep_n else None, "frames": frames}
+    return res
+
+
+@torch.no_grad()
+def appearance(trainer) -> dict:
+    """The ``appearance`` section: held-out frames, recorded rig, the generator's ``changing`` pixels."""
+    d = trainer.data
+    frames = d.test_frames or d.train_frames
+    acc, obj = torch.zeros(2, dtype=torch.float64), torch.zeros(2, dtype=torch.float64)
+    moving = sorted(moving_track_ids(d.seq, trainer.preset.dynamic_threshold))
+    for i in frames:
+        views = _generator_views(trainer, i, _rig(d.seq, i, d.cameras))
+        r = trainer.render_frame(i)
+        acc += _sq_err(r, d.images[i], torch.from_numpy(np.stack([v.changing for v in views])))
+        obj += _sq_err(r, d.images[i], torch.from_numpy(np.stack([np.isin(v.instance, moving) for v in views])))
+    return {"psnr_changing_pixels": _pooled_psnr(acc), "changing_pixels": int(acc[1] // 3),
+            "psnr_objects": _pooled_psnr(obj), "frames": frames}
+
+
+def _yaw(R: np.ndarray) -> float:
+    return float(np.arctan2(R[1, 0], R[0, 0]))
+
+
+@torch.no_grad()
+def pose_corrections(trainer) -> dict | None:
+    """The ``pose_correction`` section when the data carries tracker noise (``exact_boxes``): per
+    split (``train``, ``held_out``), over the decomposed tracks' boxes, the injected centre error
+    (``injected_m``: mean x/y distance of the noisy box centre from the exact one), the error left
+    after the learnt correction (``residual_m``), the Pearson correlation of the needed world x/y
+    correction with the learnt one (``correlation``; None when either is constant), and the same
+    for yaw in degrees. None without tracker noise or decomposed tracks."""
+    from .fusion import axis_angle_to_quat
+    from ..common.geometry import quat_to_matrix
+
+    d, m = trainer.data, trainer.model
+    exact = d.seq.metadata.get("exact_boxes")
+    if exact is None or not trainer.tracks:
+        return None
+    out = {}
+    for split, frames in (("train", d.train_frames), ("held_out", d.test_frames)):
+        need, got, inj, res, yinj, yres = [], [], [], [], [], []
+        for k, tr in enumerate(trainer.tracks):
+            for i in frames:
+                if not bool(m.present[k, i]) or tr.track_id not in exact[i]:
+                    continue
+                Rn = m.track_R[k, i].double().numpy()
+                tn = m.track_t[k, i].double().numpy()
+                delta = m.pose(k, i).double() if trainer.switches.pose_correction else torch.zeros(6, dtype=torch.float64)
+                Rd = quat_to_matrix(axis_angle_to_quat(delta[:3])).numpy()
+                placed = Rn @ delta[3:].numpy() + tn
+                E = exact[i][tr.track_id].box_to_world
+                need.append((E[:3, 3] - tn)[:2])
+                got.append((placed - tn)[:2])
+                inj.append(np.linalg.norm((tn - E[:3, 3])[:2]))
+                res.append(np.linalg.norm((placed - E[:3, 3])[:2]))
+                ye = _yaw(E[:3, :3])
+                wrap = lambda a: (a + np.pi) % (2 * np.pi) - np.pi  # noqa: E731
+                yinj.append(abs(np.degrees(wrap(_yaw(Rn) - ye))))
+                yres.append(abs(np.degrees(wrap(_yaw(Rn @ Rd) - ye))))
+        if not need:
+            out[split] = None
+            continue
+        a, b = np.concatenate(need), np.concatenate(got)
+        corr = None if a.std() == 0 or b.std() == 0 else float(np.corrcoef(a, b)[0, 1])
+        out[split] = {"injected_m": float(np.mean(inj)), "residual_m": float(np.mean(res)), "correlation": corr,
+                      "yaw_injected_deg": float(np.mean(yinj)), "yaw_residual_deg": float(np.mean(yres)),
+                      "boxes": len(inj)}
+    out["noise"] = d.seq.metadata.get("tracker_noise")
+    return out

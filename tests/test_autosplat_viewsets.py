@@ -1,0 +1,149 @@
+"""The novel-view test sets of issue 19: the mirrored rig sees a vehicle's far side, the street of
+the protocol has changing appearance to score, tracker noise is correlated, and ``clsplat eval
+autosplat --views ...`` scores every set end to end on a tiny scene."""
+import json
+import math
+
+import numpy as np
+import pytest
+
+from clsplat.data.scene import invert_transform
+from clsplat.data.synthetic import StreetScene, generate_sequence
+from clsplat.data.synthetic.views import TrackerNoise, add_tracker_noise, mirror_across_box, shift_sideways
+from clsplat.models.autosplat.cli import evaluate, train
+from clsplat.models.autosplat.data import load_sequence
+
+
+def _look_at(eye, target) -> np.ndarray:
+    """OpenCV cam-to-world at ``eye`` looking at ``target`` (world z up)."""
+    z = np.asarray(target, float) - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, np.cross(z, x), z], 1)
+    T[:3, 3] = eye
+    return T
+
+
+def _local_y_of_vehicle_pixels(scene, K, c2w, t, track, box_to_world, W, H) -> np.ndarray:
+    """Box-frame y of the surface points where the view sees vehicle ``track`` (from its z-depth)."""
+    r = scene.render(K, c2w, W, H, t)
+    v, u = np.nonzero(r.instance == track)
+    z = r.depth[v, u].astype(np.float64)
+    pc = np.stack([(u + 0.5 - K[0, 2]) / K[0, 0] * z, (v + 0.5 - K[1, 2]) / K[1, 1] * z, z], 1)
+    pw = pc @ c2w[:3, :3].T + c2w[:3, 3]
+    B = invert_transform(box_to_world)
+    return pw @ B[:3, :3].T + B[:3, 3]
+
+
+def test_the_mirrored_rig_sees_the_far_side():
+    scene = StreetScene(seed=3)
+    t = 0.4
+    box = next(b for b in scene.boxes(t) if b.track_id == 1)
+    W, H = 96, 64
+    K = np.array([[60.0, 0, W / 2], [0, 60.0, H / 2], [0, 0, 1]])
+    B = box.box_to_world
+    # a camera 5 m to the vehicle's left (box +y), a little ahead and above, looking at it
+    eye = B[:3, :3] @ np.array([1.0, 5.0, 0.6]) + B[:3, 3]
+    c2w = _look_at(eye, B[:3, 3])
+    m = mirror_across_box(c2w, B)
+    assert np.isclose(np.linalg.det(m[:3, :3]), 1.0)                      # a proper camera
+    assert np.allclose(mirror_across_box(m, B), c2w)                      # an involution
+    local_eye = invert_transform(B) @ np.r_[m[:3, 3], 1.0]
+    assert np.allclose(local_eye[:3], [1.0, -5.0, 0.6])                   # across the vehicle's plane
+    near = _local_y_of_vehicle_pixels(scene, K, c2w, t, 1, B, W, H)
+    far = _local_y_of_vehicle_pixels(scene, K, m, t, 1, B, W, H)
+    half_w = box.size[1] / 2
+    assert len(near) > 200 and len(far) > 200
+    side = lambda p, s: np.mean(np.isclose(p[:, 1], s * half_w, atol=0.05))  # noqa: E731
+    # the recorded view sees the +y side and never the -y side; the mirrored view the reverse
+    assert side(near, +1) > 0.3 and side(near, -1) == 0
+    assert side(far, -1) > 0.3 and side(far, +1) == 0
+    # and it sees the vehicle as the mirror image: as many of its pixels, within a few
+    assert abs(len(far) - len(near)) < 0.05 * len(near)
+
+
+def test_shift_sideways_moves_the_rig_along_the_ego_y_axis():
+    seq = generate_sequence(height=16, width=24, num_frames=2, cameras=("CAM_FRONT",), lidar=False)
+    E = seq.frames[1].ego_to_world
+    c2w = seq.cam_to_world(1, "CAM_FRONT")
+    s = shift_sideways(c2w, E, 2.0)
+    assert np.allclose(s[:3, :3], c2w[:3, :3]) and np.allclose(s[:3, 3] - c2w[:3, 3], 2.0 * E[:3, 1])
+
+
+def test_the_protocol_street_has_changing_appearance_to_score():
+    seq = generate_sequence(height=88, width=160, num_frames=16, dt=0.2, cameras=("CAM_FRONT", "CAM_FRONT_LEFT"),
+                            signals=True, shadow=True, lidar=False)
+    scene = seq.metadata["scene"]
+    changing = 0
+    for i, f in enumerate(seq.frames):
+        for c in seq.camera_names:
+            r = scene.render(seq.camera(c).K, seq.cam_to_world(i, c), 160, 88, f.timestamp)
+            assert np.allclose(r.rgb, f.images[c], atol=1e-5)
+            assert np.isin(r.instance[r.changing], sorted(scene.moving_ids)).all()  # on moving vehicles only
+            changing += int(r.changing.sum())
+    assert changing > 300      # lamps and shadow cover hundreds of pixels over the sequence at 88 x 160
+    # brake lights switch: vehicle 1's rear, seen from the same relative pose, at 0 s (on) and 1 s (off)
+    assert scene.vehicles[0].signals and not scene.vehicles[-1].signals        # moving ones only
+    K = np.array([[60.0, 0, 48], [0, 60.0, 32], [0, 0, 1]])
+
+    def rear(t):
+        box = next(b for b in scene.boxes(t) if b.track_id == 1)
+        eye = box.box_to_world[:3, :3] @ np.array([-6.0, 0.0, 0.4]) + box.center
+        return scene.render(K, _look_at(eye, box.center), 96, 64, t)
+
+    on, off = rear(0.0), rear(1.0)
+    lamp = on.changing & off.changing
+    assert lamp.sum() > 20 and np.abs(on.rgb[lamp] - off.rgb[lamp]).max() > 0.3
+    assert np.allclose(on.rgb[~on.changing & (on.instance == 1)], off.rgb[~off.changing & (off.instance == 1)])
+    # the footbridge's shadow falls on the road where the moving vehicles pass, not at the start
+    assert scene.in_shadow(np.array([[27.0, -1.0, 0.0]]))[0] and not scene.in_shadow(np.array([[0.0, 0.0, 0.0]]))[0]
+
+
+def test_tracker_noise_is_correlated_and_keeps_the_exact_boxes():
+    seq = generate_sequence(height=16, width=24, num_frames=40, dt=0.2, cameras=("CAM_FRONT",), lidar=False)
+    exact = [{b.track_id: b.center.copy() for b in f.boxes} for f in seq.frames]
+    add_tracker_noise(seq, TrackerNoise(drift_m=0.2, jitter_m=0.0, rho=0.9), seed=5)
+    err = np.array([[b.center - exact[i][b.track_id] for b in f.boxes] for i, f in enumerate(seq.frames)])[..., :2]
+    assert np.allclose(np.stack([np.stack([seq.metadata["exact_boxes"][i][t].center for t in sorted(exact[i])])
+                                 for i in range(len(seq.frames))])[..., :2] + err,
+                       np.array([[b.center for b in f.boxes] for f in seq.frames])[..., :2])
+    e = err.reshape(len(seq.frames), -1)
+    lag1 = np.mean([np.corrcoef(e[:-1, j], e[1:, j])[0, 1] for j in range(e.shape[1])])
+    assert lag1 > 0.6                                              # drift, not i.i.d. noise
+    assert 0.08 < np.sqrt(np.mean(e ** 2)) < 0.4                  # about drift_m
+    with pytest.raises(ValueError, match="already"):
+        add_tracker_noise(seq, TrackerNoise(), seed=5)
+    with pytest.raises(ValueError, match="rho"):
+        TrackerNoise(rho=1.0)
+    # seeded: the protocol street's noise is the same on every load
+    a = load_sequence("synthetic:views", ["CAM_FRONT"], (0, 3), 0.1, seed=1)
+    b = load_sequence("synthetic:views", ["CAM_FRONT"], (0, 3), 0.1, seed=1)
+    assert all(np.allclose(x.center, y.center) for fa, fb in zip(a.frames, b.frames) for x, y in zip(fa.boxes, fb.boxes))
+    assert a.metadata["tracker_noise"]["seed"] == 1 and math.isclose(a.metadata["tracker_noise"]["rho"], 0.9)
+
+
+def test_eval_autosplat_scores_every_view_set(tmp_path):
+    run, ev = tmp_path / "run", tmp_path / "eval"
+    assert train(["--data", "synthetic:views", "--preset", "tiny", "--frames", "0:4", "--scale", "0.25",
+                  "--cameras", "CAM_FRONT", "CAM_FRONT_LEFT", "--no-progress", "--out", str(run)]) == 0
+    assert evaluate(["--checkpoint", str(run / "checkpoint.pt"), "--views", "far-side", "lane-change", "appearance",
+                     "recorded", "--out", str(ev)]) == 0
+    m = json.loads((ev / "metrics.json").read_text())
+    assert m["protocol"]["views"] == ["far-side", "lane-change", "appearance", "recorded"]
+    fs = m["far_side"]
+    assert fs["views"] > 0 and fs["pixels"] >= 16 and fs["tracks"] == [1, 2] and np.isfinite(fs["psnr_objects"])
+    assert set(m["lane_change"]) == {"1m", "2m", "3m"}
+    assert all(np.isfinite(v["psnr"]) and v["road_depth_mae_m"] > 0 for v in m["lane_change"].values())
+    assert m["appearance"]["changing_pixels"] > 0 and np.isfinite(m["appearance"]["psnr_changing_pixels"])
+    pc = m["pose_correction"]
+    assert pc["train"]["injected_m"] > 0 and pc["train"]["boxes"] > 0 and pc["noise"]["drift_m"] == 0.15
+    assert (ev / "far_side.png").is_file() and (ev / "lateral_shift_3m.png").is_file()
+    # only recorded: no novel-view section; and the sets that need the generator refuse real data
+    assert evaluate(["--checkpoint", str(run / "checkpoint.pt"), "--out", str(tmp_path / "rec"),
+                     "--views", "recorded"]) == 0
+    r = json.loads((tmp_path / "rec" / "metrics.json").read_text())
+    assert "far_side" not in r and "train" in r and np.isclose(r["all"]["psnr"], m["all"]["psnr"])
+    with pytest.raises(SystemExit):
+        evaluate(["--checkpoint", str(run / "checkpoint.pt"), "--out", str(ev), "--views", "sideways"])
