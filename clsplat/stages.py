@@ -107,6 +107,8 @@ def _host_scan(rt: Runtime) -> bool:
     microseconds, against pyopencl's scan: three launches, their wake-ups and its Python glue,
     a sixth of a small render's fixed cost (bench/RESULTS.md, "Issue 21")."""
     mode = os.environ.get("CLSPLAT_HOST_SCAN", "")
+    if mode not in ("", "0", "1"):
+        raise ValueError(f"CLSPLAT_HOST_SCAN: expected 0, 1 or unset, got {mode!r}")
     return mode == "1" or (mode != "0" and rt.computes_in_host_memory)
 
 

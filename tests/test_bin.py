@@ -87,3 +87,11 @@ def test_intersections_over_device_limit_are_a_clear_error():
     with pytest.raises(ValueError, match="intersections"):
         clsplat.rasterization(means, quats, scales, torch.full((N,), 0.5), torch.rand(N, 3), vm, K,
                               2048, 2048)
+
+
+def test_bad_host_scan_setting_is_one_line(rt, cfg32, make_scene, run_project, monkeypatch):
+    scene = make_scene(2, N=20, C=1)
+    got = run_project(rt, cfg32, scene)
+    monkeypatch.setenv("CLSPLAT_HOST_SCAN", "yes")
+    with pytest.raises(ValueError, match="^CLSPLAT_HOST_SCAN: expected 0, 1 or unset"):
+        stages.bin_tiles(rt, cfg32, got["_proj"].rects, got["_proj"].depths, 64, 48, 16)

@@ -104,6 +104,12 @@ def make_sample(source: DataSource, preset: PGTPreset, index: int, split: str = 
         tgt = [to_torch_frame(seq, 1, names, dtype=torch.float64)]
         name = f"{seq.name}:{'+'.join(names)}"
         target_cameras = tuple(names)
+    return _assemble(src, tgt, name, target_cameras)
+
+
+def _assemble(src: list[dict], tgt: list[dict], name: str, target_cameras: tuple) -> Sample:
+    """A float32 :class:`Sample` from source and target frames (float64, as ``to_torch_frame``
+    gives them), poses relative to the first source camera."""
     c2w = torch.cat([f["cam_to_world"] for f in src])
     ref = torch.linalg.inv(c2w[0])
     tc2w = ref @ torch.cat([f["cam_to_world"] for f in tgt])
@@ -159,21 +165,7 @@ def make_rig_sample(source: DataSource, preset: PGTPreset, index: int, views: in
         src.append(to_torch_frame(seq, 2 * g * t, take, dtype=torch.float64))
         n += len(take)
     tgt = [to_torch_frame(seq, 2 * g * t + g, cams, dtype=torch.float64) for t in range(T - 1)]
-    c2w = torch.cat([f["cam_to_world"] for f in src])
-    ref = torch.linalg.inv(c2w[0])
-    tc2w = ref @ torch.cat([f["cam_to_world"] for f in tgt])
-    f32 = torch.float32
-    depths, tdepths = _stack(src, "depths"), _stack(tgt, "depths")
-    return Sample(
-        images=torch.cat([f["images"] for f in src]).to(f32).contiguous(),
-        Ks=torch.cat([f["Ks"] for f in src]).to(f32),
-        cam_to_world=(ref @ c2w).to(f32),
-        depths=None if depths is None else depths.to(f32),
-        target_images=torch.cat([f["images"] for f in tgt]).to(f32).contiguous(),
-        target_Ks=torch.cat([f["Ks"] for f in tgt]).to(f32),
-        target_viewmats=invert_rigid(tc2w).to(f32),
-        target_depths=None if tdepths is None else tdepths.to(f32),
-        name=f"{seq.name}:{T}x{'+'.join(cams)}", target_cameras=tuple(cams) * (T - 1))
+    return _assemble(src, tgt, f"{seq.name}:{T}x{'+'.join(cams)}", tuple(cams) * (T - 1))
 
 
 def make_views_sample(source: DataSource, preset: PGTPreset, index: int, views: int, split: str = "test",
