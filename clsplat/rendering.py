@@ -18,7 +18,7 @@ import torch
 
 from .autograd import ProjectFn, RasterizeFn, Settings, ShFn
 from .config import RenderConfig
-from .packed import AbsgradSink, LazyMeta, SparseRowsGrad, intersection_meta, pack_pairs
+from .packed import AbsgradSink, LazyMeta, PackedMeans2d, SparseRowsGrad, intersection_meta, pack_pairs
 from .runtime import Runtime, get_runtime
 from .validate import check_options, check_rasterization_inputs, check_screen_extent, rescale_large_quats
 
@@ -252,17 +252,22 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
     if sparse is not None:
         sparse.set_visible((radii[0] > 0).all(-1).any(0))
     pairs = pack_pairs(radii) if packed else None
-    m2d_meta = means2d.reshape(-1, 2)[pairs.flat] if packed else means2d.reshape(batch + (C, N, 2))
+    m2d_flat = means2d.reshape(-1, 2)
+    route = PackedMeans2d(pairs) if packed else None
+    m2d_meta = route.pack(m2d_flat) if packed else means2d.reshape(batch + (C, N, 2))
     m2d_user = m2d_meta
     if out_device.type != "cpu" or out_dtype != dt:  # the user's node must lie on the loss path
         m2d_user = m2d_meta.to(device=out_device, dtype=out_dtype)
         m2d_meta = m2d_user.to(device="cpu", dtype=dt)
-    m2d_used = pairs.scatter(m2d_meta, (B, C, N, 2)) if packed else m2d_meta.reshape(B, C, N, 2)
+    m2d_used = route.unpack(m2d_meta, m2d_flat) if packed else m2d_meta
+    # per batch element without select nodes (their backward zero-fills all of [B, C, N, 2])
+    m2d_used = [m2d_used.reshape(C, N, 2)] if B == 1 else m2d_used.reshape(B, C, N, 2).unbind(0)
     sink = AbsgradSink(m2d_user, (B, C, N, 2), dt, pairs) if absgrad else None
 
     renders, Ts, isects = [], [], []
     for b in range(B):
         st = replace(st0, absgrad_sink=None if sink is None else sink.for_batch(b))
+        _, conics_b, depths_b, opac_b, radii_b, rects_b, extents_b = proj[b]  # no select nodes
         parts = []
         if n_col:
             c = per[b]["colors"]
@@ -270,14 +275,14 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
                 vm_b = cast(per[b]["viewmats"])
                 if c.dim() == 4:  # per-view SH coefficients [C, N, K, 3]
                     parts.append(torch.cat([ShFn.apply(cast(c[i]), cast(per[b]["means"]), vm_b[i:i + 1],
-                                                       radii[b, i:i + 1], st) for i in range(C)]))
+                                                       radii_b[i:i + 1], st) for i in range(C)]))
                 else:
-                    parts.append(ShFn.apply(cast(c), cast(per[b]["means"]), vm_b, radii[b], st))
+                    parts.append(ShFn.apply(cast(c), cast(per[b]["means"]), vm_b, radii_b, st))
             else:
                 c = cast(c)
                 parts.append(c.expand(C, N, D) if c.dim() == 2 else c)
         if depth_col >= 0:
-            parts.append(depths[b][..., None])
+            parts.append(depths_b[..., None])
         feats = parts[0] if len(parts) == 1 else torch.cat(parts, -1)
         if N == 0:
             render = torch.zeros((C, height, width, CH), dtype=dt)
@@ -285,8 +290,8 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
             tiles = C * (-(-width // tile_size)) * (-(-height // tile_size))
             isects.append((torch.zeros((tiles + 1,), dtype=torch.int32), torch.zeros((0,), dtype=torch.int64)))
         else:
-            render, T = RasterizeFn.apply(m2d_used[b], conics[b], opac[b], feats.contiguous(),
-                                          rects[b], extents[b], depths[b].detach(), st)
+            render, T = RasterizeFn.apply(m2d_used[b], conics_b, opac_b, feats.contiguous(),
+                                          rects_b, extents_b, depths_b.detach(), st)
             isects.append(st.isect)
         if per[b]["backgrounds"] is not None and n_col:
             bg = cast(per[b]["backgrounds"])[:, None, None, :]

@@ -7,7 +7,7 @@ import torch
 
 import clsplat
 import clsplat.rendering as rendering
-from clsplat.packed import LazyMeta, pack_pairs
+from clsplat.packed import LazyMeta, PackedMeans2d, PackedPairs, pack_pairs
 
 
 def test_lazy_meta_builds_a_group_once_on_first_read():
@@ -83,3 +83,45 @@ def test_meta_entries_built_on_read_and_equal_to_unpacked(make_scene, monkeypatc
         assert torch.equal(meta[k], full[k][c, g]), k
     assert torch.equal(ids, full["isect_ids"])
     assert torch.equal(g[flat.long()], full["flatten_ids"].long() % scene["means"].shape[0])
+
+
+def _leaf_grads(scene: dict, packed: bool, extra) -> tuple[dict, dict]:
+    leaves = {k: scene[k].clone().requires_grad_() for k in ("means", "quats", "scales", "opacities", "colors")}
+    img, alpha, meta = clsplat.rasterization(**{**scene, **leaves}, packed=packed)
+    meta["means2d"].retain_grad()
+    (img.sum() + alpha.square().sum() + extra(meta)).backward()
+    return {k: v.grad for k, v in leaves.items()}, meta
+
+
+def test_packed_means2d_takes_the_render_gradient_without_a_scatter(make_scene, monkeypatch):
+    """The packed node sits on the loss path (retain_grad sees the render's gradient) and the
+    leaves get the unpacked layout's gradients bit for bit; with nothing but the render using
+    it, its backward hands on the render's gradient instead of scattering (a loss on it scatters)."""
+    scene = make_scene(1, N=80, C=3, width=48, height=32, dtype=torch.float32)
+    scene["means"] = scene["means"].clone()
+    scene["means"][:20] += torch.tensor([0.0, 0.0, 6.0])  # off-screen or behind some cameras
+    scatters = []
+    real = PackedPairs.scatter
+    monkeypatch.setattr(PackedPairs, "scatter", lambda self, v: scatters.append(1) or real(self, v))
+    routes = []
+    real_init = PackedMeans2d.__init__
+    monkeypatch.setattr(PackedMeans2d, "__init__", lambda self, p: routes.append(self) or real_init(self, p))
+
+    def loss_on_means2d(meta):
+        m = meta["means2d"]
+        return (m.square().sum() if m.dim() == 2 else m[meta_c, meta_g].square().sum())
+
+    g_up, m_up = _leaf_grads(scene, False, lambda m: 0)
+    assert (m_up["radii"] == 0).all(-1).any()  # some pairs culled: the shortcut is not vacuous
+    g_pk, m_pk = _leaf_grads(scene, True, lambda m: 0)
+    assert routes[-1].shortcut_taken and not scatters
+    meta_c, meta_g = m_pk["camera_ids"], m_pk["gaussian_ids"]
+    assert torch.equal(m_pk["means2d"].grad, m_up["means2d"].grad[meta_c, meta_g])
+    for k in g_up:
+        assert torch.equal(g_pk[k], g_up[k]), k
+
+    g_up, _ = _leaf_grads(scene, False, loss_on_means2d)
+    g_pk, _ = _leaf_grads(scene, True, loss_on_means2d)
+    assert not routes[-1].shortcut_taken and scatters == [1]
+    for k in g_up:
+        assert torch.allclose(g_pk[k], g_up[k], rtol=1e-6, atol=1e-7), k
