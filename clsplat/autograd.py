@@ -185,13 +185,14 @@ class RasterizeFn(torch.autograd.Function):
         v_T = _grad_or_zeros(v_T, fwd["T"].tensor)
         absgrad = s.absgrad and geom
         CH = fwd["feats"].tensor.shape[-1]
-        slots, offs = stages.composite_bwd(rt, cfg, fwd, rt.array(v_out), rt.array(v_T),
-                                           s.width, s.height, s.tile_size, geom=geom,
-                                           color=color, absgrad=absgrad, divide=s.bwd_divide,
-                                           events=s.events)
-        r = stages.reduce_slots(rt, cfg, fwd["rects"], offs, slots, CH, geom=geom, color=color,
-                                absgrad=absgrad, events=s.events)
-        g = dict(zip(r, read_back(*r.values())))
+        with rt.scratch() as alloc:  # the slots live only until the reduce is read back
+            slots, offs = stages.composite_bwd(rt, cfg, fwd, rt.array(v_out), rt.array(v_T),
+                                               s.width, s.height, s.tile_size, geom=geom,
+                                               color=color, absgrad=absgrad, divide=s.bwd_divide,
+                                               events=s.events, alloc=alloc)
+            r = stages.reduce_slots(rt, cfg, fwd["rects"], offs, slots, CH, geom=geom,
+                                    color=color, absgrad=absgrad, events=s.events)
+            g = dict(zip(r, read_back(*r.values())))
         if absgrad:
             if s.absgrad_sink is not None:
                 s.absgrad_sink(g["absgrad"])

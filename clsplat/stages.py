@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 import pyopencl as cl
@@ -426,11 +427,14 @@ def isect_offsets(rt: Runtime, rects: DeviceArray) -> DeviceArray:
 def composite_bwd(rt: Runtime, cfg: RenderConfig, fwd: dict, v_out: DeviceArray,
                   v_T: DeviceArray, width: int, height: int, tile_size: int, *, geom: bool,
                   color: bool, absgrad: bool, divide: bool = False,
-                  events: list | None = None) -> tuple[DeviceArray, DeviceArray]:
+                  events: list | None = None,
+                  alloc: Callable[[tuple, torch.dtype], DeviceArray] | None = None,
+                  ) -> tuple[DeviceArray, DeviceArray]:
     """Per-intersection gradient slots of compositing.
 
     ``fwd`` holds the forward's DeviceArrays: means2d, conics, opacities, extents, feats, rects,
-    offsets, keys, out (out_feats), T, last. v_out [C,H,W,CH], v_T [C,H,W].
+    offsets, keys, out (out_feats), T, last. v_out [C,H,W,CH], v_T [C,H,W]. ``alloc(shape,
+    dtype)`` makes the zeroed slots array (default ``rt.empty``; e.g. ``Runtime.scratch``'s).
     Returns (slots [M, G], isect_offsets [C*N]).
     """
     C, N = fwd["opacities"].tensor.shape
@@ -444,7 +448,7 @@ def composite_bwd(rt: Runtime, cfg: RenderConfig, fwd: dict, v_out: DeviceArray,
     rt.check_memory(M * G * (8 if cfg.precision == "float64" else 4),
                     f"means, scales: the backward's gradient slots ({M} intersections x {G} values)")
     offs = isect_offsets(rt, fwd["rects"])
-    slots = rt.empty((M, G), cfg.dtype)
+    slots = (alloc or rt.empty)((M, G), cfg.dtype)
     group = tile_size * tile_size // pix
     f = fwd
     # The first launch computes the geometry gradients (and colour chunk 0); each further

@@ -201,3 +201,21 @@ def test_small_render_waits_on_the_queue_few_times(make_scene, monkeypatch):
     assert len(waits) == 1
     read_back(out)  # nothing launched since
     assert len(waits) == 1
+
+
+def test_scratch_memory_is_zeroed_reused_and_never_shared_by_two_blocks():
+    rt = clsplat.get_runtime()
+    rt.release_scratch()
+    with rt.scratch() as alloc:
+        a = alloc((1000, 9), torch.float32)
+        a.tensor.fill_(7)
+        ptr = a.tensor.data_ptr()
+        with rt.scratch() as alloc2:  # a block inside (another thread's): its own memory
+            b = alloc2((10,), torch.float64)
+            assert b.tensor.data_ptr() != ptr and not b.tensor.any()
+    with rt.scratch() as alloc:  # the largest block handed back is handed out again, zeroed
+        c = alloc((500, 9), torch.int32)
+        assert c.tensor.data_ptr() == ptr and not c.tensor.any() and c.tensor.shape == (500, 9)
+    with rt.scratch() as alloc:  # larger than what is kept: fresh memory
+        assert alloc((2000, 9), torch.float32).tensor.data_ptr() != ptr
+    rt.release_scratch()
