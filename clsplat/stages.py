@@ -472,20 +472,24 @@ def composite_bwd(rt: Runtime, cfg: RenderConfig, fwd: dict, v_out: DeviceArray,
 def reduce_slots(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, offs: DeviceArray,
                  slots: DeviceArray, channels: int, *, geom: bool, color: bool, absgrad: bool,
                  events: list | None = None) -> dict:
-    """Sum each pair's slots: v_means2d [C,N,2], v_conics [C,N,3], v_opacities [C,N],
-    absgrad [C,N,2], v_feats [C,N,CH] (those not built in stay zero)."""
+    """Sum each pair's slots into those of v_means2d [C,N,2], v_conics [C,N,3], v_opacities
+    [C,N] (``geom``), absgrad [C,N,2] (``absgrad``) and v_feats [C,N,CH] (``color``) that are
+    built in; returns them by name."""
     C, N = rects.tensor.shape[:2]
     dt = cfg.dtype
-    out = {"v_means2d": rt.empty((C, N, 2), dt), "v_conics": rt.empty((C, N, 3), dt),
-           "v_opacities": rt.empty((C, N), dt), "absgrad": rt.empty((C, N, 2), dt),
-           "v_feats": rt.empty((C, N, channels), dt)}
+    shapes = {"v_means2d": (C, N, 2) if geom else None, "v_conics": (C, N, 3) if geom else None,
+              "v_opacities": (C, N) if geom else None, "absgrad": (C, N, 2) if absgrad else None,
+              "v_feats": (C, N, channels) if color else None}
+    # The kernel writes every entry of what is built in (no zero fill); the others are
+    # never written, and a one-element buffer stands in for each.
+    out = {k: rt.empty(sh if sh is not None else (1,), dt, zero=False) for k, sh in shapes.items()}
     defines = {"REAL_DOUBLE": cfg.precision == "float64", "CHANNELS": channels,
                "GEOM_GRAD": geom, "COLOR_GRAD": color, "ABSGRAD": absgrad}
     k = rt.kernel("reduce", "reduce_slots", defines)
     _record(events, "reduce", rt.launch(
         k, C * N, LOCAL_1D, np.int32(C * N), rects.buffer, offs.buffer, slots.buffer,
         *(a.buffer for a in out.values())))
-    return out
+    return {k: a for k, a in out.items() if shapes[k] is not None}
 
 
 def sh_colors_bwd(rt: Runtime, cfg: RenderConfig, means: DeviceArray, viewmats: DeviceArray,
@@ -522,8 +526,9 @@ def project_bwd(rt: Runtime, cfg: RenderConfig, inputs: dict, radii: DeviceArray
     N = inputs["means"].tensor.shape[0]
     C = inputs["viewmats"].tensor.shape[0]
     dt = cfg.dtype
-    out = {"v_means": rt.empty((N, 3), dt), "v_quats": rt.empty((N, 4), dt),
-           "v_scales": rt.empty((N, 3), dt), "v_opacities": rt.empty((N,), dt)}
+    # every Gaussian's entries are written by the kernel: no zero fill
+    out = {"v_means": rt.empty((N, 3), dt, zero=False), "v_quats": rt.empty((N, 4), dt, zero=False),
+           "v_scales": rt.empty((N, 3), dt, zero=False), "v_opacities": rt.empty((N,), dt, zero=False)}
     defines = {"REAL_DOUBLE": cfg.precision == "float64", "ANTIALIASED": antialiased,
                "VIEWMAT_GRAD": viewmat_grad}
     k = rt.kernel("project_bwd", "project_bwd", defines, cfg.fast_math)
