@@ -54,8 +54,8 @@ def _finite_grad(name: str, g: torch.Tensor | None) -> None:
                          "gradient is not finite")
 
 
-def _grad_or_zeros(g: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor:
-    return torch.zeros_like(like) if g is None else g.contiguous().to(like.dtype)
+def _grad_or_zeros(g: torch.Tensor | None, shape: tuple, dtype: torch.dtype) -> torch.Tensor:
+    return torch.zeros(shape, dtype=dtype) if g is None else g.contiguous().to(dtype)
 
 
 class ProjectFn(torch.autograd.Function):
@@ -78,11 +78,10 @@ class ProjectFn(torch.autograd.Function):
         means, quats, scales, opacities, viewmats, Ks, radii = ctx.saved_tensors
         C, N = radii.shape[:2]
         dt = s.cfg.dtype
-        like2, like3, like1 = (torch.zeros((C, N, k), dtype=dt) for k in (2, 3, 1))
-        grads = {"v_means2d": _grad_or_zeros(v_means2d, like2),
-                 "v_conics": _grad_or_zeros(v_conics, like3),
-                 "v_depths": _grad_or_zeros(v_depths, like1[..., 0]),
-                 "v_opacities": _grad_or_zeros(v_opac, like1[..., 0])}
+        grads = {"v_means2d": _grad_or_zeros(v_means2d, (C, N, 2), dt),
+                 "v_conics": _grad_or_zeros(v_conics, (C, N, 3), dt),
+                 "v_depths": _grad_or_zeros(v_depths, (C, N), dt),
+                 "v_opacities": _grad_or_zeros(v_opac, (C, N), dt)}
         rt = s.rt
         inputs = {n: rt.array(t.detach()) for n, t in zip(
             ("means", "quats", "scales", "opacities", "viewmats", "Ks"),
@@ -181,8 +180,8 @@ class RasterizeFn(torch.autograd.Function):
         rt, cfg = s.rt, s.cfg
         out_t, T_t = ctx.saved_tensors
         fwd = dict(fwd, out=rt.array(out_t), T=rt.array(T_t))
-        v_out = _grad_or_zeros(v_out, fwd["out"].tensor)
-        v_T = _grad_or_zeros(v_T, fwd["T"].tensor)
+        v_out = _grad_or_zeros(v_out, fwd["out"].tensor.shape, fwd["out"].tensor.dtype)
+        v_T = _grad_or_zeros(v_T, fwd["T"].tensor.shape, fwd["T"].tensor.dtype)
         absgrad = s.absgrad and geom
         CH = fwd["feats"].tensor.shape[-1]
         with rt.scratch() as alloc:  # the slots live only until the reduce is read back
