@@ -42,7 +42,8 @@ MANIFEST = ".manifest.json"
 RESUME_FILES = ("checkpoint.pt", "log.jsonl")
 #: output names of the model commands: in a folder written before manifests existed, these
 #: are taken to be the previous run's files (and replaced as a group with it)
-KNOWN_RUN_FILES = ("checkpoint.pt", "log.jsonl", "loss.png", "metrics.json", "scene.ply", "contact_sheet.png",
+KNOWN_RUN_FILES = ("checkpoint.pt", "log.jsonl", "loss.png", "metrics.json", "budget.json", "scene.ply",
+                   "contact_sheet.png", "far_side.png",
                    "depth_sheet.png", "lateral_shift_*m.png", "budget_*.png", "*_sheet.png")
 
 
