@@ -21,12 +21,15 @@ __all__ = ["main"]
 
 
 def main(argv: list[str] | None = None) -> int:
-    """benchmark reports: clsplat bench {stages,precision,stability,all,percall} --out DIR"""
+    """benchmark reports: clsplat bench {stages,precision,stability,all,composite} --out DIR, or
+    clsplat bench percall [...]"""
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["percall"]:   # the per-call cost of rasterization(): its own options
         from . import percall
         return percall.main(argv[1:])
-    p = ArgumentParser(prog="clsplat bench", description=__doc__.split("\n")[0])
+    p = ArgumentParser(prog="clsplat bench", description=__doc__.split("\n")[0],
+                       epilog="also: clsplat bench percall [...], the per-call cost of rasterization() "
+                              "(its own options: clsplat bench percall -h)")
     p.add_argument("report", choices=("stages", "precision", "stability", "all", "composite"))
     p.add_argument("--out", default="bench_out", help="output folder (created)")
     p.add_argument("--device", default=None, help="OpenCL device, e.g. 'pocl' or '0:0' (default CLSPLAT_DEVICE)")
