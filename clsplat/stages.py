@@ -70,8 +70,8 @@ def project(rt: Runtime, cfg: RenderConfig, means: DeviceArray, quats: DeviceArr
         means2d=rt.empty((C, N, 2), dt), conics=rt.empty((C, N, 3), dt), depths=rt.empty((C, N), dt),
         radii=rt.empty((C, N, 2), torch.int32), opacities=rt.empty((C, N), dt),
         rects=rt.empty((C, N, 4), torch.int32), extents=rt.empty((C, N, 2), dt))
-    k = rt.kernel("project", "project", cfg.defines(tile_size) | {"ANTIALIASED": antialiased},
-                  cfg.fast_math)
+    k = rt.kernel("project", "project", cfg.defines(tile_size) | {
+        "ANTIALIASED": antialiased, "CLS_POCL_CPU": rt.is_pocl_cpu}, cfg.fast_math)
     R = _np_real(cfg)
     _record(events, "project", rt.launch(
         k, C * N, LOCAL_1D, np.int32(C), np.int32(N), means.buffer, quats.buffer, scales.buffer,
@@ -530,7 +530,7 @@ def project_bwd(rt: Runtime, cfg: RenderConfig, inputs: dict, radii: DeviceArray
     out = {"v_means": rt.empty((N, 3), dt, zero=False), "v_quats": rt.empty((N, 4), dt, zero=False),
            "v_scales": rt.empty((N, 3), dt, zero=False), "v_opacities": rt.empty((N,), dt, zero=False)}
     defines = {"REAL_DOUBLE": cfg.precision == "float64", "ANTIALIASED": antialiased,
-               "VIEWMAT_GRAD": viewmat_grad}
+               "VIEWMAT_GRAD": viewmat_grad, "CLS_POCL_CPU": rt.is_pocl_cpu}
     k = rt.kernel("project_bwd", "project_bwd", defines, cfg.fast_math)
     args = [np.int32(C), np.int32(N)] + [inputs[n].buffer for n in
                                          ("means", "quats", "scales", "opacities", "viewmats", "Ks")]

@@ -3,7 +3,8 @@
  * One work-item per (camera, Gaussian) pair cg = c * N + g. Culled pairs get radii 0 and an
  * empty tile rectangle, so no later stage touches them.
  *
- * Build parameters: REAL_DOUBLE, TILE, ANTIALIASED (0/1), and the radius knobs of common.h.
+ * Build parameters: REAL_DOUBLE, TILE, ANTIALIASED (0/1), the radius knobs of common.h, and
+ * CLS_POCL_CPU (inline sqrt, ceil, floor, min, max: common.h).
  */
 
 __kernel void project(const int C, const int N,
@@ -62,20 +63,22 @@ __kernel void project(const int C, const int N,
 
     REAL op = opacities[g];
 #if ANTIALIASED
-    op *= sqrt(fmax((REAL)0, det_orig * inv_det));
+    op *= CLS_SQRT(CLS_FMAX((REAL)0, det_orig * inv_det));
 #endif
 #if OPACITY_AWARE_RADIUS
     /* gsplat's rule: beyond sqrt(2 ln(o / ALPHA_MIN)) sigmas the sample falls below
      * ALPHA_MIN and would be skipped anyway; never more than RADIUS_SIGMA. */
     if (!(op >= (REAL)ALPHA_MIN)) return;
-    const REAL extent = fmin((REAL)RADIUS_SIGMA, sqrt(2 * log(op / (REAL)ALPHA_MIN)));
+    const REAL cut = log(op / (REAL)ALPHA_MIN); /* (also the compositing extents' below) */
+    const REAL extent = CLS_FMIN((REAL)RADIUS_SIGMA, CLS_SQRT(2 * cut));
 #else
     const REAL extent = (REAL)RADIUS_SIGMA;
 #endif
     /* Radii are capped so a near-plane giant cannot overflow int; any cap above the image
      * size culls and bins identically. */
     const REAL rcap = (REAL)(1 << 30);
-    const REAL rxf = fmin(ceil(extent * sqrt(a)), rcap), ryf = fmin(ceil(extent * sqrt(d)), rcap);
+    const REAL rxf = CLS_FMIN(rcap, CLS_CEIL(extent * CLS_SQRT(a)));
+    const REAL ryf = CLS_FMIN(rcap, CLS_CEIL(extent * CLS_SQRT(d)));
     if (rxf <= radius_clip && ryf <= radius_clip) return;
 
     const REAL rz = 1 / p.z;
@@ -97,9 +100,11 @@ __kernel void project(const int C, const int N,
      * is at least dy^2 / (2 cov_yy) (likewise for columns): compositing skips a sample
      * beyond these extents without evaluating it. Computed here from the covariance, where
      * it is accurate even for needles whose conic has lost its determinant to rounding. */
+#if !OPACITY_AWARE_RADIUS
     const REAL cut = log(op / (REAL)ALPHA_MIN);
-    extents[2 * cg] = cut >= 0 ? sqrt(2 * cut * a) : (REAL)-1;
-    extents[2 * cg + 1] = cut >= 0 ? sqrt(2 * cut * d) : (REAL)-1;
+#endif
+    extents[2 * cg] = cut >= 0 ? CLS_SQRT(2 * cut * a) : (REAL)-1;
+    extents[2 * cg + 1] = cut >= 0 ? CLS_SQRT(2 * cut * d) : (REAL)-1;
     rects[4 * cg] = rect.x;
     rects[4 * cg + 1] = rect.y;
     rects[4 * cg + 2] = rect.z;

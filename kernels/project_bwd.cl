@@ -9,7 +9,7 @@
  * Where the Jacobian's mean was clamped to the widened frustum, the clamped coordinate is a
  * constant and passes no gradient to the mean, exactly as the forward computed it.
  *
- * Build parameters: REAL_DOUBLE, ANTIALIASED, VIEWMAT_GRAD.
+ * Build parameters: REAL_DOUBLE, ANTIALIASED, VIEWMAT_GRAD, CLS_POCL_CPU (common.h's inline maths).
  */
 
 __kernel void project_bwd(const int C, const int N,
