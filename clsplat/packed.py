@@ -24,7 +24,8 @@ from typing import Callable
 import numpy as np
 import torch
 
-__all__ = ["PackedPairs", "pack_pairs", "PackedMeans2d", "LazyMeta", "intersection_meta", "AbsgradSink", "SparseRowsGrad"]
+__all__ = ["PackedPairs", "pack_pairs", "PackedMeans2d", "LazyMeta", "intersection_meta", "AbsgradSink",
+           "SparseRowsGrad"]
 
 
 class PackedPairs:
