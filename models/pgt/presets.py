@@ -30,7 +30,8 @@ KAPPA_SCHEDULES = ("progressive", "log_uniform")
 BUDGET_FIELDS = ("budget_steps", "budget_lr", "kappa_start", "kappa_decay", "kappa_interval", "kappa_min",
                  "kappa_max", "hf_temperature", "patch", "rate_kernel", "fill_window", "w_io", "w_io_opacity",
                  "budget_views", "selection", "importance_head", "budget_colour", "learned_fill", "coverage_input", "coverage_tol", "target",
-                 "target_floor", "w_redundancy", "kappa_schedule", "fill_cap_px")
+                 "target_floor", "w_redundancy", "kappa_schedule", "fill_cap_px",
+                 "kappa_decoder", "kappa_film")
 
 
 @dataclass(frozen=True)
@@ -69,7 +70,10 @@ class PGTPreset(Preset):
     with ``target_floor`` and ``w_redundancy``); ``kappa_schedule`` ``"progressive"`` or
     ``"log_uniform"`` over [``kappa_min``, ``kappa_max``]; ``fill_cap_px`` (0 = off): a pruned
     set's Gaussians may grow to that many pixel footprints even where that exceeds ``scale_cap``
-    metres (far scenery), for every method alike.
+    metres (far scenery), for every method alike. ``kappa_decoder`` (0 = off): the budget stage
+    trains copies of the decoder's last that many stages (1 = the output conv, 2 = also the 1/2
+    block, .. 4) and, with ``kappa_film``, scales and shifts each copied stage's input by κ
+    (:class:`~.budget.KappaDecoder`; EcoSplat conditions its decoder on κ, not only the heads).
     """
 
     #: fields renamed since checkpoints were first written (issue 20: one name per meaning across
@@ -136,6 +140,8 @@ class PGTPreset(Preset):
     w_redundancy: float = 1.0
     kappa_schedule: str = "progressive"
     fill_cap_px: float = 0.0
+    kappa_decoder: int = 0
+    kappa_film: bool = True
 
     def __post_init__(self) -> None:
         def bad(field: str, why: str) -> ValueError:
@@ -185,6 +191,8 @@ class PGTPreset(Preset):
             raise bad("coverage_tol", "must be in (0, 1)")
         if self.fill_cap_px < 0:
             raise bad("fill_cap_px", "must be >= 0 (0 = off)")
+        if not 0 <= self.kappa_decoder <= 4:
+            raise bad("kappa_decoder", "expected 0 (κ only at the heads) .. 4 (every decoder stage)")
 
     @property
     def sh_coeffs(self) -> int:
