@@ -57,6 +57,28 @@ def test_issue18_budget_stage_trains_on_many_views_from_a_base_with_other_budget
                   "--set", "head_channels=8", "--steps", "1", "--out", str(tmp_path / "bad")]) == 2
 
 
+def test_budget_stage_with_kappa_in_the_decoder_trains_and_evaluates(runs, tmp_path):
+    """``kappa_decoder``: the budget stage trains copies of the decoder's last stages (and their κ
+    FiLM) while the base decoder stays frozen; the evaluation rebuilds the copies from the
+    checkpoint's preset and keeps exact counts, with κ = 1 the base model."""
+    out = tmp_path / "kd"
+    assert train(["--stage", "budget", "--init", str(runs / "base" / "checkpoint.pt"), "--preset", "tiny",
+                  "--steps", "2", "--eval-scenes", "0", "--set", "kappa_decoder=2", "--set", "budget_views=4",
+                  "--set", "selection='stratified'", "--set", "importance_head=True", "--out", str(out)]) == 0
+    ck = torch.load(out / "checkpoint.pt", weights_only=True)["model"]
+    base = torch.load(runs / "base" / "checkpoint.pt", weights_only=True)["model"]
+    for k, v in base.items():
+        assert torch.equal(v, ck[k]), k
+    assert any(not torch.equal(ck[k], base[k.replace("budget.decoder.stages.0.", "decoder.up2.")])
+               for k in ck if k.startswith("budget.decoder.stages.0."))
+    assert "budget.decoder.film.1.net.2.weight" in ck and "budget.decoder.stages.1.0.weight" in ck
+    assert evaluate(["--checkpoint", str(out / "checkpoint.pt"), "--budgets", "1,0.1", "--num-scenes", "1",
+                     "--repeats", "1", "--views", "4", "--out", str(tmp_path / "ev")]) == 0
+    rows = json.loads((tmp_path / "ev" / "budget.json").read_text())
+    assert all(r["n_gaussians"] == round(r["budget"] * 4 * 32 * 48) for r in rows)
+    assert len({r["psnr"] for r in rows if r["budget"] == 1.0}) == 1
+
+
 def test_base_stage_resumes_bitwise(runs, tmp_path, monkeypatch):
     """A run interrupted after its step-1 checkpoint and resumed ends where the uninterrupted one did."""
     from clsplat.models.pgt import training

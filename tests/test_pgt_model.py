@@ -103,8 +103,11 @@ ISSUE18 = TINY.replace(selection="stratified", importance_head=True, coverage_in
                        fill_cap_px=8.0, kappa_schedule="log_uniform", kappa_min=0.02, budget_colour=True,
                        learned_fill=True)
 
+#: issue 18, lead 4: κ-conditioned copies of every decoder stage feed the budget heads
+KDEC = ISSUE18.replace(kappa_decoder=4)
 
-@pytest.mark.parametrize("preset", [TINY, ISSUE18], ids=["ecosplat", "issue18"])
+
+@pytest.mark.parametrize("preset", [TINY, ISSUE18, KDEC], ids=["ecosplat", "issue18", "kappa_decoder"])
 def test_kappa_one_is_the_base_model_bitwise(model, preset):
     images, Ks, c2w = _views(seed=3)
     with torch.no_grad():
@@ -140,7 +143,7 @@ def test_fresh_budget_heads_copy_the_base_heads_exactly(model):
         assert kept.min() >= dropped.max()
 
 
-@pytest.mark.parametrize("preset", [TINY, ISSUE18], ids=["ecosplat", "issue18"])
+@pytest.mark.parametrize("preset", [TINY, ISSUE18, KDEC], ids=["ecosplat", "issue18", "kappa_decoder"])
 @pytest.mark.parametrize("views", [2, 3])
 def test_gaussian_count_for_every_kappa(model, views, preset):
     images, Ks, c2w = _views(V=views, seed=5)
@@ -189,6 +192,44 @@ def test_issue18_heads_start_as_the_base_and_select_by_importance(model):
     no_cap.load_state_dict(m.state_dict())
     with torch.no_grad():
         assert no_cap(images, Ks, c2w, kappa=0.1).gaussians().scales.max() <= ISSUE18.scale_cap + 1e-6
+
+
+@pytest.mark.parametrize("stages", [1, 2, 4])
+def test_kappa_decoder_starts_as_the_base_and_changes_the_features_with_kappa(model, stages):
+    """Fresh κ-conditioned decoder copies give the base decoder's features exactly (so the budget
+    stage starts from the base); once the FiLM has weights, the parameters differ between two κ
+    while the depth stays the base's; gradients reach the copies and the FiLM; without
+    ``kappa_film`` there is no κ input in the decoder."""
+    images, Ks, c2w = _views(V=3, seed=6)
+    p = ISSUE18.replace(kappa_decoder=stages)
+    m = PGT(p)
+    m.load_state_dict(model.state_dict())
+    m.enable_budget()
+    assert len(m.budget.decoder.stages) == stages and len(m.budget.decoder.film) == stages
+    with torch.no_grad():
+        base = m(images, Ks, c2w)
+        o = m(images, Ks, c2w, kappa=0.1)
+    for f in ("quats", "opacities", "sh", "scales"):
+        torch.testing.assert_close(getattr(o, f), getattr(base, f), rtol=0, atol=0, msg=f)
+    with torch.no_grad():
+        for film in m.budget.decoder.film:
+            film.net[2].weight.normal_(0, 0.1)
+        a = m(images, Ks, c2w, kappa=0.1)
+        b = m(images, Ks, c2w, kappa=0.05)
+    assert torch.equal(a.depth, base.depth) and torch.equal(b.depth, base.depth)
+    assert not torch.equal(a.opacities, b.opacities) and not torch.equal(a.opacities, base.opacities)
+    o = m(images, Ks, c2w, kappa=0.2)
+    (o.opacities.sum() + o.scales.sum()).backward()
+    assert all(prm.grad is not None and prm.grad.abs().sum() > 0 for prm in m.budget.decoder.film.parameters())
+    assert all(prm.grad is not None for prm in m.budget.decoder.stages.parameters())
+    assert all(prm.grad is None for prm in m.decoder.parameters())  # the base decoder stays frozen
+    plain = PGT(p.replace(kappa_film=False)).enable_budget()
+    assert plain.budget.decoder.film is None and len(plain.budget.decoder.stages) == stages
+
+
+def test_kappa_decoder_field_is_checked():
+    with pytest.raises(ValueError, match="kappa_decoder"):
+        TINY.replace(kappa_decoder=5)
 
 
 def test_gradients_reach_the_encoder_through_the_renderer():

@@ -165,3 +165,20 @@ def test_a_checkpoint_from_before_issue_18_keeps_ecosplats_budget_stage():
     check_preset_matches(old, got, "old.pt")
     assert saved_preset(SMALL.to_dict()) == SMALL
     assert PGTPreset.__dataclass_fields__["selection"].default == "topk"
+
+
+def test_a_checkpoint_from_before_the_kappa_decoder_keeps_kappa_at_the_heads():
+    """small now conditions its decoder on κ (``kappa_decoder=2``); a budget checkpoint written
+    before the field existed (κ only at the heads, no decoder copies in its state) is read with
+    ``kappa_decoder=0``, so its state loads into the model it was trained as."""
+    from clsplat.models.pgt.model import PGT
+    from clsplat.models.pgt.presets import BUDGET_FIELDS, SMALL, TINY, saved_preset
+    assert {"kappa_decoder", "kappa_film"} <= set(BUDGET_FIELDS) and SMALL.kappa_decoder == 2
+    old = {k: v for k, v in SMALL.to_dict().items() if k not in ("kappa_decoder", "kappa_film")}
+    got = saved_preset(old)
+    assert got.kappa_decoder == 0 and got.selection == SMALL.selection and got.fill_cap_px == SMALL.fill_cap_px
+    tiny_old = {k: v for k, v in TINY.replace(kappa_decoder=2).to_dict().items() if k != "kappa_decoder"}
+    state = PGT(TINY).enable_budget().state_dict()  # written by the code before the field
+    m = PGT(saved_preset(tiny_old)).enable_budget()
+    m.load_state_dict(state)  # strict: no decoder copies expected
+    assert m.budget.decoder is None

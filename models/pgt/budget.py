@@ -4,6 +4,8 @@
   embedding" of the κ map added into their input features (at initialisation the copies return
   exactly what the base heads return); optionally (issue 18) an importance head, colour and
   per-axis fill residual heads and a cross-view-share embedding, all starting as the base.
+* :class:`KappaDecoder` (issue 18, lead 4): copies of the decoder's last stages with a κ FiLM
+  (:class:`KappaFiLM`) on each stage's input, so the features themselves change with κ.
 * :func:`high_frequency_energy` -> :func:`view_weights` (softmax of the max-normalised energy at
   temperature 0.3) -> :func:`per_view_budgets`: integers K_v <= H·W summing to exactly
   round(κ·V·H·W) (overflow of a full view goes to the others; rounding by largest remainder).
@@ -37,7 +39,7 @@ from torch import Tensor, nn
 
 from .heads import GaussianHeads, RawGaussians
 
-__all__ = ["BudgetHeads", "check_kappa", "high_frequency_energy", "view_weights", "per_view_budgets",
+__all__ = ["BudgetHeads", "KappaDecoder", "KappaFiLM", "check_kappa", "high_frequency_energy", "view_weights", "per_view_budgets",
            "topk_mask", "random_mask", "grid_mask", "stratified_mask", "hilbert_order", "cross_view_coverage",
            "dedup_mask", "fill_gain", "importance_target", "density_target", "io_loss", "sample_kappa"]
 
@@ -55,6 +57,57 @@ def check_kappa(kappa) -> float:
     return float(kappa)
 
 
+class KappaFiLM(nn.Module):
+    """Per-channel scale and shift of a feature map by κ: x·(1 + γ(κ)) + β(κ), with (γ, β) an MLP
+    of (κ, log κ) whose last layer starts at zero, so a fresh one is the identity (exactly: x·1 + 0).
+
+    forward(x [V, C, H, W], kappa float) -> [V, C, H, W].
+    """
+
+    def __init__(self, channels: int, hidden: int = 32) -> None:
+        super().__init__()
+        self.net = nn.Sequential(nn.Linear(2, hidden), nn.ReLU(), nn.Linear(hidden, 2 * channels))
+        nn.init.zeros_(self.net[2].weight)
+        nn.init.zeros_(self.net[2].bias)
+
+    def forward(self, x: Tensor, kappa: float) -> Tensor:
+        k = torch.tensor([kappa, math.log(kappa)], dtype=x.dtype, device=x.device)
+        gamma, beta = self.net(k).chunk(2)
+        return x * (1.0 + gamma[None, :, None, None]) + beta[None, :, None, None]
+
+
+class KappaDecoder(nn.Module):
+    """κ conditioning inside the decoder (issue 18, lead 4): trainable copies of the last
+    ``stages`` stages of the base :class:`~.heads.Decoder` (1 = the full-resolution output conv,
+    2 = also the 1/2 block, .. 4 = all), each reading its input through a :class:`KappaFiLM`
+    (``film``; without it the copies are only extra capacity, the ablation of the κ input). It
+    starts from the base decoder's intermediate output before the first copied stage, so a fresh
+    one returns exactly the base decoder's features; only κ < 1 runs it (κ = 1 is the base model).
+
+    forward(decoder, levels [the base's stage outputs, :meth:`~.heads.Decoder.levels`], kappa,
+    matched, u0 [V, h, w], f2, f4, images, u0_full [V, H, W]) -> [V, head_channels, H, W].
+    """
+
+    def __init__(self, decoder: nn.Module, stages: int, film: bool = True) -> None:
+        super().__init__()
+        n = len(decoder.STAGES)
+        if not 1 <= stages <= n:
+            raise ValueError(f"stages: expected 1..{n}, got {stages}")
+        self.first = n - stages
+        self.stages = nn.ModuleList(copy.deepcopy(getattr(decoder, name)) for name in decoder.STAGES[self.first:])
+        self.film = (nn.ModuleList(KappaFiLM(c) for c in decoder.in_channels[self.first:]) if film else None)
+
+    def forward(self, decoder: nn.Module, levels: list[Tensor], kappa: float, matched: Tensor, u0: Tensor,
+                f2: Tensor, f4: Tensor, images: Tensor, u0_full: Tensor) -> Tensor:
+        x = levels[self.first - 1] if self.first > 0 else None
+        for j, stage in enumerate(self.stages):
+            inp = decoder.stage_input(self.first + j, x, matched, u0, f2, f4, images, u0_full)
+            if self.film is not None:
+                inp = self.film[j](inp, kappa)
+            x = stage(inp)
+        return x
+
+
 class BudgetHeads(nn.Module):
     """A copy of ``heads`` reading features + rate_embed(κ map) (+ cover_embed(1/n map)).
 
@@ -62,6 +115,8 @@ class BudgetHeads(nn.Module):
     opacity) gives the selection score, and the opacity is left to rendering (EcoSplat selects by
     the opacity itself). With ``coverage``, a zero-initialised 3x3 conv of the cross-view share
     1/n (:func:`cross_view_coverage`, from the model's own depth) is added to the features too.
+    With ``decoder_stages`` > 0, a :class:`KappaDecoder` (copies of the base decoder's last stages,
+    conditioned on κ) gives the features these heads read (the model runs it).
     With ``colour`` and base heads without a colour head (colour from the source pixel), a
     zero-initialised colour residual head lets a kept Gaussian take the colour of what it stands
     for (its pruned neighbours), not only its own pixel's. With ``fill``, a zero-initialised head
@@ -73,9 +128,13 @@ class BudgetHeads(nn.Module):
     """
 
     def __init__(self, heads: GaussianHeads, channels: int, kernel: int = 7, importance: bool = False,
-                 coverage: bool = False, colour: bool = False, fill: bool = False) -> None:
+                 coverage: bool = False, colour: bool = False, fill: bool = False, decoder: nn.Module | None = None,
+                 decoder_stages: int = 0, film: bool = True) -> None:
         super().__init__()
         self.heads = copy.deepcopy(heads)
+        #: κ conditioning in the decoder (``decoder_stages`` > 0): the model runs it and passes its
+        #: features to :meth:`forward` in place of the base decoder's
+        self.decoder = KappaDecoder(decoder, decoder_stages, film) if decoder_stages > 0 else None
         self.rate = nn.Conv2d(1, channels, kernel, padding=kernel // 2)
         nn.init.zeros_(self.rate.weight)
         nn.init.zeros_(self.rate.bias)

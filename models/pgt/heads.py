@@ -43,16 +43,40 @@ class Decoder(nn.Module):
         self.up4 = ResidualBlock(d8 + c1, d4, 1, norm)
         self.up2 = ResidualBlock(d4 + c0, d2, 1, norm)
         self.out = nn.Sequential(nn.Conv2d(d2 + 4, head_channels, 3, padding=1), nn.ReLU(inplace=True))
+        #: each stage's input channels (in :attr:`STAGES` order)
+        self.in_channels = (c2 + 1, d8 + c1, d4 + c0, d2 + 4)
 
     @staticmethod
     def _up(x: Tensor, like: Tensor) -> Tensor:
         return F.interpolate(x, size=like.shape[-2:], mode="bilinear", align_corners=False)
 
+    #: the stages in order (1/8, 1/4, 1/2, full resolution); the budget stage may copy the last few
+    STAGES = ("up8", "up4", "up2", "out")
+
+    def stage_input(self, i: int, prev: Tensor | None, matched: Tensor, u0: Tensor, f2: Tensor, f4: Tensor,
+                    images: Tensor, u0_full: Tensor) -> Tensor:
+        """The input of stage ``i`` (see :attr:`STAGES`): the previous stage's output ``prev``
+        (None for stage 0) upsampled to the stage's resolution and joined with its skip."""
+        if i == 0:
+            return torch.cat([matched, u0[:, None]], 1)
+        if i == 1:
+            return torch.cat([self._up(prev, f4), f4], 1)
+        if i == 2:
+            return torch.cat([self._up(prev, f2), f2], 1)
+        return torch.cat([self._up(prev, images), images, u0_full[:, None]], 1)
+
+    def levels(self, matched: Tensor, u0: Tensor, f2: Tensor, f4: Tensor, images: Tensor, u0_full: Tensor
+               ) -> list[Tensor]:
+        """Every stage's output, [1/8, 1/4, 1/2, full] (the last is :meth:`forward`'s)."""
+        outs: list[Tensor] = []
+        x = None
+        for i, name in enumerate(self.STAGES):
+            x = getattr(self, name)(self.stage_input(i, x, matched, u0, f2, f4, images, u0_full))
+            outs.append(x)
+        return outs
+
     def forward(self, matched: Tensor, u0: Tensor, f2: Tensor, f4: Tensor, images: Tensor, u0_full: Tensor) -> Tensor:
-        x = self.up8(torch.cat([matched, u0[:, None]], 1))
-        x = self.up4(torch.cat([self._up(x, f4), f4], 1))
-        x = self.up2(torch.cat([self._up(x, f2), f2], 1))
-        return self.out(torch.cat([self._up(x, images), images, u0_full[:, None]], 1))
+        return self.levels(matched, u0, f2, f4, images, u0_full)[-1]
 
 
 class DepthResidualHead(nn.Module):

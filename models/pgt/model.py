@@ -12,7 +12,9 @@ give the parameters and K_v pixels per view are kept (K_v from the views' high-f
 energy): the top-K_v by their opacity (EcoSplat, ``selection="topk"``) or, with
 ``selection="stratified"``, spread in proportion to the score (:func:`~.budget.stratified_mask`);
 the score is the opacity, or the importance head's when the preset has one. κ = 1 (or None)
-never runs the copies: it is the base model, bitwise.
+never runs the copies: it is the base model, bitwise. With ``kappa_decoder`` > 0 the copied heads
+read features from κ-conditioned copies of the decoder's last stages (:class:`~.budget.KappaDecoder`);
+the depth is still the base decoder's.
 """
 from __future__ import annotations
 
@@ -154,7 +156,8 @@ class PGT(nn.Module):
         if self.budget is None:
             p = self.preset
             self.budget = BudgetHeads(self.heads, p.head_channels, p.rate_kernel, importance=p.importance_head,
-                                      coverage=p.coverage_input, colour=p.budget_colour, fill=p.learned_fill)
+                                      coverage=p.coverage_input, colour=p.budget_colour, fill=p.learned_fill,
+                                      decoder=self.decoder, decoder_stages=p.kappa_decoder, film=p.kappa_film)
         for name, prm in self.named_parameters():
             prm.requires_grad_(name.startswith("budget."))
         return self
@@ -184,7 +187,8 @@ class PGT(nn.Module):
         K8[:, 1] *= h / H
         matched, prob, u0_8 = self.matcher(f8, K8, cam_to_world)
         u0 = F.interpolate(u0_8[:, None], size=(H, W), mode="bilinear", align_corners=False)[:, 0]
-        feat = self.decoder(matched, u0_8, f2, f4, images, u0)
+        levels = self.decoder.levels(matched, u0_8, f2, f4, images, u0)
+        feat = levels[-1]
         u = self.depth_head(feat, u0) if self.depth_head is not None else u0
         depth = u_to_depth(u, p.min_depth, p.max_depth)
         keep = budgets = importance = coverage = fill_log = None
@@ -194,7 +198,10 @@ class PGT(nn.Module):
             if p.coverage_input or (p.target == "density" and p.w_redundancy):
                 coverage = cross_view_coverage(depth, Ks, cam_to_world, p.coverage_tol)[0]
                 share = 1.0 / coverage.to(depth.dtype)
-            raw = self.budget(feat, kappa, share)
+            # the depth stays the base's; with kappa_decoder the heads read κ-conditioned features
+            bfeat = (feat if self.budget.decoder is None
+                     else self.budget.decoder(self.decoder, levels, kappa, matched, u0_8, f2, f4, images, u0))
+            raw = self.budget(bfeat, kappa, share)
             cap = (p.scale_cap if p.fill_cap_px <= 0
                    else _cap(p.scale_cap, p.fill_cap_px, depth / fx[:, None, None])[..., None])
         else:

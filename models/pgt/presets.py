@@ -30,7 +30,8 @@ KAPPA_SCHEDULES = ("progressive", "log_uniform")
 BUDGET_FIELDS = ("budget_steps", "budget_lr", "kappa_start", "kappa_decay", "kappa_interval", "kappa_min",
                  "kappa_max", "hf_temperature", "patch", "rate_kernel", "fill_window", "w_io", "w_io_opacity",
                  "budget_views", "selection", "importance_head", "budget_colour", "learned_fill", "coverage_input", "coverage_tol", "target",
-                 "target_floor", "w_redundancy", "kappa_schedule", "fill_cap_px")
+                 "target_floor", "w_redundancy", "kappa_schedule", "fill_cap_px",
+                 "kappa_decoder", "kappa_film")
 
 
 @dataclass(frozen=True)
@@ -69,7 +70,10 @@ class PGTPreset(Preset):
     with ``target_floor`` and ``w_redundancy``); ``kappa_schedule`` ``"progressive"`` or
     ``"log_uniform"`` over [``kappa_min``, ``kappa_max``]; ``fill_cap_px`` (0 = off): a pruned
     set's Gaussians may grow to that many pixel footprints even where that exceeds ``scale_cap``
-    metres (far scenery), for every method alike.
+    metres (far scenery), for every method alike. ``kappa_decoder`` (0 = off): the budget stage
+    trains copies of the decoder's last that many stages (1 = the output conv, 2 = also the 1/2
+    block, .. 4) and, with ``kappa_film``, scales and shifts each copied stage's input by κ
+    (:class:`~.budget.KappaDecoder`; EcoSplat conditions its decoder on κ, not only the heads).
     """
 
     #: fields renamed since checkpoints were first written (issue 20: one name per meaning across
@@ -136,6 +140,8 @@ class PGTPreset(Preset):
     w_redundancy: float = 1.0
     kappa_schedule: str = "progressive"
     fill_cap_px: float = 0.0
+    kappa_decoder: int = 0
+    kappa_film: bool = True
 
     def __post_init__(self) -> None:
         def bad(field: str, why: str) -> ValueError:
@@ -185,6 +191,8 @@ class PGTPreset(Preset):
             raise bad("coverage_tol", "must be in (0, 1)")
         if self.fill_cap_px < 0:
             raise bad("fill_cap_px", "must be >= 0 (0 = off)")
+        if not 0 <= self.kappa_decoder <= 4:
+            raise bad("kappa_decoder", "expected 0 (κ only at the heads) .. 4 (every decoder stage)")
 
     @property
     def sh_coeffs(self) -> int:
@@ -199,13 +207,14 @@ TINY = register("pgt", PGTPreset(
 #: small's budget stage is issue 18's (bench/RESULTS.md "Issue 18"): multi-view samples, a separate
 #: importance head, the density target (detail only: its cross-view term measured worse, floor 0.3
 #: better than 0.1), stratified selection, colour and per-axis fill residuals, κ log-uniform down
-#: to 0.02 from the first step, far Gaussians free to widen to 8 footprints
+#: to 0.02 from the first step, far Gaussians free to widen to 8 footprints, and κ-conditioned
+#: copies of the decoder's last two stages (1/2 block and output conv) feeding the budget heads
 SMALL = register("pgt", PGTPreset(
     name="small", height=64, width=112, num_depths=32, attn_heads=8, cost_channels=48,
     steps=1200, budget_steps=400, budget_lr=1e-3, kappa_interval=20, chamfer_points=4096,
     budget_views=8, selection="stratified", importance_head=True, budget_colour=True, learned_fill=True,
     target="density", target_floor=0.3, w_redundancy=0.0,
-    kappa_schedule="log_uniform", kappa_min=0.02, fill_cap_px=8.0))
+    kappa_schedule="log_uniform", kappa_min=0.02, fill_cap_px=8.0, kappa_decoder=2))
 PAPER = register("pgt", PGTPreset(
     name="paper", height=176, width=320, num_depths=64, cost_channels=64, steps=30000,
     budget_steps=10000, kappa_interval=1000, colour="sh", sh_degree=1))

@@ -4,7 +4,7 @@
   views render the target views and the source views; loss = render terms + w_depth·depth L1
   (data with depth) or + w_chamfer·Chamfer (without). AdamW(lr, wd), one-cycle, clip 1.0.
 * stage ``budget`` (EcoSplat stage 2): starts from a base checkpoint; only the copied heads and
-  the rate embedding train; κ follows ``kappa_schedule``; samples have ``budget_views`` source
+  the rate embedding train (with ``kappa_decoder``, also copies of the decoder's last stages); κ follows ``kappa_schedule``; samples have ``budget_views`` source
   views (> 2: the multi-view protocol, :func:`~.data.make_rig_sample`); the kept Gaussians render
   the target and source views; loss = render terms + L_io against ``target`` (EcoSplat's merged
   patches, or :func:`~.budget.density_target` with the cross-view share), on the importance
