@@ -8,7 +8,7 @@ from clsplat.models.common.presets import get_preset
 # issue 17 (bench/RESULTS.md): nothing else may differ from the paper
 SIZE_FIELDS = {"name", "height", "width", "voxel_origin", "voxel_size", "voxel_shape", "depth_bins", "scale_cap",
                "focal_ref", "far_plane", "steps"}
-RECIPE_DEPARTURES = {"pose_translation_init", "supersample"}
+RECIPE_DEPARTURES = {"pose_translation_init"}
 
 
 def test_paper_keeps_the_papers_recipe():
@@ -24,4 +24,3 @@ def test_small_departs_from_the_paper_only_by_named_fields():
     assert diff - SIZE_FIELDS == RECIPE_DEPARTURES
     assert small.pose_translation_init == (0.0, 0.0, -0.8)          # 8 m/s x 0.1 s, forward = -z
     assert small.pose_source == "network"                           # the learned pose stays the default
-    assert small.supersample == 3                                   # 3x3 rays per pixel on synthetic streets

@@ -169,23 +169,14 @@ PAPER = register("drivingforward", DFPreset(name="paper", height=352, width=640,
 # translation error 1.8 %) and the depth does not collapse (AbsRel 0.48, scale ratio 0.81 after
 # 120 steps). A user whose data moves at another speed sets it with
 # ``--set "pose_translation_init=(0, 0, -SPEED*DT)"``. Over 640 steps it keeps learning without a
-# collapse (AbsRel 0.43, scale ratio 0.87, delta<1.25 0.64 at step 640).
-#
-# supersample = 3 (synthetic streets: RGB the mean of 3x3 rays per pixel, training and held-out
-# images alike): at 64x112 a pixel covers 0.3-3 m of road, and with one ray per pixel the same
-# ground point changes colour between frames, so the photometric terms are noisy even at the true
-# depth and pose. 3x3 rays halve each term's floor at the true depth and sharpen its minimum, and
-# at 120 steps (seed 0, same streets) they bring held-out AbsRel 0.52 -> 0.38, delta<1.25
-# 0.48 -> 0.62, scale ratio 0.84 -> 0.89; scored on the same 1-ray held-out images the model trained
-# on 3x3 rays still gives AbsRel 0.39 (``clsplat eval drivingforward --supersample 1``). Ray-casting
-# 3x3 rays costs ~9x per street, so fill a cache first (``clsplat data synth --supersample 3``,
-# ``--data synthetic-cache:DIR``). steps = 1000: about 90 minutes on an idle 2-core machine with the
-# streets read from a filled cache (~3.8 s per step; far more when the machine is shared).
+# collapse (AbsRel 0.43, scale ratio 0.87, delta<1.25 0.64 at step 640). steps = 1000: about 90
+# minutes on an idle 2-core machine (~3.8 s per step plus ~1.5 s to ray-cast a street; far more when
+# the machine is shared).
 SMALL = register("drivingforward", DFPreset(
     name="small", height=64, width=112,
     voxel_origin=(-50.0, -50.0, -5.0), voxel_size=(2.5, 2.5, 2.5), voxel_shape=(40, 40, 6),
     depth_bins=16, scale_cap=0.25, focal_ref=300.0 * 112 / 640, far_plane=200.0, steps=1000,
-    pose_translation_init=(0.0, 0.0, -0.8), supersample=3))
+    pose_translation_init=(0.0, 0.0, -0.8)))
 
 TINY = register("drivingforward", DFPreset(
     name="tiny", height=32, width=56,
