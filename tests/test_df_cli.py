@@ -117,6 +117,23 @@ def test_eval_subset_of_cameras_and_frames(runs, tmp_path, capsys):
     assert (tmp_path / "contact_sheet.png").is_file()
 
 
+def test_eval_supersample_scores_a_model_on_other_images_of_the_same_streets(runs, tmp_path, capsys):
+    """``--supersample S`` renders the held-out images with S x S rays per pixel whatever the model
+    trained on (issue 17's lead 3 compares models on the same images); the default is the preset's."""
+    ck = runs / "straight" / "checkpoint.pt"
+    trained = json.loads((runs / "straight" / "metrics.json").read_text())
+    assert trained["protocol"]["supersample"] == 1
+    assert evaluate(["--checkpoint", str(ck), "--num-scenes", "1", "--supersample", "1", "--out", str(tmp_path / "s1")]) == 0
+    assert evaluate(["--checkpoint", str(ck), "--num-scenes", "1", "--supersample", "2", "--out", str(tmp_path / "s2")]) == 0
+    m1, m2 = (json.loads((tmp_path / d / "metrics.json").read_text()) for d in ("s1", "s2"))
+    assert m1["all"] == trained["all"]                     # the preset's own images: the training evaluation
+    assert m2["protocol"]["supersample"] == 2 and m2["all"]["n_pixels"] == m1["all"]["n_pixels"]
+    assert m2["all"]["psnr"] != m1["all"]["psnr"] and m2["all"]["oracle_psnr"] != m1["all"]["oracle_psnr"]
+    with pytest.raises(SystemExit) as e:                   # argparse: one line naming the argument
+        evaluate(["--checkpoint", str(ck), "--supersample", "0", "--out", str(tmp_path / "bad")])
+    assert e.value.code == 2 and "--supersample" in capsys.readouterr().err
+
+
 def test_errors_name_the_argument(runs, tmp_path, capsys):
     ck = runs / "straight" / "checkpoint.pt"
     with pytest.raises(ValueError, match="preset 'tiny', not 'small'"):

@@ -27,7 +27,8 @@ import torch
 
 from clsplat.argparser import ArgumentParser
 
-from ..common.cli import add_common_args, add_eval_args, add_eval_scenes_arg, add_view_args, lpips_from_args
+from ..common.cli import (add_common_args, add_eval_args, add_eval_scenes_arg, add_view_args, lpips_from_args,
+                          positive_int)
 from ..common.data import parse_data
 from ..common.presets import apply_sets, get_preset
 from .checkpoint import FAMILY, build_model, load_model
@@ -148,6 +149,9 @@ def evaluate(argv: list[str]) -> int:
                    help="input frames as offsets from t in {-1, 0, 1} (default SF: 0; MF: -1 1)")
     p.add_argument("--target", type=int, default=None, help="rendered frame offset (default SF: 1; MF: 0)")
     p.add_argument("--no-oracle", action="store_true", help="skip the oracle-depth baseline")
+    p.add_argument("--supersample", type=positive_int, default=None,
+                   help="synthetic only: rays per pixel side of the held-out images (default: the "
+                        "checkpoint's preset), to score models trained on different images on the same ones")
     args = p.parse_args(argv)
     try:
         set_threads(args.threads, args.device)
@@ -158,7 +162,7 @@ def evaluate(argv: list[str]) -> int:
         with staged_group(args.out) as stage:  # the three files replace an earlier evaluation's together
             m = evaluate_model(model, source, args.num_scenes, args.cameras, args.offsets, args.target, lpips,
                                out_dir=stage, oracle=not args.no_oracle, progress=not args.no_progress,
-                               step=model.trained_steps)
+                               step=model.trained_steps, supersample=args.supersample)
         print(_summary(m))
         print(f"wrote {args.out}/metrics.json, contact_sheet.png, depth_sheet.png")
     except ValueError as e:

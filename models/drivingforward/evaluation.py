@@ -22,6 +22,7 @@ data has depth, so that ``oracle_psnr`` can be read beside ``psnr``.
 """
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Sequence
 
@@ -87,7 +88,7 @@ def _depth_colour(depth: Tensor, max_depth: float = 80.0) -> np.ndarray:
 def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | None = None,
                    frames: Sequence[int] | None = None, target: int | None = None, lpips=None,
                    out_dir: str | Path | None = None, oracle: bool = True, progress: bool = False,
-                   step: int = 0) -> dict:
+                   step: int = 0, supersample: int | None = None) -> dict:
     """Novel-view and depth metrics on held-out windows ``0 .. num_scenes-1`` of the test split.
 
     Args:
@@ -98,6 +99,9 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
         lpips: optional LPIPS module; out_dir: where to write ``metrics.json`` and the contact sheets.
         oracle: also run the oracle-depth baseline (needs depth in the data).
         step: the training steps behind the model (recorded).
+        supersample: synthetic streets only: rays per pixel side of the held-out images (default:
+            the model's preset, i.e. the images it trained on); depth ground truth is the centre
+            ray's either way, so models trained on different images can be scored on the same ones.
     Returns:
         the ``metrics.json`` dict (:mod:`clsplat.models.common.report`): ``all`` and
         ``per_camera`` hold PSNR/SSIM[/LPIPS], depth errors and ``oracle_psnr`` (when run),
@@ -107,6 +111,12 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
 
     p = model.preset
     model.eval()
+    if supersample is not None:
+        if isinstance(supersample, bool) or not isinstance(supersample, int) or supersample < 1:
+            raise ValueError(f"--supersample: expected an int >= 1, got {supersample!r}")
+        if not source.synthetic_streets:
+            raise ValueError(f"--supersample: only synthetic streets are rendered here, not {source.name!r}")
+    data_preset = p if supersample is None else dataclasses.replace(p, supersample=supersample)
     frames = tuple(frames) if frames is not None else ((0,) if p.mode == "SF" else (-1, 1))
     target = target if target is not None else (1 if p.mode == "SF" else 0)
     bad = [f for f in (*frames, target) if f not in OFFSETS]
@@ -123,7 +133,7 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
         from tqdm import tqdm
         iterator = tqdm(iterator, desc="eval", unit="scene")
     for i in iterator:
-        s = load_triplet(source, i, p, split="test", cameras=cameras)
+        s = load_triplet(source, i, data_preset, split="test", cameras=cameras)
         names = s["names"]
         Ks, E = s["Ks"], s["cam_to_ego"]
         M = gt_ego_motion(s)                                   # ego_t -> ego_f
@@ -171,6 +181,7 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
             all_[f"pose_{k}"] = float(np.mean(vals))
     protocol = {"data": source.name, "split": "test", "scenes": num_scenes, "images": S * V, "cameras": names,
                 "mode": p.mode, "frames": list(frames), "target": target,
+                **({"supersample": data_preset.supersample} if source.synthetic_streets else {}),
                 "lpips": "on" if lpips is not None else "off (no weights given)",
                 "depth_gt": "none" if not preds else ("depth maps of the data" if "depths" in s
                                                       else "projected LiDAR at t (nearest return per pixel)"),
