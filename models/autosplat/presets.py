@@ -74,6 +74,11 @@ class AutoSplatPreset(Preset):
     prune_opacity: float = 0.01
     prune_scale: float = 8.0          # metres (sky excluded)
     max_gaussians: int = 30000
+    # share of max_gaussians the background may fill while phase 1 trains the road and sky alone:
+    # 1.0 (demo, as before) lets phase 1 take it all; below 1 keeps room for the buildings and
+    # street furniture phase 2 densifies (issue 19: small's road reached the whole 200k cap by
+    # step 500 of phase 1, and phase 2 could not grow a single façade Gaussian)
+    phase1_budget_share: float = 1.0
     # data
     holdout: int = 4                  # every k-th frame of each camera is held out
     dynamic_threshold: float = 0.5    # metres of track displacement above which a track is dynamic
@@ -105,6 +110,8 @@ class AutoSplatPreset(Preset):
                   "grad_threshold"):
             if not getattr(self, f) > 0:
                 raise bad(f, "must be > 0")
+        if not 0 < self.phase1_budget_share <= 1:
+            raise bad("phase1_budget_share", "expected a share in (0, 1]")
         if self.sky not in SKIES:
             raise bad("sky", f"expected one of {SKIES}")
         if self.template not in TEMPLATES:
