@@ -10,7 +10,7 @@ point of a finished run is its own ``metrics.json``. Training time at a step is 
 logged step times up to it (the loop's own seconds; load, initialisation and evaluation not
 counted). Writes the figure and a JSON table of the points.
 
-    .venv/bin/python bench/experiments/autosplat_work_precision.py --eval --data pandaset:DIR \\
+    .venv/bin/python bench/experiments/autosplat_work_precision.py --eval --data pandaset:DIR --scale 1 \\
         --run demo=bench/out/as_demo --run small=bench/out/as_small --run "plain 3DGS (demo)=bench/out/as_plain" \\
         --out bench/figures/autosplat_work_precision.png
 """
@@ -32,7 +32,7 @@ def _log(run: Path) -> list[dict]:
     raise FileNotFoundError(f"{run}: no log.jsonl")
 
 
-def points(run: Path, evaluate: bool, data: str | None = None) -> list[dict]:
+def points(run: Path, evaluate: bool, data: str | None = None, scale: float | None = None) -> list[dict]:
     """One point per scored checkpoint of ``run``: step, train seconds, Gaussians, held-out PSNR/SSIM."""
     log = _log(run)
     cum, t = {}, 0.0
@@ -47,7 +47,8 @@ def points(run: Path, evaluate: bool, data: str | None = None) -> list[dict]:
         out = cks / ("eval_" + ck.stem[3:])
         if not (out / "metrics.json").is_file() and evaluate:
             subprocess.run([str(Path(sys.executable).with_name("clsplat")), "eval", "autosplat", "--checkpoint",
-                            str(ck), "--views", "recorded", "--out", str(out), *(["--data", data] if data else [])],
+                            str(ck), "--views", "recorded", "--out", str(out), *(["--data", data] if data else []),
+                            *(["--scale", str(scale)] if scale else [])],
                            check=True,
                            env={**os.environ, "POCL_MAX_WORK_GROUP_SIZE": os.environ.get("POCL_MAX_WORK_GROUP_SIZE", "256")})
         if (out / "metrics.json").is_file():
@@ -69,6 +70,8 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--run", action="append", required=True, metavar="LABEL=RUN", help="a curve: label and run folder")
     p.add_argument("--eval", action="store_true", help="score the checkpoints not yet scored")
+    p.add_argument("--scale", type=float, default=None, help="the runs' image scale (checkpoints taken "
+                   "during training have no metrics.json recording it)")
     p.add_argument("--data", default=None, help="the runs' --data (a checkpoint outside its run folder needs it)")
     p.add_argument("--out", required=True, help="figure path (.png); the points go beside it as .json")
     a = p.parse_args()
@@ -79,7 +82,7 @@ def main() -> None:
     curves = {}
     for spec in a.run:
         label, _, path = spec.partition("=")
-        curves[label] = points(Path(path), a.eval, a.data)
+        curves[label] = points(Path(path), a.eval, a.data, a.scale)
     fig, ax = plt.subplots(1, 2, figsize=(11, 4.2))
     for label, pts in curves.items():
         if not pts:
