@@ -254,3 +254,25 @@ def test_road_pixels_from_labelled_lidar_match_the_generator():
     truth = f.semantics[name] == ROAD_SEMANTIC
     assert road.sum() > 20
     assert (truth[road]).mean() > 0.8          # 3x3 dilation spills over the road's edges
+
+
+def test_phase1_budget_share_keeps_room_for_phase2(street, full_run, tmp_path):
+    """``phase1_budget_share``: phase 1 (road and sky) densifies the background up to that share
+    of ``max_gaussians`` only, and phase 2 grows it beyond (the small preset's road otherwise
+    filled the whole cap before any building was densified)."""
+    data = prepare_data(street, CAMS, holdout=4)
+    probe = Trainer(data, TINY, Switches(), tmp_path / "probe", progress=False)
+    probe.initialise()
+    n0 = len(probe.model.background)
+    _, full_log = full_run   # TINY: densification after steps 3 (phase 1), 7 (phase 2), 11, 15
+    grown1 = full_log[2]["densify_background"] - n0
+    assert grown1 > 40, grown1          # phase 1 alone grows the background without the share
+    preset = TINY.replace(max_gaussians=n0 + 4 * grown1, phase1_budget_share=(n0 + 10) / (n0 + 4 * grown1))
+    tr = Trainer(data, preset, Switches(), tmp_path / "run", progress=False)
+    tr.fit()
+    log = _log(tmp_path / "run")
+    assert log[2]["stage"] == "bg_phase1" and log[6]["stage"] == "bg_phase2"
+    assert log[2]["densify_background"] <= n0 + 10
+    assert log[6]["densify_background"] > n0 + 10    # phase 2 may use the rest
+    with pytest.raises(ValueError, match=r"phase1_budget_share: expected a share in \(0, 1\]"):
+        TINY.replace(phase1_budget_share=0.0)

@@ -147,3 +147,23 @@ def test_eval_autosplat_scores_every_view_set(tmp_path):
     assert "far_side" not in r and "train" in r and np.isclose(r["all"]["psnr"], m["all"]["psnr"])
     with pytest.raises(SystemExit):
         evaluate(["--checkpoint", str(run / "checkpoint.pt"), "--out", str(ev), "--views", "sideways"])
+
+
+def test_eval_autosplat_scale_for_a_checkpoint_outside_its_run(tmp_path):
+    """A checkpoint taken during training (no metrics.json beside it to record the run's scale) is
+    scored at ``--scale``; without it at the preset's scale, which here is not the run's."""
+    import shutil
+    run = tmp_path / "run"
+    assert train(["--data", "synthetic", "--preset", "tiny", "--scale", "0.3",
+                  "--cameras", "CAM_FRONT", "--no-progress", "--views", "recorded", "--out", str(run)]) == 0
+    (tmp_path / "cks").mkdir()
+    ck = shutil.copy(run / "checkpoint.pt", tmp_path / "cks" / "ck.pt")
+    m = json.loads((run / "metrics.json").read_text())
+    assert evaluate(["--checkpoint", str(ck), "--data", "synthetic", "--scale", "0.3", "--views", "recorded",
+                     "--out", str(tmp_path / "at")]) == 0
+    at = json.loads((tmp_path / "at" / "metrics.json").read_text())
+    assert np.isclose(at["all"]["psnr"], m["all"]["psnr"]) and np.isclose(at["all"]["ssim"], m["all"]["ssim"])
+    assert evaluate(["--checkpoint", str(ck), "--data", "synthetic", "--views", "recorded",
+                     "--out", str(tmp_path / "preset")]) == 0   # tiny's own scale, 0.25: other images
+    other = json.loads((tmp_path / "preset" / "metrics.json").read_text())
+    assert not np.isclose(other["all"]["psnr"], m["all"]["psnr"])

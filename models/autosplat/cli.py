@@ -7,7 +7,7 @@
         [--no-decompose] [--masks DIR] [--views SET ...] [--batch-size B] --out DIR [--resume]
         [--stop-after N]
         [--view [--view-port P] [--view-every N]]
-    clsplat eval autosplat --checkpoint RUN/checkpoint.pt --out DIR [--data ...]
+    clsplat eval autosplat --checkpoint RUN/checkpoint.pt --out DIR [--data ...] [--scale S]
         [--views recorded|far-side|lane-change|appearance ...]
 
 ``--no-decompose`` is plain 3DGS from LiDAR (one static set, no objects, no phase 1). ``--steps N``
@@ -212,6 +212,8 @@ def evaluate(argv: list[str]) -> int:
     p = ArgumentParser(prog="clsplat eval autosplat", description=evaluate.__doc__.split("\n")[0])
     add_eval_args(p, scenes=False)
     _add_views_arg(p)
+    p.add_argument("--scale", type=float, default=None,
+                   help="image scale the run trained at (default: the one its metrics.json records, else the preset's)")
     p.set_defaults(data=None)
     a = p.parse_args(argv)
     ck_path = Path(a.checkpoint)
@@ -223,7 +225,8 @@ def evaluate(argv: list[str]) -> int:
     run = ck_path.parent.parent if ck_path.parent.name == STAGING else ck_path.parent
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    tr = trainer_from_checkpoint(ck, ck_path, run, a.data, out_dir=out, device=a.device, arg="--checkpoint")
+    tr = trainer_from_checkpoint(ck, ck_path, run, a.data, out_dir=out, device=a.device, arg="--checkpoint",
+                                 scale=a.scale)
     lpips = lpips_from_args(a)
     ev = evaluate_run(tr, lpips=lpips, views=a.views)
     ev["protocol"]["checkpoint"] = str(ck_path)

@@ -95,22 +95,27 @@ def evaluate_run(trainer: Trainer, lpips=None, views=DEFAULT_VIEWS) -> dict:
 
 
 def trainer_from_checkpoint(ck: dict, ck_path: Path, run: Path, data: str | None, out_dir: Path | None = None,
-                            device=None, arg: str = "PATH", safe_pickle: bool = True) -> Trainer:
+                            device=None, arg: str = "PATH", safe_pickle: bool = True,
+                            scale: float | None = None) -> Trainer:
     """The :class:`Trainer` of a run rebuilt from its checkpoint ``ck`` (read from ``ck_path`` in
     the run folder ``run``) on the run's data: ``--data``, ``--scale`` and ``--frames`` recorded in
     the run's ``metrics.json`` (else the built-in street at the preset's scale, cut to the run's
     training frames), or ``data`` when given (PandaSet's pickles allow-listed unless
-    ``safe_pickle=False``).
+    ``safe_pickle=False``); ``scale`` (``--scale``) overrides the recorded or preset image scale
+    (a checkpoint taken during training has no ``metrics.json`` beside it to record one).
     Its sheets go to ``out_dir`` (default the run folder). ValueError naming ``arg`` when the data
     does not give the run's training frames or tracked objects."""
     preset = preset_from_saved("autosplat", ck["preset"])
     ex = checkpoint_extra(ck)
+    given_scale = scale
     spec, scale, frames = "synthetic", preset.scale, None
     metrics = run / "metrics.json"
     if metrics.is_file():
         m = json.loads(metrics.read_text())
         recorded = m.get("protocol", m)   # schema 1 keeps them in "protocol"; earlier runs at the top
         spec, scale, frames = recorded.get("data", spec), recorded.get("scale", scale), recorded.get("frames")
+    if given_scale is not None:
+        scale = given_scale
     if data is not None and data != spec:
         spec, frames = data, None
     want = list(ex.get("train_frames") or [0])

@@ -174,6 +174,15 @@ class Trainer(LoopHooks):
             s -= n
         raise ValueError(f"step {step} is past the schedule's {self.total} steps")
 
+    def _cap(self, key: str, stage: str, n: int) -> int:
+        """The size set ``key`` may grow to by densification in ``stage``: objects 4x their
+        initial points; the background ``max_gaussians``, of which phase 1 (road and sky alone)
+        may fill only ``phase1_budget_share``."""
+        p = self.preset
+        if key != "background":
+            return max(4 * p.object_points, n)
+        return int(p.max_gaussians * p.phase1_budget_share) if stage == "bg_phase1" else p.max_gaussians
+
     def _trained_sets(self, stage: str) -> list[str]:
         objs = [f"object{k}" for k in range(len(self.tracks))]
         return {"bg_phase1": ["background"], "bg_phase2": ["background"], "foreground": objs,
@@ -314,7 +323,7 @@ class Trainer(LoopHooks):
                     g, self.stats[key], self.opt, grad_threshold=p.grad_threshold,
                     split_scale=p.split_scale if key == "background" else p.object_split_scale,
                     prune_opacity=p.prune_opacity, prune_scale=p.prune_scale,
-                    max_gaussians=p.max_gaussians if key == "background" else max(4 * p.object_points, len(g)),
+                    max_gaussians=self._cap(key, stage, len(g)),
                     growable=growable, generator=gen)
                 record[f"densify_{key}"] = res["total"]
         record.update(renderer_device_s=sum((ev.profile.end - ev.profile.start) for _, ev in self._events) * 1e-9,

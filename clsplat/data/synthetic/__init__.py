@@ -113,7 +113,8 @@ def generate_sequence(config: SyntheticConfig | None = None, **overrides) -> Dri
     cfg.validate()
     duration = cfg.t0 + cfg.dt * (cfg.num_frames - 1)
     scene = StreetScene(cfg.seed, (-80.0, cfg.speed * duration + 160.0), cfg.num_parked, cfg.num_moving,
-                        cfg.poles, cfg.trees, cfg.blink_period, cfg.speed, cfg.signals, cfg.shadow)
+                        cfg.poles, cfg.trees, cfg.blink_period, cfg.speed, cfg.signals, cfg.shadow,
+                        cfg.fine_texture)
     cams = make_rig(cfg.width, cfg.height, cfg.hfov_deg, cfg.back_hfov_deg, cfg.lateral_shift)
     if cfg.cameras is not None:
         by_name = {c.name: c for c in cams}

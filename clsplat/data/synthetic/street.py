@@ -21,7 +21,7 @@ class StreetScene:
     Args:
         seed: layout / texture seed.
         x_range: ``(xmin, xmax)`` world extent of buildings and street furniture.
-        num_parked, num_moving, poles, trees, blink_period, signals, shadow: see
+        num_parked, num_moving, poles, trees, blink_period, signals, shadow, fine_texture: see
             :class:`~clsplat.data.synthetic.config.SyntheticConfig`.
         ego_speed: speed of the ego vehicle; moving vehicles drive at speeds relative to it.
     """
@@ -38,12 +38,14 @@ class StreetScene:
         ego_speed: float = 8.0,
         signals: bool = False,
         shadow: bool = False,
+        fine_texture: float = 0.0,
     ) -> None:
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ValueError(f"seed must be a non-negative int, got {seed!r}")
         if len(x_range) != 2 or not x_range[0] < x_range[1]:
             raise ValueError(f"x_range must be (xmin, xmax) with xmin < xmax, got {x_range!r}")
         self.seed = int(seed)
+        self.fine_texture = float(fine_texture)
         self.blink_period = float(blink_period)
         # one random stream per feature, so that extending x_range only appends content
         rng = np.random.default_rng([self.seed, 1])
@@ -246,7 +248,7 @@ class StreetScene:
         gi = np.nonzero(pf == -1)[0]
         if gi.size:
             p = origin + sf[gi, None] * d[gi]
-            a, sm = _ground_albedo(p[:, 0], p[:, 1], self.seed)
+            a, sm = _ground_albedo(p[:, 0], p[:, 1], self.seed, self.fine_texture)
             alb[gi] = a
             sem[gi] = sm
             lit = np.full(gi.size, 1.0)
@@ -264,7 +266,7 @@ class StreetScene:
                 p = origin + sf[idx, None] * d[idx]
                 Tinv = invert_transform(b.T)
                 pl = p @ Tinv[:3, :3].T + Tinv[:3, 3]
-                a, em = _box_albedo(b, pl, self.seed)
+                a, em = _box_albedo(b, pl, self.seed, self.fine_texture)
                 alb[idx] = a
                 emis[idx] = em
                 brake, indicator = _signal_lamps(b, pl)
@@ -355,12 +357,14 @@ class StreetScene:
         return RenderOutput(rgb.astype(np.float32), depth, sem.astype(np.uint8), inst.astype(np.int32), changing)
 
     def lidar(self, ego_to_world, t: float, n_beams: int = 32, az_step_deg: float = 0.5,
-              max_range: float = 80.0) -> LidarPoints:
+              max_range: float = 80.0, with_semantics: bool = False):
         """Simulated spinning LiDAR sweep at time ``t``; points in the ego frame.
 
         Beams are evenly spaced in elevation over [-25, +10] degrees; azimuth steps by
         ``az_step_deg``.  Returns points whose range from the sensor is below ``max_range``,
-        intensity = unlit albedo luminance (1 for lamps), ring = beam index.
+        intensity = unlit albedo luminance (1 for lamps), ring = beam index; with
+        ``with_semantics`` the pair ``(points, classes [M] uint8)``, each point's semantic class
+        (the per-point labels a PandaSet semseg annotation holds).
         """
         E = np.asarray(ego_to_world, dtype=np.float64)
         if E.shape != (4, 4):
@@ -373,11 +377,12 @@ class StreetScene:
         origin = E[:3, :3] @ LIDAR_MOUNT + E[:3, 3]
         prims = self.primitives(t)
         s, pid = self.trace(origin, dw, t, None, prims)
-        _, _, _, alb, em, _ = self.shade(origin, dw, s, pid, t, prims, lighting=False)
+        _, sem, _, alb, em, _ = self.shade(origin, dw, s, pid, t, prims, lighting=False)
         keep = (pid != -2) & (s < max_range)
         pts = LIDAR_MOUNT + s[keep, None] * dl[keep]
         inten = alb[keep] @ np.array([0.2126, 0.7152, 0.0722])
         inten[em[keep]] = 1.0
         ring = np.broadcast_to(np.arange(n_beams)[:, None], s.shape)[keep]
-        return LidarPoints(pts.astype(np.float32), inten.astype(np.float32), "ego", ring.astype(np.int32))
+        lp = LidarPoints(pts.astype(np.float32), inten.astype(np.float32), "ego", ring.astype(np.int32))
+        return (lp, sem[keep].astype(np.uint8)) if with_semantics else lp
 

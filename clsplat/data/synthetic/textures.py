@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .config import ROAD_HALF, SEM, SIDEWALK_OUT, _Box
+from .config import FINE_GRAIN_CELLS, FINE_GRAIN_WEIGHTS, ROAD_HALF, SEM, SIDEWALK_OUT, _Box
 
 def _hash2(ix: np.ndarray, iy: np.ndarray, seed: int) -> np.ndarray:
     """Deterministic hash of integer lattice points -> float64 in [0, 1)."""
@@ -33,8 +33,18 @@ def _value_noise(x: np.ndarray, y: np.ndarray, seed: int) -> np.ndarray:
     return (a * (1 - fx) + b * fx) * (1 - fy) + (c * (1 - fx) + d * fx) * fy
 
 
-def _ground_albedo(x: np.ndarray, y: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Albedo ``[N,3]`` and semantic ``[N]`` of ground points."""
+def fine_grain(u: np.ndarray, v: np.ndarray, seed: int, amplitude: float) -> np.ndarray:
+    """Multiplicative grain ``[N]`` in ``[1 - amplitude, 1 + amplitude]`` at surface coordinates
+    ``(u, v)`` [N] in metres (``SyntheticConfig.fine_texture``): value noise over the lattices
+    ``FINE_GRAIN_CELLS``, mixed by ``FINE_GRAIN_WEIGHTS``."""
+    g = np.zeros(u.shape[0])
+    for k, (cell, w) in enumerate(zip(FINE_GRAIN_CELLS, FINE_GRAIN_WEIGHTS)):
+        g += w * _value_noise(u / cell, v / cell, seed + 31 + k)
+    return 1.0 + amplitude * (2.0 * g - 1.0)
+
+
+def _ground_albedo(x: np.ndarray, y: np.ndarray, seed: int, fine: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Albedo ``[N,3]`` and semantic ``[N]`` of ground points; ``fine``: the grain's amplitude."""
     n = x.shape[0]
     alb = np.empty((n, 3))
     sem = np.empty(n, dtype=np.uint8)
@@ -65,6 +75,8 @@ def _ground_albedo(x: np.ndarray, y: np.ndarray, seed: int) -> tuple[np.ndarray,
     gn = noise[grass]
     alb[grass] = np.stack([0.18 + 0.1 * gn, 0.38 + 0.15 * gn, 0.12 + 0.05 * gn], -1)
     sem[grass] = SEM["other"]
+    if fine > 0:
+        alb = np.clip(alb * fine_grain(x, y, seed, fine)[:, None], 0.0, 1.0)
     return alb, sem
 
 
@@ -104,8 +116,9 @@ def _signal_lamps(b: _Box, pl: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return brake, indicator
 
 
-def _box_albedo(b: _Box, pl: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Albedo ``[N,3]`` and emissive flag ``[N]`` for local hit points ``pl`` [N,3] on box ``b``.
+def _box_albedo(b: _Box, pl: np.ndarray, seed: int, fine: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Albedo ``[N,3]`` and emissive flag ``[N]`` for local hit points ``pl`` [N,3] on box ``b``;
+    ``fine``: the grain's amplitude (not on lamps, which are emissive or blink).
 
     Vehicle parts depend on ``|y|`` only (left-right symmetry in the vehicle frame).
     """
@@ -166,5 +179,16 @@ def _box_albedo(b: _Box, pl: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndar
     elif b.kind == "canopy":
         nz = _value_noise(pl[:, 0] * 3 + b.key, pl[:, 1] * 3 + pl[:, 2] * 3, seed + 7)
         alb = alb * (0.7 + 0.6 * nz)[:, None]
+    if fine > 0:
+        # face coordinates in the box's frame, |y| so that vehicles stay left-right symmetric
+        ax = np.argmax(np.abs(pl) / h, axis=1)
+        u = np.where(ax == 1, x, ay)          # front/back and top: |y|; sides: x
+        v = np.where(ax == 2, x, zr)          # top: x; vertical faces: height
+        lamps = emis.copy()
+        if b.kind == "body":
+            brake, indicator = _signal_lamps(b, pl)
+            lamps |= brake | indicator
+        grain = fine_grain(u, v, seed + b.key, fine)
+        alb = np.where(lamps[:, None], alb, alb * grain[:, None])
     return np.clip(alb, 0.0, 1.0), emis
 
