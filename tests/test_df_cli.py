@@ -262,3 +262,20 @@ def test_view_serves_the_run_and_leaves_it_unchanged(runs, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"--view-port {port}: cannot listen" in err[0]
     assert not (tmp_path / "taken" / "checkpoint.pt").exists()
+
+
+def test_lr_warmup_ramps_the_rate_and_resumes_bitwise(tmp_path):
+    """``lr_warmup=N``: step s (from 1) runs at s/N of the preset's rate until the ramp is done; the
+    ramp is checkpointed with the optimiser, so a resumed run equals a straight one bit for bit."""
+    from clsplat.models.drivingforward.presets import TINY
+    warm = ("--eval-scenes", "0", "--set", "lr_warmup=4")
+    assert _train(tmp_path / "straight", 3, *warm) == 0
+    assert _train(tmp_path / "resumed", 2, *warm) == 0
+    assert _train(tmp_path / "resumed", 3, *warm, "--resume") == 0
+    logs = [[json.loads(x) for x in (tmp_path / r / "log.jsonl").read_text().splitlines()]
+            for r in ("straight", "resumed")]
+    assert [r["lr"] for r in logs[0]] == pytest.approx([TINY.lr * s / 4 for s in (1, 2, 3)])
+    assert [r["loss"] for r in logs[0]] == [r["loss"] for r in logs[1]]
+    a, b = (torch.load(tmp_path / r / "checkpoint.pt", weights_only=True) for r in ("straight", "resumed"))
+    for k, v in a["model"].items():
+        assert torch.equal(v, b["model"][k]), k

@@ -15,6 +15,7 @@ def test_paper_keeps_the_papers_recipe():
     p = get_preset("drivingforward", "paper")
     assert p.pose_source == "network" and p.pose_translation_init is None and not p.detach_render_pose
     assert p.supersample == 1 and p.pose_scale == 0.01 and p.lr == 1e-4 and p.warmup_steps == 0
+    assert p.lr_warmup == 0
     assert p.pose_lr is None and p.grad_clip is None
 
 

@@ -468,6 +468,7 @@ def train(model: torch.nn.Module, optimizer: torch.optim.Optimizer, spec: TrainS
                 for k, v in terms.items():
                     sums[k] = sums.get(k, 0.0) + float(torch.as_tensor(v).detach())
             groups = hooks.trainable_groups(step) if hooks is not None else None
+            lr = optimizer.param_groups[0]["lr"]  # the rate this step uses (the scheduler moves it after)
             if groups is not None:  # a stage: the other groups get no update (their gradients are dropped)
                 frozen = set(range(len(optimizer.param_groups))) - set(groups)
                 for i in frozen:
@@ -501,7 +502,7 @@ def train(model: torch.nn.Module, optimizer: torch.optim.Optimizer, spec: TrainS
             fields = hooks.after_step(step, ok) if hooks is not None else {}
             diagnostics.update(fields)
             rec = {"step": step + 1, **{k: float(v) / B for k, v in zip(keys, stats[:-1].tolist())},
-                   "lr": optimizer.param_groups[0]["lr"], "time_s": time.perf_counter() - t0,
+                   "lr": lr, "time_s": time.perf_counter() - t0,
                    "backward_s": backward_s, **fields}
             if ok:
                 rec["grad_norm"] = grad_norm

@@ -55,6 +55,15 @@ def make_optimizer(model, preset) -> torch.optim.Adam:
     return torch.optim.Adam(groups, lr=preset.lr)
 
 
+def make_scheduler(opt: torch.optim.Optimizer, preset) -> torch.optim.lr_scheduler.LambdaLR | None:
+    """The linear learning-rate warm-up of ``preset.lr_warmup`` (None when it is 0): step s
+    (from 0) runs at (s + 1) / lr_warmup of every group's rate until the ramp reaches 1."""
+    n = preset.lr_warmup
+    if n == 0:
+        return None
+    return torch.optim.lr_scheduler.LambdaLR(opt, lambda s: min(1.0, (s + 1) / n))
+
+
 def make_sample_loss(source, preset, seed: int, cameras=None, lpips=None):
     """``sample_loss(model, step, index)`` for :func:`clsplat.models.common.train.train`: window
     ``index`` of the train split, jitter and automask noise from the sample's own generator."""
@@ -115,7 +124,7 @@ def train(argv: list[str]) -> int:
             print(f"data {source.name}, torch threads {threads}", flush=True)
             try:
                 run(model, opt, spec, preset, FAMILY, make_sample_loss(source, preset, args.seed, args.cameras, lpips),
-                    on_step=None if watcher is None else watcher.on_step)
+                    scheduler=make_scheduler(opt, preset), on_step=None if watcher is None else watcher.on_step)
             finally:
                 if watcher is not None:
                     watcher.close()

@@ -62,6 +62,8 @@ class DFPreset(Preset):
         lr, batch_size, steps: Adam learning rate, global batch and default step count.
         pose_lr: Adam learning rate of the pose network (None: ``lr``, as in the paper).
         grad_clip: total gradient-norm clip (None: off, as in the paper).
+        lr_warmup: the learning rates rise linearly from 1/lr_warmup of their value to all of it
+            over the first lr_warmup steps; 0: off, as in the paper.
         warmup_steps: for this many first steps the temporal and spatio-temporal losses train the
             pose network only (the depth is detached from them); 0: off, as in the paper.
         jitter: colour jitter (brightness, contrast, saturation, hue) on network inputs only.
@@ -120,6 +122,7 @@ class DFPreset(Preset):
     pose_lr: float | None = None
     grad_clip: float | None = None
     warmup_steps: int = 0
+    lr_warmup: int = 0
     batch_size: int = 1
     steps: int = 1000
     jitter: tuple[float, float, float, float] = (0.2, 0.2, 0.2, 0.05)
@@ -141,6 +144,8 @@ class DFPreset(Preset):
             raise ValueError(f"preset {self.name}: need 0 < min_depth < max_depth")
         if self.warmup_steps < 0:
             raise ValueError(f"preset {self.name}: warmup_steps must be >= 0, got {self.warmup_steps}")
+        if self.lr_warmup < 0:
+            raise ValueError(f"preset {self.name}: lr_warmup must be >= 0, got {self.lr_warmup}")
         if self.pose_source not in ("network", "dataset"):
             raise ValueError(f"preset {self.name}: pose_source must be 'network' or 'dataset', got {self.pose_source!r}")
         t = self.pose_translation_init
