@@ -193,3 +193,34 @@ def test_pose_translation_init_starts_the_pose_network_at_that_motion(sample):
     assert float(T0[:3, 3].norm()) < 0.02                 # the paper's initialisation: about no motion
     with pytest.raises(ValueError, match="pose_translation_init"):
         TINY.replace(pose_translation_init=(0.0, 0.0, -9.0))
+
+
+def test_depth_skips_feed_the_encoders_half_and_quarter_features_to_the_depth_decoder(sample):
+    torch.manual_seed(0)
+    m = DrivingForward(TINY.replace(depth_skips=True))
+    assert [s["upconv_1"][0].in_channels for s in m.depth_net.decoder.stages] == [256, 128, 64 + 64, 32 + 64, 16]
+    d = m.depth_net(sample["images"][1], sample["Ks"], sample["cam_to_ego"])
+    assert d["depth"].shape == (sample["Ks"].shape[0], 1, TINY.height, TINY.width)
+    m.zero_grad()
+    d["depth"].mean().backward()
+    # the skips carry gradient into the encoder's first stages by a path the fused 1/8 feature has not
+    assert m.depth_net.encoder.conv1.weight.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="skips"):
+        m.depth_net.decoder(d["f8"])
+
+
+def test_photometric_pyramid_averages_the_terms_over_its_levels(model, sample):
+    args = (sample["images"], sample["images"], sample["Ks"], sample["cam_to_ego"])
+    one = model.training_losses(*args)
+    model.preset = TINY.replace(photometric_scales=2)
+    try:
+        two = model.training_losses(*args)
+    finally:
+        model.preset = TINY
+    for k in ("reproj", "spatial", "spatio_temporal"):
+        assert torch.isfinite(two[k]) and not torch.equal(one[k], two[k]), k
+    # level 0 of the pyramid is the full-resolution term: 2 * two - one is level 1 alone, a valid error
+    assert 0 <= float(2 * two["reproj"] - one["reproj"]) < 1
+    assert torch.equal(one["smooth"], two["smooth"]) and torch.equal(one["render"], two["render"])
+    with pytest.raises(ValueError, match="photometric_scales"):
+        TINY.replace(photometric_scales=5)         # 2^4 does not divide 32x56

@@ -63,34 +63,50 @@ def _conv3(cin: int, cout: int) -> nn.Sequential:
 
 
 class DepthDecoder(nn.Module):
-    """ELU decoder without skips, from a 1/8 feature to a full-resolution sigmoid.
+    """ELU decoder from a 1/8 feature to a full-resolution sigmoid; without skips (the paper) or with
+    monodepth2's skips from the encoder at 1/4 and 1/2 resolution.
 
     Five stages, widest first (256, 128, 64, 32, 16); each is conv3x3 + ELU, (x2 nearest upsampling
     for the last three, which take 1/8 to full resolution), conv3x3 + ELU. Then conv3x3 -> 1, sigmoid.
+    With ``skip_channels`` = (c4, c2), the 1/4 and 1/2 encoder features are concatenated after the
+    first two upsamplings, as monodepth2 does (it has no skip at full resolution either).
 
     Args:
         in_channels: the fused feature's channels (128).
         channels: decoder widths, full resolution first: (16, 32, 64, 128, 256).
+        skip_channels: channels of the 1/4 and 1/2 features to concatenate; None: no skips.
     """
 
-    def __init__(self, in_channels: int = 128, channels: tuple[int, ...] = (16, 32, 64, 128, 256)) -> None:
+    def __init__(self, in_channels: int = 128, channels: tuple[int, ...] = (16, 32, 64, 128, 256),
+                 skip_channels: tuple[int, int] | None = None) -> None:
         super().__init__()
         widths = list(reversed(channels))                       # 256, 128, 64, 32, 16
+        n = len(widths)
+        # stage i upsamples when i >= n - 3; the skips join after the upsamplings to 1/4 and 1/2
+        skips = {n - 3: skip_channels[0], n - 2: skip_channels[1]} if skip_channels else {}
         self.stages = nn.ModuleList()
         self.upsample = []
+        self.skip_at: list[bool] = []
         cin = in_channels
         for i, c in enumerate(widths):
-            self.stages.append(nn.ModuleDict({"upconv_0": _conv3(cin, c), "upconv_1": _conv3(c, c)}))
-            self.upsample.append(i >= len(widths) - 3)
+            self.stages.append(nn.ModuleDict({"upconv_0": _conv3(cin, c), "upconv_1": _conv3(c + skips.get(i, 0), c)}))
+            self.upsample.append(i >= n - 3)
+            self.skip_at.append(i in skips)
             cin = c
         self.dispconv = nn.Conv2d(cin, 1, 3, 1, 1, padding_mode="reflect")
 
-    def forward(self, x: Tensor) -> Tensor:
-        """``[B, in, h, w] -> sigma [B, 1, 8h, 8w]`` in (0, 1)."""
-        for stage, up in zip(self.stages, self.upsample):
+    def forward(self, x: Tensor, skips: tuple[Tensor, Tensor] | None = None) -> Tensor:
+        """``[B, in, h, w] -> sigma [B, 1, 8h, 8w]`` in (0, 1); ``skips`` = (``[B, c4, 2h, 2w]``,
+        ``[B, c2, 4h, 4w]``) when built with ``skip_channels``."""
+        if any(self.skip_at) and skips is None:
+            raise ValueError("skips: this decoder was built with skip_channels; pass the 1/4 and 1/2 features")
+        pending = list(skips) if any(self.skip_at) else []
+        for stage, up, join in zip(self.stages, self.upsample, self.skip_at):
             x = stage["upconv_0"](x)
             if up:
                 x = F.interpolate(x, scale_factor=2, mode="nearest")
+            if join:
+                x = torch.cat([x, pending.pop(0)], dim=1)
             x = stage["upconv_1"](x)
         return torch.sigmoid(self.dispconv(x))
 
@@ -122,7 +138,8 @@ class DepthNetwork(nn.Module):
         self.fusion = VolumetricFusion(preset.fusion_channels, "depth", preset.voxel_origin, preset.voxel_size,
                                        preset.voxel_shape, preset.voxel_channels, preset.proj_channels,
                                        preset.depth_bins, preset.bin_near, preset.bin_far)
-        self.decoder = DepthDecoder(preset.proj_channels[1], preset.depth_decoder_channels)
+        skips = (64, 64) if preset.depth_skips else None     # ResNet-18's 1/4 and 1/2 widths
+        self.decoder = DepthDecoder(preset.proj_channels[1], preset.depth_decoder_channels, skips)
         he_init(self.reduce, self.fusion, self.decoder, skip=(self.decoder.dispconv,))
 
     def forward(self, images: Tensor, Ks: Tensor, cam_to_ego: Tensor) -> dict[str, Tensor]:
@@ -138,7 +155,7 @@ class DepthNetwork(nn.Module):
         f = self.encoder.forward_features(normalise_image(images))
         feat8 = self.reduce(f[2:5])
         fused = self.fusion(feat8, scale_intrinsics(Ks, 1.0 / 8), cam_to_ego)
-        sigma = self.decoder(fused)
+        sigma = self.decoder(fused, (f[1], f[0]) if self.preset.depth_skips else None)
         p = self.preset
         depth = sigma_to_depth(sigma, Ks[:, 0, 0], p.min_depth, p.max_depth, p.focal_ref)
         return {"depth": depth, "sigma": sigma, "f2": f[0], "f4": f[1], "f8": fused}

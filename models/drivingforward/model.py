@@ -17,11 +17,13 @@ per input pixel.
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ..common.gaussians import GaussianSet
 from ..common.geometry import check_rigid, invert_rigid
 from .depth import DepthNetwork
+from .fusion import scale_intrinsics
 from .gaussian import GaussianNetwork, pixels_to_gaussians
 from .losses import render_loss, smoothness_loss, spatial_loss, spatio_temporal_loss, temporal_loss
 from .pose import PoseNetwork, ego_motion
@@ -160,6 +162,32 @@ class DrivingForward(nn.Module):
         return GaussianSet.cat(sets)
 
     # ------------------------------------------------------------------ training
+    def photometric_terms(self, tgt: Tensor, srcs: list[Tensor], depth: Tensor, d_t: Tensor, Ks: Tensor,
+                          E: Tensor, Tc: list[Tensor], M: list[Tensor], noise: Tensor | None) -> dict[str, Tensor]:
+        """The reprojection, spatial and spatio-temporal terms, at full resolution (the paper) or
+        averaged over an image pyramid of ``preset.photometric_scales`` levels.
+
+        Level s averages the images over 2^s x 2^s blocks and the depth through its disparity (so a
+        depth edge's far side does not swamp the block), with the intrinsics scaled to match: a
+        coarser level sees a displacement of n pixels as n / 2^s, which widens the basin where the
+        motion is large against the texture (the near road). Arguments as in
+        :meth:`training_losses` (``d_t``: the depth the temporal terms see; ``depth``: the one the
+        spatial term sees). Returns ``reproj, spatial, spatio_temporal`` scalars.
+        """
+        levels = self.preset.photometric_scales
+        out = {"reproj": 0.0, "spatial": 0.0, "spatio_temporal": 0.0}
+        for s in range(levels):
+            f = 2 ** s
+            pool = (lambda x: x) if f == 1 else (lambda x: F.avg_pool2d(x, f))
+            dep, dt = (depth, d_t) if f == 1 else (1.0 / pool(1.0 / depth), 1.0 / pool(1.0 / d_t))
+            K = Ks if f == 1 else scale_intrinsics(Ks, 1.0 / f)
+            t, ss = pool(tgt), [pool(x) for x in srcs]
+            nz = None if noise is None else noise[..., ::f, ::f]
+            out["reproj"] = out["reproj"] + temporal_loss(t, ss, dt, K, Tc, nz) / levels
+            out["spatial"] = out["spatial"] + spatial_loss(t, dep, K, E) / levels
+            out["spatio_temporal"] = out["spatio_temporal"] + spatio_temporal_loss(t, ss, dt, K, E, M) / levels
+        return out
+
     def training_losses(self, raw: Tensor, net: Tensor, Ks: Tensor, cam_to_ego: Tensor,
                         noise: Tensor | None = None, lpips: nn.Module | None = None,
                         step: int | None = None, ego_motion_gt: list[Tensor] | None = None) -> dict[str, Tensor]:
@@ -204,12 +232,8 @@ class DrivingForward(nn.Module):
         # pose's depth is towards the far plane; bench/RESULTS.md, DrivingForward)
         warm = step is not None and step < p.warmup_steps
         d_t = depth.detach() if warm else depth
-        terms = {
-            "reproj": temporal_loss(tgt, srcs, d_t, Ks, Tc, noise),
-            "smooth": smoothness_loss(depth, tgt),
-            "spatial": spatial_loss(tgt, depth, Ks, E),
-            "spatio_temporal": spatio_temporal_loss(tgt, srcs, d_t, Ks, E, M),
-        }
+        terms = self.photometric_terms(tgt, srcs, depth, d_t, Ks, E, Tc, M, noise)
+        terms["smooth"] = smoothness_loss(depth, tgt)
         inv_E = invert_rigid(E)
         # the render's view of the motion: a constant when the preset says so (no render gradient
         # reaches the pose network; tests/test_df_model.py)

@@ -49,12 +49,16 @@ class DFPreset(Preset):
         pose_decoder_channels: hidden width of the pose decoder.
         pose_scale, max_translation: pose outputs are multiplied by pose_scale, translation clamped.
         depth_decoder_channels: ELU decoder widths, full resolution first (16 .. 256).
+        depth_skips: the depth decoder also takes the encoder's 1/4 and 1/2 features (monodepth2's
+            skips); False: the paper's decoder, from the fused 1/8 feature alone.
         min_depth, max_depth, focal_ref: depth = 1/(1/max + (1/min - 1/max) sigma) * fx / focal_ref.
         gs_encoder_channels, gs_decoder_channels, gs_head_channels: Gaussian network widths.
         sh_degree, sh_damping, sh_damping_decay: SH degree predicted and rendered; degree l >= 1 is
             multiplied by sh_damping * sh_damping_decay**l.
         scale_cap: upper bound of a Gaussian's scale (metres; paper: 0.01).
         scale_beta: Softplus beta of the scale head.
+        photometric_scales: levels of the image pyramid the photometric terms average over (2x2
+            block means per level); 1: full resolution only, as in the paper.
         w_smooth, w_spatial, w_spatio_temporal, w_render, w_lpips: loss weights (reprojection = 1).
         automask_noise: the monodepth2 tie-break noise added to the identity reprojection error.
         background: render background colour (white in the release).
@@ -98,6 +102,7 @@ class DFPreset(Preset):
     pose_scale: float = 0.01
     max_translation: float = 4.0
     depth_decoder_channels: tuple[int, int, int, int, int] = (16, 32, 64, 128, 256)
+    depth_skips: bool = False
     min_depth: float = 1.5
     max_depth: float = 80.0
     focal_ref: float = 300.0
@@ -109,6 +114,7 @@ class DFPreset(Preset):
     sh_damping_decay: float = 0.25
     scale_cap: float = 0.01
     scale_beta: float = 100.0
+    photometric_scales: int = 1
     w_smooth: float = 0.001
     w_spatial: float = 0.03
     w_spatio_temporal: float = 0.1
@@ -142,6 +148,10 @@ class DFPreset(Preset):
             raise ValueError(f"preset {self.name}: sh_degree must be 0..3, got {self.sh_degree}")
         if not 0 < self.min_depth < self.max_depth:
             raise ValueError(f"preset {self.name}: need 0 < min_depth < max_depth")
+        if self.photometric_scales < 1 or self.height % 2 ** (self.photometric_scales - 1) \
+                or self.width % 2 ** (self.photometric_scales - 1):
+            raise ValueError(f"preset {self.name}: photometric_scales must be >= 1 and 2^(scales-1) must divide "
+                             f"{self.height}x{self.width}, got {self.photometric_scales}")
         if self.warmup_steps < 0:
             raise ValueError(f"preset {self.name}: warmup_steps must be >= 0, got {self.warmup_steps}")
         if self.lr_warmup < 0:
