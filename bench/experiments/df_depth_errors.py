@@ -1,0 +1,245 @@
+"""Where a DrivingForward model's held-out depth error sits, and which loss term pushes it there.
+
+* ``errors CHECKPOINT``: AbsRel on the held-out streets broken down by true depth, image row band
+  and camera, with the share of the total each carries and the median predicted/true ratio there;
+  also the AbsRel left after median scaling (what a scale error alone explains).
+* ``grads CHECKPOINT``: on training streets, per loss term, the sum over a region's pixels of
+  ``d(w L)/d log(depth)`` (negative: a descent step moves the region farther), for the side
+  cameras and the front/back cameras apart, regions: near (< 6 m) over-estimated (> 1.25x), near
+  within 1.25x, 6-15 m, > 15 m.
+* ``landscape``: with the seeded initial networks, the true depth and the true motion, every loss
+  term with the near road's depth (true depth < 6 m) alone multiplied by a factor: does the loss
+  itself prefer the near road at its true depth? (``--set FIELD=VALUE`` changes the preset.)
+* ``follow CHECKPOINT``: does training follow that gradient? Adam steps (lr 1e-4) cycling over six
+  training streets, printing the near-road median ratio every six steps.
+
+Streets come from ``--data`` (default ``synthetic``; a ``synthetic-cache:DIR`` reads a filled
+cache); held-out streets are the test split of ``--seed`` (default 0).
+
+    .venv/bin/python bench/experiments/df_depth_errors.py errors RUN/checkpoint.pt --data synthetic-cache:DIR
+    .venv/bin/python bench/experiments/df_depth_errors.py grads RUN/checkpoint.pt --data synthetic-cache:DIR
+"""
+from __future__ import annotations
+
+import argparse
+
+import torch
+
+NEAR = 6.0          # metres: the near road the small preset over-estimates
+DEPTH_EDGES = (0, 5, 10, 15, 20, 30, 50, 80)
+SIDE_CAMERAS = (1, 2, 3, 4)   # rig order: front, front-left, front-right, back-left, back-right, back
+
+
+def _load(checkpoint: str, data: str, seed: int):
+    from clsplat.models.common.data import parse_data
+    from clsplat.models.drivingforward.checkpoint import load_model
+
+    torch.manual_seed(0)
+    torch.set_num_threads(1)
+    model, preset = load_model(checkpoint)
+    return model, preset, parse_data(data, seed=seed)
+
+
+def errors(checkpoint: str, data: str, seed: int, scenes: int) -> None:
+    from clsplat.models.drivingforward.data import load_triplet
+
+    model, p, src = _load(checkpoint, data, seed)
+    model.eval()
+    P, G = [], []
+    with torch.no_grad():
+        for i in range(scenes):
+            s = load_triplet(src, i, p, split="test")
+            P.append(model.depth_net(s["images"][1], s["Ks"], s["cam_to_ego"])["depth"][:, 0])
+            G.append(s["depths"][1])
+    P, G = torch.stack(P).double(), torch.stack(G).double()                # [S, V, H, W]
+    valid = torch.isfinite(G) & (G > 1e-3) & (G < p.max_depth)            # as the evaluation counts them
+    pc = P.clamp(1e-3, p.max_depth)
+    rel = torch.where(valid, (pc - G).abs() / G, torch.zeros_like(G))
+    ratio = pc / G
+    n, total = int(valid.sum()), float(rel.sum())
+    scaled = pc * (G[valid].median() / pc[valid].median())
+    over = valid & (pc > G)
+    print(f"AbsRel {total / n:.3f} over {n} pixels; after median scaling "
+          f"{float(((scaled - G).abs() / G)[valid].mean()):.3f}; over-estimates carry {float(rel[over].sum()) / total:.0%} "
+          f"of it ({float(over.sum()) / n:.0%} of pixels); pixels with AbsRel > 1 carry {float(rel[rel > 1].sum()) / total:.0%}")
+
+    def row(name: str, m: torch.Tensor) -> None:
+        if m.any():
+            print(f"  {name:>14}: pixels {float(m.sum()) / n:5.1%}  AbsRel {float(rel[m].mean()):6.3f}  "
+                  f"share {float(rel[m].sum()) / total:5.1%}  median pred/true {float(ratio[m].median()):5.2f}")
+    print("by true depth (m)")
+    for lo, hi in zip(DEPTH_EDGES[:-1], DEPTH_EDGES[1:]):
+        row(f"{lo}-{hi}", valid & (G >= lo) & (G < hi))
+    print("by image row band (top to bottom)")
+    H = G.shape[2]
+    rows = torch.arange(H).view(1, 1, H, 1)
+    for b in range(8):
+        row(f"band {b}", valid & (rows >= b * H // 8) & (rows < (b + 1) * H // 8))
+    print("by camera")
+    for c in range(G.shape[1]):
+        m = torch.zeros_like(valid)
+        m[:, c] = valid[:, c]
+        row(f"camera {c}", m)
+    print("by camera group and depth")
+    for name, cams in (("sides", SIDE_CAMERAS), ("front/back", tuple(c for c in range(G.shape[1]) if c not in SIDE_CAMERAS))):
+        cm = torch.zeros_like(valid)
+        cm[:, list(cams)] = True
+        row(f"{name} <{NEAR:g}", valid & cm & (G < NEAR))
+        row(f"{name} >={NEAR:g}", valid & cm & (G >= NEAR))
+
+
+def _regions(gt: torch.Tensor, d: torch.Tensor) -> dict[str, torch.Tensor]:
+    side = torch.zeros_like(gt, dtype=torch.bool)
+    side[list(SIDE_CAMERAS)] = True
+    out = {}
+    for name, cm in (("sides", side), ("front/back", ~side)):
+        out[f"{name} near, over 1.25x"] = cm & (gt < NEAR) & (d > 1.25 * gt)
+        out[f"{name} near, within"] = cm & (gt < NEAR) & (d <= 1.25 * gt)
+        out[f"{name} {NEAR:g}-15 m"] = cm & (gt >= NEAR) & (gt < 15)
+        out[f"{name} > 15 m"] = cm & (gt >= 15) & torch.isfinite(gt)
+    return out
+
+
+def grads(checkpoint: str, data: str, seed: int, scenes: int, first: int) -> None:
+    from clsplat.models.drivingforward.data import load_triplet
+
+    model, p, src = _load(checkpoint, data, seed)
+    model.train()
+    w = {"reproj": 1.0, "spatial": p.w_spatial, "spatio_temporal": p.w_spatio_temporal,
+         "smooth": p.w_smooth, "render": p.w_render}
+    fwd = model.depth_net.forward
+    box = {}
+
+    def depth_net(*a, **k):
+        d = fwd(*a, **k)
+        d["depth"].retain_grad()
+        box["d"] = d["depth"]
+        return d
+    model.depth_net.forward = depth_net
+    acc: dict = {}
+    try:
+        for idx in range(first, first + scenes):
+            s = load_triplet(src, idx, p, "train")
+            gt = s["depths"][1].unsqueeze(1)
+            t = model.training_losses(s["images"], s["images"], s["Ks"], s["cam_to_ego"])
+            d = box["d"].detach()
+            reg = _regions(gt, d)
+            for k, wk in w.items():
+                model.zero_grad()
+                box["d"].grad = None
+                (wk * t[k]).backward(retain_graph=True)
+                g = box["d"].grad
+                for r, m in reg.items():
+                    a = acc.setdefault(r, {"pixels": 0, "ratio": []})
+                    a[k] = a.get(k, 0.0) + (0.0 if g is None else float((g * d)[m].sum()) * 1e6)
+            for r, m in reg.items():
+                acc[r]["pixels"] += int(m.sum())
+                if m.any():
+                    acc[r]["ratio"].append(float((d[m] / gt[m]).median()))
+    finally:
+        model.depth_net.forward = fwd
+    print(f"training streets {first}..{first + scenes - 1}: sum over the region of d(wL)/dlog(depth) x 1e6 "
+          "(negative: a descent step moves it farther)")
+    for r, a in acc.items():
+        ratio = sum(a["ratio"]) / max(len(a["ratio"]), 1)
+        print(f"  {r:>26}: pixels {a['pixels']:6d}  median pred/true {ratio:4.2f}  "
+              + "  ".join(f"{k} {a[k]:+9.1f}" for k in w))
+
+
+def landscape(data: str, seed: int, scenes: int, first: int, sets: list[str] | None) -> None:
+    from clsplat.models.common.data import parse_data
+    from clsplat.models.common.presets import get_preset
+    from clsplat.models.drivingforward.cli import preset_overrides
+    from clsplat.models.drivingforward.data import load_triplet
+    from clsplat.models.drivingforward.model import DrivingForward
+
+    torch.manual_seed(0)
+    torch.set_num_threads(1)
+    p = preset_overrides(get_preset("drivingforward", "small"), None, sets)
+    model, src = DrivingForward(p), parse_data(data, seed=seed)
+    fwd, pose_fwd = model.depth_net.forward, model.pose_net.forward
+    factors, terms = (0.7, 1.0, 1.4, 2.0, 4.0, 10.0), ("reproj", "spatial", "spatio_temporal", "smooth", "render", "loss")
+    acc = {f: dict.fromkeys(terms, 0.0) for f in factors}
+    try:
+        for idx in range(first, first + scenes):
+            s = load_triplet(src, idx, p, "train")
+            true = s["depths"][1].unsqueeze(1).float().clamp(max=p.max_depth * 1.5)
+            near = true < NEAR
+            V = s["viewmats"][:, 0].float()
+            motion = [V[1] @ torch.linalg.inv(V[0]), V[2] @ torch.linalg.inv(V[1])]
+            for f in factors:
+                def depth_net(*a, f=f, **k):
+                    d = fwd(*a, **k)
+                    d["depth"] = torch.where(near, true * f, true)
+                    return d
+                calls = iter(motion)   # training_losses asks for t-1 -> t, then t -> t+1
+                model.depth_net.forward = depth_net
+                model.pose_net.forward = lambda *a, **k: next(calls)
+                with torch.no_grad():
+                    t = model.training_losses(s["images"], s["images"], s["Ks"], s["cam_to_ego"])
+                for k in terms:
+                    acc[f][k] += float(t[k]) / scenes
+    finally:
+        model.depth_net.forward, model.pose_net.forward = fwd, pose_fwd
+    print(f"near road (< {NEAR:g} m) depth x factor, elsewhere true; mean over {scenes} training streets, x 1e3 "
+          "(change from factor 1 in brackets; the total is weighted)")
+    print("factor " + "".join(f"{k:>20}" for k in terms))
+    for f in factors:
+        print(f"{f:6} " + "".join(f"{1e3 * acc[f][k]:10.2f} ({1e3 * (acc[f][k] - acc[1.0][k]):+6.2f})" for k in terms))
+
+
+def follow(checkpoint: str, data: str, seed: int, first: int, steps: int) -> None:
+    from clsplat.models.drivingforward.data import load_triplet
+
+    model, p, src = _load(checkpoint, data, seed)
+    model.train()
+    streets = [load_triplet(src, i, p, "train") for i in range(first, first + 6)]
+    opt = torch.optim.Adam(model.parameters(), lr=1e-4)
+
+    def near_ratio() -> float:
+        r = []
+        with torch.no_grad():
+            for s in streets:
+                d = model.depth_net(s["images"][1], s["Ks"], s["cam_to_ego"])["depth"]
+                gt = s["depths"][1].unsqueeze(1)
+                m = gt < NEAR
+                r.append(float((d[m] / gt[m]).median()))
+        return sum(r) / len(r)
+    print(f"step 0: near-road median pred/true {near_ratio():.3f}")
+    for it in range(steps):
+        s = streets[it % 6]
+        loss = model.training_losses(s["images"], s["images"], s["Ks"], s["cam_to_ego"])["loss"]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        if it % 6 == 5:
+            print(f"step {it + 1}: near-road median pred/true {near_ratio():.3f}, loss {float(loss):.4f}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    for name in ("errors", "grads", "landscape", "follow"):
+        a = sub.add_parser(name)
+        if name != "landscape":
+            a.add_argument("checkpoint")
+        a.add_argument("--set", action="append", default=None, metavar="FIELD=VALUE", help="landscape: preset change")
+        a.add_argument("--data", default="synthetic")
+        a.add_argument("--seed", type=int, default=0)
+        a.add_argument("--scenes", type=int, default={"errors": 8, "landscape": 4}.get(name, 6))
+        a.add_argument("--first", type=int, default=200, help="first training street (grads, follow)")
+        a.add_argument("--steps", type=int, default=24, help="follow: Adam steps")
+    args = ap.parse_args(argv)
+    if args.cmd == "errors":
+        errors(args.checkpoint, args.data, args.seed, args.scenes)
+    elif args.cmd == "landscape":
+        landscape(args.data, args.seed, args.scenes, args.first, args.set)
+    elif args.cmd == "grads":
+        grads(args.checkpoint, args.data, args.seed, args.scenes, args.first)
+    else:
+        follow(args.checkpoint, args.data, args.seed, args.first, args.steps)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
