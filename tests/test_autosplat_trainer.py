@@ -276,3 +276,32 @@ def test_phase1_budget_share_keeps_room_for_phase2(street, full_run, tmp_path):
     assert log[6]["densify_background"] > n0 + 10    # phase 2 may use the rest
     with pytest.raises(ValueError, match=r"phase1_budget_share: expected a share in \(0, 1\]"):
         TINY.replace(phase1_budget_share=0.0)
+
+
+def test_road_init_ties_the_flat_start_to_the_flatness_switch(street, tmp_path):
+    """``road_init``: "flat" (default) starts road Gaussians as thin discs in the road's frame in
+    every run; "with-flatness" does so only with flatness on, else isotropic with identity
+    rotations as 3DGS starts them (issue 19: plain 3DGS kept half of the flatness treatment). The
+    sky dome's discs are the dome's geometry and stay in both."""
+    from clsplat.models.autosplat.init import ROAD, SKY
+    data = prepare_data(street, CAMS, holdout=4)
+
+    def start(preset, switches):
+        t = Trainer(data, preset, switches, tmp_path, progress=False)
+        t.initialise()
+        bg = t.model.background
+        return bg.labels, bg.log_scales.detach().exp(), bg.quats.detach()
+
+    iso = TINY.replace(road_init="with-flatness")
+    for preset, switches, flat in ((TINY, Switches(flatness=False), True), (iso, Switches(), True),
+                                   (iso, Switches(flatness=False), False)):
+        labels, scales, quats = start(preset, switches)
+        road, sky = labels == ROAD, labels == SKY
+        assert road.sum() > 20 and sky.sum() > 20
+        thin = scales[road].min(1).values < 0.5 * scales[road].max(1).values
+        assert bool(thin.all()) == flat and bool(thin.any()) == flat
+        identity = (quats[road] == torch.tensor([1.0, 0, 0, 0])).all(1)
+        assert bool(identity.all()) != flat
+        assert bool((scales[sky].min(1).values < 0.1 * scales[sky].max(1).values).all())   # the dome's discs
+    with pytest.raises(ValueError, match=r"road_init: expected one of"):
+        TINY.replace(road_init="round")

@@ -43,6 +43,14 @@ ROWS: dict[str, list[str]] = {
     # the lead that pose correction is under-powered: Adam moves a parameter by about lr per step,
     # and fusion gives each frame ~6 steps, so lr_pose 2e-3 cannot move a box 0.2 m; 3e-2 can
     "full, lr_pose 0.03": ["--set", "lr_pose=0.03"],
+    # issue 19, where the lane-change error lives (autosplat_lane_error.py): plain 3DGS as 3DGS starts
+    # it (isotropic road Gaussians: the flat start belongs to the flatness treatment), and without
+    # AutoSplat's sky dome (a learnt background colour); the full model with half the Gaussian
+    # budget kept from phase 1's road for the façades
+    "plain, isotropic road": [*ALL_OFF, "--set", "road_init='with-flatness'"],
+    "plain, sky colour": [*ALL_OFF, "--set", "sky='color'"],
+    "no-flatness, isotropic road": ["--no-flatness", "--set", "road_init='with-flatness'"],
+    "full, phase1 share 0.5": ["--set", "phase1_budget_share=0.5"],
 }
 #: (column, path into metrics.json, higher is better)
 COLUMNS: list[tuple[str, tuple, bool]] = [

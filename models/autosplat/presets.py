@@ -18,6 +18,9 @@ __all__ = ["AutoSplatPreset", "with_total_steps"]
 #: the sky models and object templates a preset may name
 SKIES = ("dome", "color")
 TEMPLATES = ("car", "box")
+#: how road Gaussians start: "flat" (discs in the road's local LiDAR frame, a tenth as thick, whatever
+#: the switches); "with-flatness" (flat only with the flatness switch on, else isotropic as 3DGS)
+ROAD_INITS = ("flat", "with-flatness")
 
 
 @dataclass(frozen=True)
@@ -51,6 +54,9 @@ class AutoSplatPreset(Preset):
     dome_radius: float = 400.0
     dome_points: int = 1500
     template: str = "car"             # "car" template for cars, box surface otherwise; "box" always
+    # issue 19: "flat" starts the road as flat discs in every run, so --no-flatness (and plain 3DGS)
+    # kept half of the flatness treatment; "with-flatness" ties the flat start to the switch
+    road_init: str = "flat"
     object_points: int = 400
     # optimisation (Adam; learning rates per parameter kind)
     lr_means: float = 2e-3            # metres; decays x0.1 exponentially over the run
@@ -116,6 +122,8 @@ class AutoSplatPreset(Preset):
             raise bad("sky", f"expected one of {SKIES}")
         if self.template not in TEMPLATES:
             raise bad("template", f"expected one of {TEMPLATES}")
+        if self.road_init not in ROAD_INITS:
+            raise bad("road_init", f"expected one of {ROAD_INITS}")
 
     def stage_steps(self) -> dict[str, int]:
         """Iterations per stage, in order."""
