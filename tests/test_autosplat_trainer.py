@@ -305,3 +305,28 @@ def test_road_init_ties_the_flat_start_to_the_flatness_switch(street, tmp_path):
         assert bool((scales[sky].min(1).values < 0.1 * scales[sky].max(1).values).all())   # the dome's discs
     with pytest.raises(ValueError, match=r"road_init: expected one of"):
         TINY.replace(road_init="round")
+
+
+def test_road_classes_put_the_sidewalk_in_the_road_set(tmp_path):
+    """``road_classes``: the semantic classes whose pixels and LiDAR points form the road set
+    (phase 1, flatness, the flat start); ("road", "sidewalk") adds the sidewalk, the same ground.
+    (At 32 x 56 the colouring's 5-pixel z-buffer window hides every sidewalk point behind the road.)"""
+    from clsplat.data.scene import SEMANTIC_CLASSES
+    from clsplat.models.autosplat.init import OTHER, ROAD
+    street = generate_sequence(height=88, width=160, num_frames=4, seed=1, dt=0.2, cameras=tuple(CAMS))
+    sem = np.stack([[street.frames[i].semantics[c] for c in CAMS] for i in range(len(street.frames))])
+    side = sem == SEMANTIC_CLASSES.index("sidewalk")
+    assert side.sum() > 20
+    both = ("road", "sidewalk")
+    plain, ground = prepare_data(street, CAMS, 4), prepare_data(street, CAMS, 4, road_classes=both)
+    assert bool((plain.classes.numpy()[side] == OTHER).all()) and bool((ground.classes.numpy()[side] == ROAD).all())
+    assert torch.equal(plain.classes[torch.from_numpy(~side)], ground.classes[torch.from_numpy(~side)])
+
+    def road_count(preset, data):
+        t = Trainer(data, preset, Switches(), tmp_path, progress=False)
+        t.initialise()
+        return int((t.model.background.labels == ROAD).sum())
+
+    assert road_count(TINY.replace(road_classes=both), ground) > road_count(TINY, plain)
+    with pytest.raises(ValueError, match=r"road_classes: expected ground classes"):
+        TINY.replace(road_classes=("road", "sky"))

@@ -57,6 +57,10 @@ class AutoSplatPreset(Preset):
     # issue 19: "flat" starts the road as flat discs in every run, so --no-flatness (and plain 3DGS)
     # kept half of the flatness treatment; "with-flatness" ties the flat start to the switch
     road_init: str = "flat"
+    # the semantic classes whose Gaussians form the road set (phase 1, flatness, the flat start);
+    # the paper's road. issue 19: ("road", "sidewalk") makes the sidewalk, the same ground plane,
+    # flat too
+    road_classes: tuple[str, ...] = ("road",)
     object_points: int = 400
     # optimisation (Adam; learning rates per parameter kind)
     lr_means: float = 2e-3            # metres; decays x0.1 exponentially over the run
@@ -122,6 +126,11 @@ class AutoSplatPreset(Preset):
             raise bad("sky", f"expected one of {SKIES}")
         if self.template not in TEMPLATES:
             raise bad("template", f"expected one of {TEMPLATES}")
+        from .init import sem_to_bg
+        try:
+            sem_to_bg(tuple(self.road_classes))
+        except ValueError as e:
+            raise bad("road_classes", str(e).split(": ", 1)[1].split(", got")[0]) from None
         if self.road_init not in ROAD_INITS:
             raise bad("road_init", f"expected one of {ROAD_INITS}")
 
