@@ -19,7 +19,8 @@ __all__ = ["AutoSplatPreset", "with_total_steps"]
 SKIES = ("dome", "color")
 TEMPLATES = ("car", "box")
 #: how road Gaussians start: "flat" (discs in the road's local LiDAR frame, a tenth as thick, whatever
-#: the switches); "with-flatness" (flat only with the flatness switch on, else isotropic as 3DGS)
+#: the switches); "with-flatness" (flat only with the flatness switch on, else isotropic as 3DGS:
+#: the flat start is half of the flatness treatment)
 ROAD_INITS = ("flat", "with-flatness")
 
 
@@ -54,9 +55,10 @@ class AutoSplatPreset(Preset):
     dome_radius: float = 400.0
     dome_points: int = 1500
     template: str = "car"             # "car" template for cars, box surface otherwise; "box" always
-    # issue 19: "flat" starts the road as flat discs in every run, so --no-flatness (and plain 3DGS)
-    # kept half of the flatness treatment; "with-flatness" ties the flat start to the switch
-    road_init: str = "flat"
+    # issue 19: "flat" (before issue 19) started the road as flat discs in every run, so
+    # --no-flatness and plain 3DGS kept half of the flatness treatment; "with-flatness" ties the flat
+    # start to the switch, and plain 3DGS starts isotropic as 3DGS does (no change with flatness on)
+    road_init: str = "with-flatness"
     # the semantic classes whose Gaussians form the road set (phase 1, flatness, the flat start);
     # the paper's road. issue 19: ("road", "sidewalk") makes the sidewalk, the same ground plane,
     # flat too
