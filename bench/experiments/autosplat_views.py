@@ -32,6 +32,8 @@ from pathlib import Path
 import numpy as np
 
 ALL_OFF = ["--no-decompose", "--no-flatness", "--no-symmetry", "--no-residual-sh", "--no-pose-correction"]
+#: the ``demo`` preset before issue 19's lane-change work (road alone in the road set, phases 40 / 80)
+FORMER = ["--set", "road_classes=('road',)", "--set", "bg_phase1_steps=40", "--set", "bg_phase2_steps=80"]
 ROWS: dict[str, list[str]] = {
     "full": [],
     "plain": ALL_OFF,
@@ -43,22 +45,29 @@ ROWS: dict[str, list[str]] = {
     # the lead that pose correction is under-powered: Adam moves a parameter by about lr per step,
     # and fusion gives each frame ~6 steps, so lr_pose 2e-3 cannot move a box 0.2 m; 3e-2 can
     "full, lr_pose 0.03": ["--set", "lr_pose=0.03"],
-    # issue 19, where the lane-change error lives (autosplat_lane_error.py): plain 3DGS with the flat
-    # road start (before issue 19) and without AutoSplat's sky dome (a learnt background colour);
-    # the full model with half the Gaussian budget kept from phase 1's road for the façades
-    # (plain and no-flatness start the road isotropic since issue 19's road_init default; the rows
-    # below with a flat road start are the plain and no-flatness of before)
-    "plain, flat road start": [*ALL_OFF, "--set", "road_init='flat'"],
-    "no-flatness, flat road start": ["--no-flatness", "--set", "road_init='flat'"],
-    "plain, sky colour": [*ALL_OFF, "--set", "sky='color'", "--set", "road_init='flat'"],
-    "full, phase1 share 0.5": ["--set", "phase1_budget_share=0.5"],
-    # the full model's façades trail plain 3DGS's at 3 m: they train in 150 of its 220 iterations
-    # (phase 1 trains road and sky alone, the foreground stage freezes the background), plain's in 190
-    "full, phase1 20 phase2 100": ["--set", "bg_phase1_steps=20", "--set", "bg_phase2_steps=100"],
-    # the sidewalk is the same ground plane as the road: flat with it (road set, flatness, flat start)
-    "full, sidewalk in road set": ["--set", "road_classes=('road', 'sidewalk')"],
-    "full, sidewalk, phase1 20 phase2 100": ["--set", "road_classes=('road', 'sidewalk')", "--set",
-                                             "bg_phase1_steps=20", "--set", "bg_phase2_steps=100"],
+    # issue 19, where the lane-change error lives (autosplat_lane_error.py). The former demo preset
+    # and its ablation rows (plain and no-flatness there with the flat road start of before issue
+    # 19's road_init default):
+    "full, former demo": FORMER,
+    "no-decompose, former demo": [*FORMER, "--no-decompose"],
+    "no-flatness, former demo": [*FORMER, "--no-flatness"],
+    "no-flatness, flat road start, former demo": [*FORMER, "--no-flatness", "--set", "road_init='flat'"],
+    "no-symmetry, former demo": [*FORMER, "--no-symmetry"],
+    "no-residual-sh, former demo": [*FORMER, "--no-residual-sh"],
+    "no-pose-correction, former demo": [*FORMER, "--no-pose-correction"],
+    # plain 3DGS as it was (flat road start; phases merge, so the schedule is plain's either way),
+    # and without AutoSplat's sky dome (a learnt background colour)
+    "plain, flat road start": [*ALL_OFF, "--set", "road_classes=('road',)", "--set", "road_init='flat'"],
+    "plain, flat road start, sky colour": [*ALL_OFF, "--set", "road_classes=('road',)", "--set", "road_init='flat'",
+                                           "--set", "sky='color'"],
+    # the leads for the full model: half the Gaussian budget kept from phase 1's road for the
+    # façades; the façades train in 150 of the full model's 220 iterations against plain's 190
+    # (phase 1 trains road and sky alone, the foreground stage freezes the background), so 20 of
+    # phase 1's go to phase 2; the sidewalk, the same ground plane as the road, in the road set
+    # (phase 1, flatness, flat start); the last two together are the demo preset now
+    "full, former demo, phase1 share 0.5": [*FORMER, "--set", "phase1_budget_share=0.5"],
+    "full, former demo, phase1 20 phase2 100": ["--set", "road_classes=('road',)"],
+    "full, former demo, sidewalk in road set": ["--set", "bg_phase1_steps=40", "--set", "bg_phase2_steps=80"],
 }
 #: (column, path into metrics.json, higher is better)
 COLUMNS: list[tuple[str, tuple, bool]] = [

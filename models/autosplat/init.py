@@ -9,7 +9,9 @@
 * Labels road / sky / other (``BG_CLASSES``) come from the image semantics at the pixel the
   point projects to (synthetic masks, or a user mask folder loaded by :func:`load_mask_folder`),
   else from the dataset's per-point labels (``seq.metadata["lidar_semantics"]``, PandaSet
-  semseg), else "other". Vehicle pixels not covered by a box count as "other" (background).
+  semseg), else "other". Vehicle pixels not covered by a box count as "other" (background). The
+  semantic classes that count as road are the preset's ``road_classes`` (the paper's road; the
+  ``demo`` preset adds the sidewalk, the same ground plane).
 * A voxel grid of side ``lidar_voxel`` keeps one point per voxel (the first in frame order),
   then at most ``max_bg_points`` are kept (seeded draw). Scales: mean distance to the 3 nearest
   neighbours (3DGS), isotropic.
