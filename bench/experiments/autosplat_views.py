@@ -160,8 +160,9 @@ def main() -> None:
     ap.add_argument("--rows", nargs="+", default=list(ROWS)[:7], choices=list(ROWS),
                     help="rows to run (default: the full model, plain 3DGS and each switch off)")
     ap.add_argument("--threads", type=int, default=None, help="torch threads of each run")
-    ap.add_argument("--data", default="synthetic:views", choices=["synthetic:views", "synthetic:views-exact"],
-                    help="the street (synthetic:views-exact: the same without tracker noise; use another --out)")
+    ap.add_argument("--data", default="synthetic:views", choices=["synthetic:views", "synthetic:views-exact", "synthetic"],
+                    help="the street (synthetic:views-exact: the same without tracker noise; synthetic: make "
+                         "demo's street, no lamps, shadow or tracker noise; use another --out)")
     ap.add_argument("--table-only", action="store_true", help="only rewrite views.md from the finished runs")
     ap.add_argument("--baseline", default="full", choices=list(ROWS),
                     help="the row the paired differences are taken from (default: the full model)")
