@@ -276,3 +276,57 @@ def test_phase1_budget_share_keeps_room_for_phase2(street, full_run, tmp_path):
     assert log[6]["densify_background"] > n0 + 10    # phase 2 may use the rest
     with pytest.raises(ValueError, match=r"phase1_budget_share: expected a share in \(0, 1\]"):
         TINY.replace(phase1_budget_share=0.0)
+
+
+def test_road_init_ties_the_flat_start_to_the_flatness_switch(street, tmp_path):
+    """``road_init``: "flat" starts road Gaussians as thin discs in the road's frame in every run;
+    "with-flatness" (default) does so only with flatness on, else isotropic with identity
+    rotations as 3DGS starts them (issue 19: plain 3DGS kept half of the flatness treatment). The
+    sky dome's discs are the dome's geometry and stay in both."""
+    from clsplat.models.autosplat.init import ROAD, SKY
+    data = prepare_data(street, CAMS, holdout=4)
+
+    def start(preset, switches):
+        t = Trainer(data, preset, switches, tmp_path, progress=False)
+        t.initialise()
+        bg = t.model.background
+        return bg.labels, bg.log_scales.detach().exp(), bg.quats.detach()
+
+    assert TINY.road_init == "with-flatness"
+    for preset, switches, flat in ((TINY.replace(road_init="flat"), Switches(flatness=False), True),
+                                   (TINY, Switches(), True), (TINY, Switches(flatness=False), False)):
+        labels, scales, quats = start(preset, switches)
+        road, sky = labels == ROAD, labels == SKY
+        assert road.sum() > 20 and sky.sum() > 20
+        thin = scales[road].min(1).values < 0.5 * scales[road].max(1).values
+        assert bool(thin.all()) == flat and bool(thin.any()) == flat
+        identity = (quats[road] == torch.tensor([1.0, 0, 0, 0])).all(1)
+        assert bool(identity.all()) != flat
+        assert bool((scales[sky].min(1).values < 0.1 * scales[sky].max(1).values).all())   # the dome's discs
+    with pytest.raises(ValueError, match=r"road_init: expected one of"):
+        TINY.replace(road_init="round")
+
+
+def test_road_classes_put_the_sidewalk_in_the_road_set(tmp_path):
+    """``road_classes``: the semantic classes whose pixels and LiDAR points form the road set
+    (phase 1, flatness, the flat start); ("road", "sidewalk") adds the sidewalk, the same ground.
+    (At 32 x 56 the colouring's 5-pixel z-buffer window hides every sidewalk point behind the road.)"""
+    from clsplat.data.scene import SEMANTIC_CLASSES
+    from clsplat.models.autosplat.init import OTHER, ROAD
+    street = generate_sequence(height=88, width=160, num_frames=4, seed=1, dt=0.2, cameras=tuple(CAMS))
+    sem = np.stack([[street.frames[i].semantics[c] for c in CAMS] for i in range(len(street.frames))])
+    side = sem == SEMANTIC_CLASSES.index("sidewalk")
+    assert side.sum() > 20
+    both = ("road", "sidewalk")
+    plain, ground = prepare_data(street, CAMS, 4), prepare_data(street, CAMS, 4, road_classes=both)
+    assert bool((plain.classes.numpy()[side] == OTHER).all()) and bool((ground.classes.numpy()[side] == ROAD).all())
+    assert torch.equal(plain.classes[torch.from_numpy(~side)], ground.classes[torch.from_numpy(~side)])
+
+    def road_count(preset, data):
+        t = Trainer(data, preset, Switches(), tmp_path, progress=False)
+        t.initialise()
+        return int((t.model.background.labels == ROAD).sum())
+
+    assert road_count(TINY.replace(road_classes=both), ground) > road_count(TINY, plain)
+    with pytest.raises(ValueError, match=r"road_classes: expected ground classes"):
+        TINY.replace(road_classes=("road", "sky"))

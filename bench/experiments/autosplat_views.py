@@ -32,6 +32,8 @@ from pathlib import Path
 import numpy as np
 
 ALL_OFF = ["--no-decompose", "--no-flatness", "--no-symmetry", "--no-residual-sh", "--no-pose-correction"]
+#: the ``demo`` preset before issue 19's lane-change work (road alone in the road set, phases 40 / 80)
+FORMER = ["--set", "road_classes=('road',)", "--set", "bg_phase1_steps=40", "--set", "bg_phase2_steps=80"]
 ROWS: dict[str, list[str]] = {
     "full": [],
     "plain": ALL_OFF,
@@ -43,6 +45,29 @@ ROWS: dict[str, list[str]] = {
     # the lead that pose correction is under-powered: Adam moves a parameter by about lr per step,
     # and fusion gives each frame ~6 steps, so lr_pose 2e-3 cannot move a box 0.2 m; 3e-2 can
     "full, lr_pose 0.03": ["--set", "lr_pose=0.03"],
+    # issue 19, where the lane-change error lives (autosplat_lane_error.py). The former demo preset
+    # and its ablation rows (plain and no-flatness there with the flat road start of before issue
+    # 19's road_init default):
+    "full, former demo": FORMER,
+    "no-decompose, former demo": [*FORMER, "--no-decompose"],
+    "no-flatness, former demo": [*FORMER, "--no-flatness"],
+    "no-flatness, flat road start, former demo": [*FORMER, "--no-flatness", "--set", "road_init='flat'"],
+    "no-symmetry, former demo": [*FORMER, "--no-symmetry"],
+    "no-residual-sh, former demo": [*FORMER, "--no-residual-sh"],
+    "no-pose-correction, former demo": [*FORMER, "--no-pose-correction"],
+    # plain 3DGS as it was (flat road start; phases merge, so the schedule is plain's either way),
+    # and without AutoSplat's sky dome (a learnt background colour)
+    "plain, flat road start": [*ALL_OFF, "--set", "road_classes=('road',)", "--set", "road_init='flat'"],
+    "plain, flat road start, sky colour": [*ALL_OFF, "--set", "road_classes=('road',)", "--set", "road_init='flat'",
+                                           "--set", "sky='color'"],
+    # the leads for the full model: half the Gaussian budget kept from phase 1's road for the
+    # façades; the façades train in 150 of the full model's 220 iterations against plain's 190
+    # (phase 1 trains road and sky alone, the foreground stage freezes the background), so 20 of
+    # phase 1's go to phase 2; the sidewalk, the same ground plane as the road, in the road set
+    # (phase 1, flatness, flat start); the last two together are the demo preset now
+    "full, former demo, phase1 share 0.5": [*FORMER, "--set", "phase1_budget_share=0.5"],
+    "full, former demo, phase1 20 phase2 100": ["--set", "road_classes=('road',)"],
+    "full, former demo, sidewalk in road set": ["--set", "bg_phase1_steps=40", "--set", "bg_phase2_steps=80"],
 }
 #: (column, path into metrics.json, higher is better)
 COLUMNS: list[tuple[str, tuple, bool]] = [
@@ -88,9 +113,9 @@ def run(out: Path, row: str, seed: int, preset: str, threads: int | None, data: 
     return m
 
 
-def table(out: Path, seeds: list[int]) -> str:
+def table(out: Path, seeds: list[int], baseline: str = "full") -> str:
     """Markdown: per row and column, mean +- sd over the seeds run so far; below, paired
-    differences from the full model (row - full, same seeds)."""
+    differences from the ``baseline`` row (row - baseline, same seeds; default the full model)."""
     folder = {r: out / r.replace(", ", "_").replace(" ", "_") for r in ROWS}
     runs = {r: {s: json.loads((folder[r] / f"seed{s}" / "metrics.json").read_text())
                 for s in seeds if (folder[r] / f"seed{s}" / "metrics.json").is_file()} for r in ROWS}
@@ -110,11 +135,11 @@ def table(out: Path, seeds: list[int]) -> str:
         if by_seed:
             lines.append(f"| {r} | {len(by_seed)} | " + " | ".join(cell([get(m, p) for m in by_seed.values()])
                                                                 for _, p, _ in COLUMNS) + " |")
-    lines += ["", "Paired difference from the full model (row - full, same seeds), mean ± sd", "", head, sep]
-    full = runs["full"]
+    lines += ["", f"Paired difference from {baseline!r} (row - {baseline}, same seeds), mean ± sd", "", head, sep]
+    full = runs[baseline]
     for r, by_seed in runs.items():
         common = sorted(set(by_seed) & set(full))
-        if r == "full" or not common:
+        if r == baseline or not common:
             continue
         diffs = []
         for _, p, _ in COLUMNS:
@@ -123,7 +148,7 @@ def table(out: Path, seeds: list[int]) -> str:
             diffs.append(cell(v))
         lines.append(f"| {r} | {len(common)} | " + " | ".join(diffs) + " |")
     text = "\n".join(lines) + "\n"
-    (out / "views.md").write_text(text)
+    (out / ("views.md" if baseline == "full" else f"views_vs_{folder[baseline].name}.md")).write_text(text)
     return text
 
 
@@ -135,9 +160,12 @@ def main() -> None:
     ap.add_argument("--rows", nargs="+", default=list(ROWS)[:7], choices=list(ROWS),
                     help="rows to run (default: the full model, plain 3DGS and each switch off)")
     ap.add_argument("--threads", type=int, default=None, help="torch threads of each run")
-    ap.add_argument("--data", default="synthetic:views", choices=["synthetic:views", "synthetic:views-exact"],
-                    help="the street (synthetic:views-exact: the same without tracker noise; use another --out)")
+    ap.add_argument("--data", default="synthetic:views", choices=["synthetic:views", "synthetic:views-exact", "synthetic"],
+                    help="the street (synthetic:views-exact: the same without tracker noise; synthetic: make "
+                         "demo's street, no lamps, shadow or tracker noise; use another --out)")
     ap.add_argument("--table-only", action="store_true", help="only rewrite views.md from the finished runs")
+    ap.add_argument("--baseline", default="full", choices=list(ROWS),
+                    help="the row the paired differences are taken from (default: the full model)")
     a = ap.parse_args()
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -146,7 +174,7 @@ def main() -> None:
             for row in a.rows:
                 run(out, row, seed, a.preset, a.threads, a.data)
                 table(out, a.seeds)
-    print(table(out, a.seeds))
+    print(table(out, a.seeds, a.baseline))
 
 
 if __name__ == "__main__":

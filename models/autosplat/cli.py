@@ -173,7 +173,7 @@ def train(argv: list[str]) -> int:
     if a.masks:
         from .init import load_mask_folder
         load_mask_folder(seq, a.masks, list(range(*(frames or (0, len(seq.frames))))))
-    data = prepare_data(seq, a.cameras, preset.holdout, preset.dynamic_threshold)
+    data = prepare_data(seq, a.cameras, preset.holdout, preset.dynamic_threshold, preset.road_classes)
     from .viewsets import check_views
     views = check_views(a.views, seq)
     load_s = time.perf_counter() - t0

@@ -14,7 +14,7 @@ from clsplat.data.scene import SEMANTIC_CLASSES, DrivingSequence
 
 from ..common.metrics import SSIM_WINDOW
 from .background import foreground_mask
-from .init import ROAD, UNKNOWN, moving_track_ids, pixel_classes, project_to_pixels
+from .init import ROAD, ROAD_CLASSES, UNKNOWN, moving_track_ids, pixel_classes, project_to_pixels
 
 __all__ = ["load_sequence", "parse_frames", "SYNTHETIC_DT", "SYNTHETIC_SPECS", "RunData", "prepare_data",
            "ROAD_SEMANTIC", "DYNAMIC_THRESHOLD_M"]
@@ -116,7 +116,7 @@ class RunData:
     height: int
 
 
-def _lidar_classes(seq: DrivingSequence, i: int, cam: str) -> np.ndarray:
+def _lidar_classes(seq: DrivingSequence, i: int, cam: str, road_classes: tuple[str, ...] = ROAD_CLASSES) -> np.ndarray:
     """Per-pixel classes from the frame's labelled LiDAR points (3x3-dilated), 255 elsewhere."""
     labels = seq.metadata.get("lidar_semantics")
     c = seq.camera(cam)
@@ -128,17 +128,19 @@ def _lidar_classes(seq: DrivingSequence, i: int, cam: str) -> np.ndarray:
     lab = np.asarray(labels[i])
     vis, lin, _, _, _ = project_to_pixels(seq, i, cam, pts, 0.1)
     road = np.zeros((c.height, c.width), np.float32)
-    road.reshape(-1)[lin[vis]] = lab[vis] == ROAD_SEMANTIC
+    road.reshape(-1)[lin[vis]] = np.isin(lab[vis], [SEMANTIC_CLASSES.index(n) for n in road_classes])
     road = torch.nn.functional.max_pool2d(torch.from_numpy(road)[None, None], 3, 1, 1)[0, 0].numpy() > 0
     out[road] = ROAD
     return out
 
 
 def prepare_data(seq: DrivingSequence, cameras: list[str] | None, holdout: int,
-                 dynamic_threshold: float = DYNAMIC_THRESHOLD_M) -> RunData:
+                 dynamic_threshold: float = DYNAMIC_THRESHOLD_M,
+                 road_classes: tuple[str, ...] = ROAD_CLASSES) -> RunData:
     """Select cameras, split frames (every ``holdout``-th frame, offset ``holdout // 2``, is held
     out) and build the per-frame tensors; the foreground masks cover the tracks that move more
-    than ``dynamic_threshold`` metres (the preset's). ValueError naming the argument on bad input."""
+    than ``dynamic_threshold`` metres (the preset's); pixels of the semantic classes ``road_classes``
+    (the preset's) are the road set's. ValueError naming the argument on bad input."""
     if cameras is None:
         cameras = seq.camera_names
     if not cameras:
@@ -165,8 +167,8 @@ def prepare_data(seq: DrivingSequence, cameras: list[str] | None, holdout: int,
     classes = np.full((F, len(cameras), H, W), UNKNOWN, np.uint8)
     for i in range(F):
         for j, c in enumerate(cameras):
-            pc = pixel_classes(seq.frames[i], c)
-            classes[i, j] = pc if pc is not None else _lidar_classes(seq, i, c)
+            pc = pixel_classes(seq.frames[i], c, road_classes)
+            classes[i, j] = pc if pc is not None else _lidar_classes(seq, i, c, road_classes)
     moving = moving_track_ids(seq, dynamic_threshold)
     fg = np.stack([foreground_mask(seq, i, cameras, moving) for i in range(F)])
     return RunData(seq, list(cameras), train, test, images, viewmats, Ks, torch.from_numpy(classes),

@@ -71,7 +71,7 @@ def run_demo(out_dir: str | Path, seed: int = 0, device=None, progress: bool = T
         preset = preset.replace(seed=seed)
     t0 = time.perf_counter()
     seq = load_sequence("synthetic", None, None, preset.scale, seed=seed)
-    data = prepare_data(seq, None, preset.holdout, preset.dynamic_threshold)
+    data = prepare_data(seq, None, preset.holdout, preset.dynamic_threshold, preset.road_classes)
     load_s = time.perf_counter() - t0
     with RunFolder(out, arg="--out") as rf:  # the lock; outputs staged, then published as a group
         m = reconstruct(data, preset, Switches(), rf.stage, device=device, progress=progress,

@@ -122,13 +122,14 @@ def trainer_from_checkpoint(ck: dict, ck_path: Path, run: Path, data: str | None
     if frames is not None:      # the run's recorded frame range: the same sequence
         d = prepare_data(load_sequence(spec, ex.get("cameras"), tuple(frames), scale, seed=preset.seed,
                                        safe_pickle=safe_pickle),
-                         ex.get("cameras"), preset.holdout, preset.dynamic_threshold)
+                         ex.get("cameras"), preset.holdout, preset.dynamic_threshold,
+                         preset.road_classes)
     else:   # not recorded (an unfinished run, or --data named): the first cut whose split gives the frames
         d = None
         seq = load_sequence(spec, ex.get("cameras"), None, scale, seed=preset.seed, safe_pickle=safe_pickle)
         for n in range(max(want) + 1, len(seq.frames) + 1):
             d = prepare_data(DrivingSequence(seq.cameras, seq.frames[:n], seq.name, seq.metadata),
-                             ex.get("cameras"), preset.holdout, preset.dynamic_threshold)
+                             ex.get("cameras"), preset.holdout, preset.dynamic_threshold, preset.road_classes)
             if d.train_frames == want:
                 break
     if d is None or d.train_frames != want:

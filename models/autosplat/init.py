@@ -9,7 +9,9 @@
 * Labels road / sky / other (``BG_CLASSES``) come from the image semantics at the pixel the
   point projects to (synthetic masks, or a user mask folder loaded by :func:`load_mask_folder`),
   else from the dataset's per-point labels (``seq.metadata["lidar_semantics"]``, PandaSet
-  semseg), else "other". Vehicle pixels not covered by a box count as "other" (background).
+  semseg), else "other". Vehicle pixels not covered by a box count as "other" (background). The
+  semantic classes that count as road are the preset's ``road_classes`` (the paper's road; the
+  ``demo`` preset adds the sidewalk, the same ground plane).
 * A voxel grid of side ``lidar_voxel`` keeps one point per voxel (the first in frame order),
   then at most ``max_bg_points`` are kept (seeded draw). Scales: mean distance to the 3 nearest
   neighbours (3DGS), isotropic.
@@ -36,9 +38,22 @@ __all__ = ["BG_CLASSES", "ROAD", "SKY", "OTHER", "UNKNOWN", "BackgroundInit", "p
 BG_CLASSES: tuple[str, ...] = ("road", "sky", "other")
 ROAD, SKY, OTHER, UNKNOWN = 0, 1, 2, 255
 ZBUF_WINDOW = 5
-# clsplat semantic class index -> background class
-_SEM_TO_BG = np.array([ROAD if n == "road" else SKY if n == "sky" else OTHER for n in SEMANTIC_CLASSES],
-                      dtype=np.uint8)
+#: the semantic classes of the road set by default (``AutoSplatPreset.road_classes``)
+ROAD_CLASSES: tuple[str, ...] = ("road",)
+
+
+def sem_to_bg(road_classes: tuple[str, ...] = ROAD_CLASSES) -> np.ndarray:
+    """``[len(SEMANTIC_CLASSES)]`` uint8: clsplat semantic class index -> background class, the
+    classes named in ``road_classes`` forming the road set (ValueError naming an unknown one)."""
+    bad = [c for c in road_classes if c not in SEMANTIC_CLASSES or c == "sky"]
+    if bad or not road_classes:
+        raise ValueError(f"road_classes: expected ground classes from {[c for c in SEMANTIC_CLASSES if c != 'sky']}, "
+                         f"got {tuple(road_classes)!r}")
+    return np.array([ROAD if n in road_classes else SKY if n == "sky" else OTHER for n in SEMANTIC_CLASSES],
+                    dtype=np.uint8)
+
+
+_SEM_TO_BG = sem_to_bg()
 
 
 @dataclass
@@ -83,10 +98,11 @@ def project_to_pixels(seq: DrivingSequence, i: int, cam: str, points: np.ndarray
     return vis, lin, pc[:, 2], u, v
 
 
-def pixel_classes(frame: Frame, camera: str) -> np.ndarray | None:
-    """``[H, W]`` uint8 background class of each pixel from the frame's semantics, None without."""
+def pixel_classes(frame: Frame, camera: str, road_classes: tuple[str, ...] = ROAD_CLASSES) -> np.ndarray | None:
+    """``[H, W]`` uint8 background class of each pixel from the frame's semantics (the classes
+    ``road_classes`` as road), None without."""
     sem = frame.semantics.get(camera)
-    return None if sem is None else _SEM_TO_BG[sem]
+    return None if sem is None else sem_to_bg(road_classes)[sem]
 
 
 def load_mask_folder(seq: DrivingSequence, folder: str | Path, frame_ids: Sequence[int]) -> None:
@@ -185,7 +201,7 @@ def accumulate_lidar(seq: DrivingSequence, frame_ids: Sequence[int], box_margin:
 
 
 def _colour_points(seq: DrivingSequence, i: int, cams: Sequence[str], pts: np.ndarray, all_pts: np.ndarray,
-                   pt_labels: np.ndarray | None):
+                   pt_labels: np.ndarray | None, road_classes: tuple[str, ...] = ROAD_CLASSES):
     """Colour, label and source pixel of world points of frame ``i`` from its cameras."""
     n = len(pts)
     f = seq.frames[i]
@@ -217,13 +233,13 @@ def _colour_points(seq: DrivingSequence, i: int, cams: Sequence[str], pts: np.nd
             continue
         best[take] = centre[take]
         colors[take] = f.images[c].reshape(-1, 3)[lin[take]]
-        pcls = pixel_classes(f, c)
+        pcls = pixel_classes(f, c, road_classes)
         if pcls is not None:
             labels[take] = pcls.reshape(-1)[lin[take]]
         source[take] = np.stack([np.full(take.sum(), i), np.full(take.sum(), ci), lin[take]], 1)
     if pt_labels is not None:
         unl = labels == UNKNOWN
-        labels[unl] = _SEM_TO_BG[np.minimum(pt_labels[unl], len(SEMANTIC_CLASSES) - 1)]
+        labels[unl] = sem_to_bg(road_classes)[np.minimum(pt_labels[unl], len(SEMANTIC_CLASSES) - 1)]
     seen = source[:, 0] >= 0
     labels[seen & (labels == UNKNOWN)] = OTHER
     return colors, labels, source, seen
@@ -276,7 +292,8 @@ def init_background(seq: DrivingSequence, frame_ids: Sequence[int], cameras: Seq
     for i, pts, lab, occluders in sweeps:
         if len(pts) == 0:
             continue
-        colors, labels, source, seen = _colour_points(seq, i, cameras, pts, occluders, lab)
+        colors, labels, source, seen = _colour_points(seq, i, cameras, pts, occluders, lab,
+                                                      tuple(getattr(preset, "road_classes", ROAD_CLASSES)))
         P.append(pts[seen]), C.append(colors[seen]), L.append(labels[seen]), S.append(source[seen])
     if not P or sum(len(p) for p in P) == 0:
         raise ValueError("data: no LiDAR point is visible in the selected cameras; check --cameras and the poses")

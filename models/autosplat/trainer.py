@@ -115,14 +115,17 @@ class Trainer(LoopHooks):
         sky_rows = bg.labels == SKY
         quats = np.zeros((len(bg), 4), np.float32)
         quats[:, 0] = 1.0
-        # start road and sky Gaussians aligned with their reference frame (flat discs)
+        # start road and sky Gaussians aligned with their reference frame (flat discs; the dome is
+        # built of discs tangent to it); the road isotropic as in 3DGS when preset.road_init says
+        # so and flatness is off
         from ..common.geometry import matrix_to_quat
         ref = torch.from_numpy(bg.normals)
-        flat = torch.from_numpy((bg.labels == ROAD) | sky_rows)
+        flat_road = (bg.labels == ROAD) & (p.road_init == "flat" or self.switches.flatness)
+        flat = torch.from_numpy(flat_road | sky_rows)
         if flat.any():
             quats[flat.numpy()] = matrix_to_quat(reference_frames(ref[flat])).numpy()
         scales = bg.scales.copy()
-        scales[(bg.labels == ROAD), 2] *= 0.1
+        scales[flat_road, 2] *= 0.1
         m.background = GaussianParams.from_points(bg.means, bg.colors, scales, p.sh_degree, opacity=0.7,
                                                   labels=bg.labels, normals=bg.normals, quats=quats)
         with torch.no_grad():
