@@ -16,15 +16,18 @@ import argparse
 import time
 from pathlib import Path
 
+from clsplat.data.scene import CAMERA_NAMES
+
 CAMERAS = ("CAM_FRONT", "CAM_FRONT_LEFT", "CAM_FRONT_RIGHT")
 
 
-def write(out: Path, seed: int, frames: int, height: int, width: int, fine: float, supersample: int) -> Path:
+def write(out: Path, seed: int, frames: int, height: int, width: int, fine: float, supersample: int,
+          cameras: tuple[str, ...] = CAMERAS) -> Path:
     """Generate the street and write it as a PandaSet folder; returns ``out``."""
     from clsplat.data.pandaset import write_pandaset
     from clsplat.data.synthetic import SyntheticConfig, generate_sequence
 
-    cfg = SyntheticConfig(height=height, width=width, num_frames=frames, seed=seed, dt=0.1, cameras=CAMERAS,
+    cfg = SyntheticConfig(height=height, width=width, num_frames=frames, seed=seed, dt=0.1, cameras=cameras,
                           fine_texture=fine, supersample=supersample)
     t0 = time.perf_counter()
     seq = generate_sequence(cfg)
@@ -33,7 +36,7 @@ def write(out: Path, seed: int, frames: int, height: int, width: int, fine: floa
                                        for f in seq.frames]
     t1 = time.perf_counter()
     write_pandaset(seq, out)
-    print(f"generated {frames} frames x {len(CAMERAS)} cameras at {width}x{height} in {t1 - t0:.1f} s, "
+    print(f"generated {frames} frames x {len(cameras)} cameras at {width}x{height} in {t1 - t0:.1f} s, "
           f"wrote {out} in {time.perf_counter() - t1:.1f} s", flush=True)
     return out
 
@@ -47,8 +50,11 @@ def main() -> None:
     p.add_argument("--width", type=int, default=480)
     p.add_argument("--fine-texture", type=float, default=0.3)
     p.add_argument("--supersample", type=int, default=2)
+    p.add_argument("--cameras", nargs="+", default=list(CAMERAS), choices=list(CAMERA_NAMES),
+                   help="generator cameras to write (PandaSet names: CAM_BACK_LEFT / CAM_BACK_RIGHT are written as "
+                        "left_camera / right_camera, PandaSet's 90-degree side cameras' slots)")
     a = p.parse_args()
-    write(Path(a.out), a.seed, a.frames, a.height, a.width, a.fine_texture, a.supersample)
+    write(Path(a.out), a.seed, a.frames, a.height, a.width, a.fine_texture, a.supersample, tuple(a.cameras))
 
 
 if __name__ == "__main__":

@@ -188,13 +188,15 @@ def landscape(data: str, seed: int, scenes: int, first: int, sets: list[str] | N
         print(f"{f:6} " + "".join(f"{1e3 * acc[f][k]:10.2f} ({1e3 * (acc[f][k] - acc[1.0][k]):+6.2f})" for k in terms))
 
 
-def follow(checkpoint: str, data: str, seed: int, first: int, steps: int) -> None:
+def follow(checkpoint: str, data: str, seed: int, first: int, steps: int, terms: list[str] | None = None) -> None:
     from clsplat.models.drivingforward.data import load_triplet
 
     model, p, src = _load(checkpoint, data, seed)
     model.train()
     streets = [load_triplet(src, i, p, "train") for i in range(first, first + 6)]
     opt = torch.optim.Adam(model.parameters(), lr=1e-4)
+    w = {"reproj": 1.0, "spatial": p.w_spatial, "spatio_temporal": p.w_spatio_temporal,
+         "smooth": p.w_smooth, "render": p.w_render}
 
     def near_ratio() -> float:
         r = []
@@ -208,7 +210,8 @@ def follow(checkpoint: str, data: str, seed: int, first: int, steps: int) -> Non
     print(f"step 0: near-road median pred/true {near_ratio():.3f}")
     for it in range(steps):
         s = streets[it % 6]
-        loss = model.training_losses(s["images"], s["images"], s["Ks"], s["cam_to_ego"])["loss"]
+        t = model.training_losses(s["images"], s["images"], s["Ks"], s["cam_to_ego"])
+        loss = t["loss"] if not terms else sum(w[k] * t[k] for k in terms)
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -229,6 +232,8 @@ def main(argv: list[str] | None = None) -> int:
         a.add_argument("--scenes", type=int, default={"errors": 8, "landscape": 4}.get(name, 6))
         a.add_argument("--first", type=int, default=200, help="first training street (grads, follow)")
         a.add_argument("--steps", type=int, default=24, help="follow: Adam steps")
+        a.add_argument("--terms", nargs="+", default=None, choices=("reproj", "spatial", "spatio_temporal", "smooth", "render"),
+                       help="follow: train on these terms only (default: the total loss)")
     args = ap.parse_args(argv)
     if args.cmd == "errors":
         errors(args.checkpoint, args.data, args.seed, args.scenes)
@@ -237,7 +242,7 @@ def main(argv: list[str] | None = None) -> int:
     elif args.cmd == "grads":
         grads(args.checkpoint, args.data, args.seed, args.scenes, args.first)
     else:
-        follow(args.checkpoint, args.data, args.seed, args.first, args.steps)
+        follow(args.checkpoint, args.data, args.seed, args.first, args.steps, args.terms)
     return 0
 
 
