@@ -141,3 +141,21 @@ def test_rig_overlap_counts_only_pixels_whose_ssim_window_is_inside(seq):
     window_inside = -torch.nn.functional.max_pool2d(-raw, 3, 1, 1)
     assert 0 < counted.sum() < raw.sum()
     assert torch.equal(counted, window_inside)
+
+
+def test_without_automask_every_seen_pixel_takes_the_warped_minimum(seq):
+    fr = seq["frames"]
+    tgt, Ks = fr[1]["images"], fr[1]["Ks"]
+    depth = fr[1]["depths"].clamp(max=200)[:, None] * 2.0          # the near road twice as far, as trained
+    srcs = [fr[0]["images"], fr[2]["images"]]
+    Tc = [_true_camera_motion(fr, s).float() for s in (0, 2)]
+    masked = float(L.temporal_loss(tgt, srcs, depth, Ks, Tc))
+    unmasked = float(L.temporal_loss(tgt, srcs, depth, Ks, Tc, automask=False))
+    # by hand: the minimum over the warped frames, over the pixels at least one of them sees
+    errs = []
+    for src, T in zip(srcs, Tc):
+        w, valid = warp(src, depth[:, 0], Ks, Ks, T)
+        errs.append(torch.where(valid > 0, photometric_error(w, tgt), torch.full_like(valid, float("inf"))))
+    best = torch.cat(errs, 1).min(1).values
+    assert unmasked == pytest.approx(float(best[torch.isfinite(best)].mean()), rel=1e-6)
+    assert masked < unmasked           # the identity errors join the minimum only with the auto-mask

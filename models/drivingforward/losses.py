@@ -75,7 +75,7 @@ def brightness_normalise(warped: Tensor, target: Tensor, valid: Tensor, eps: flo
 
 
 def temporal_loss(target: Tensor, sources: list[Tensor], depth: Tensor, Ks: Tensor, T_to_src: list[Tensor],
-                  noise: Tensor | None = None) -> Tensor:
+                  noise: Tensor | None = None, automask: bool = True) -> Tensor:
     """Auto-masked minimum reprojection loss.
 
     Args:
@@ -83,6 +83,8 @@ def temporal_loss(target: Tensor, sources: list[Tensor], depth: Tensor, Ks: Tens
         depth: ``[V, 1, H, W]`` predicted depth at t; Ks ``[V, 3, 3]``.
         T_to_src: per source ``[V, 4, 4]`` camera motion (p_src = T p_t).
         noise: ``[V, len(sources), H, W]`` tie-break noise for the identity errors (monodepth2 1e-5 randn).
+        automask: the identity errors join the minimum (monodepth2, the paper); False: the minimum
+            over the warped frames only, so every pixel a source sees gets a gradient.
     Returns:
         scalar, mean over cameras and pixels.
     """
@@ -91,9 +93,13 @@ def temporal_loss(target: Tensor, sources: list[Tensor], depth: Tensor, Ks: Tens
         w, valid = warp(src, depth[:, 0], Ks, Ks, T)
         pe = photometric_error(w, target)
         reproj.append(torch.where(valid > 0, pe, torch.full_like(pe, _INVALID)))
+        if not automask:
+            continue
         idt = photometric_error(src, target)
         ident.append(idt + (noise[:, k:k + 1] if noise is not None else 0.0))
-    return torch.cat(ident + reproj, 1).min(dim=1).values.mean()
+    err = torch.cat(ident + reproj, 1).min(dim=1).values
+    # without the identity errors a pixel no source sees keeps _INVALID: it takes no part
+    return err.mean() if automask else err[err < _INVALID].mean()
 
 
 def _neighbour_errors(target: Tensor, sources: Tensor, depth: Tensor, Ks: Tensor, T: Tensor,

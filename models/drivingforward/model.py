@@ -183,7 +183,7 @@ class DrivingForward(nn.Module):
             K = Ks if f == 1 else scale_intrinsics(Ks, 1.0 / f)
             t, ss = pool(tgt), [pool(x) for x in srcs]
             nz = None if noise is None else noise[..., ::f, ::f]
-            out["reproj"] = out["reproj"] + temporal_loss(t, ss, dt, K, Tc, nz) / levels
+            out["reproj"] = out["reproj"] + temporal_loss(t, ss, dt, K, Tc, nz, self.preset.automask) / levels
             out["spatial"] = out["spatial"] + spatial_loss(t, dep, K, E) / levels
             out["spatio_temporal"] = out["spatio_temporal"] + spatio_temporal_loss(t, ss, dt, K, E, M) / levels
         return out

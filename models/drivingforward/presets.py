@@ -60,6 +60,8 @@ class DFPreset(Preset):
         photometric_scales: levels of the image pyramid the photometric terms average over (2x2
             block means per level); 1: full resolution only, as in the paper.
         w_smooth, w_spatial, w_spatio_temporal, w_render, w_lpips: loss weights (reprojection = 1).
+        automask: the reprojection loss's minimum includes the unwarped frames' errors (monodepth2's
+            auto-mask, the paper); False: the warped frames only.
         automask_noise: the monodepth2 tie-break noise added to the identity reprojection error.
         background: render background colour (white in the release).
         near_plane, far_plane: renderer clipping.
@@ -120,6 +122,7 @@ class DFPreset(Preset):
     w_spatio_temporal: float = 0.1
     w_render: float = 0.01
     w_lpips: float = 0.05
+    automask: bool = True
     automask_noise: float = 1e-5
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     near_plane: float = 0.01
