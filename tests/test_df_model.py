@@ -224,3 +224,17 @@ def test_photometric_pyramid_averages_the_terms_over_its_levels(model, sample):
     assert torch.equal(one["smooth"], two["smooth"]) and torch.equal(one["render"], two["render"])
     with pytest.raises(ValueError, match="photometric_scales"):
         TINY.replace(photometric_scales=5)         # 2^4 does not divide 32x56
+
+
+def test_automask_steps_keep_the_auto_mask_for_the_first_steps_only(sample):
+    torch.manual_seed(0)
+    m = DrivingForward(TINY.replace(automask_steps=2))
+    args = (sample["images"], sample["images"], sample["Ks"], sample["cam_to_ego"])
+    with torch.no_grad():
+        r = {s: float(m.training_losses(*args, step=s)["reproj"]) for s in (0, 1, 2)}
+        m.preset = TINY                                  # the paper: the auto-mask at every step
+        paper = {s: float(m.training_losses(*args, step=s)["reproj"]) for s in (0, 2)}
+    assert r[0] == r[1] == paper[0] == paper[2]
+    assert r[2] > r[0]            # without the identity errors in the minimum the error cannot be lower
+    with pytest.raises(ValueError, match="automask_steps"):
+        TINY.replace(automask_steps=-1)

@@ -163,7 +163,8 @@ class DrivingForward(nn.Module):
 
     # ------------------------------------------------------------------ training
     def photometric_terms(self, tgt: Tensor, srcs: list[Tensor], depth: Tensor, d_t: Tensor, Ks: Tensor,
-                          E: Tensor, Tc: list[Tensor], M: list[Tensor], noise: Tensor | None) -> dict[str, Tensor]:
+                          E: Tensor, Tc: list[Tensor], M: list[Tensor], noise: Tensor | None,
+                          automask: bool = True) -> dict[str, Tensor]:
         """The reprojection, spatial and spatio-temporal terms, at full resolution (the paper) or
         averaged over an image pyramid of ``preset.photometric_scales`` levels.
 
@@ -172,7 +173,8 @@ class DrivingForward(nn.Module):
         coarser level sees a displacement of n pixels as n / 2^s, which widens the basin where the
         motion is large against the texture (the near road). Arguments as in
         :meth:`training_losses` (``d_t``: the depth the temporal terms see; ``depth``: the one the
-        spatial term sees). Returns ``reproj, spatial, spatio_temporal`` scalars.
+        spatial term sees; ``automask``: the reprojection minimum includes the unwarped frames).
+        Returns ``reproj, spatial, spatio_temporal`` scalars.
         """
         levels = self.preset.photometric_scales
         out = {"reproj": 0.0, "spatial": 0.0, "spatio_temporal": 0.0}
@@ -183,7 +185,7 @@ class DrivingForward(nn.Module):
             K = Ks if f == 1 else scale_intrinsics(Ks, 1.0 / f)
             t, ss = pool(tgt), [pool(x) for x in srcs]
             nz = None if noise is None else noise[..., ::f, ::f]
-            out["reproj"] = out["reproj"] + temporal_loss(t, ss, dt, K, Tc, nz, self.preset.automask) / levels
+            out["reproj"] = out["reproj"] + temporal_loss(t, ss, dt, K, Tc, nz, automask) / levels
             out["spatial"] = out["spatial"] + spatial_loss(t, dep, K, E) / levels
             out["spatio_temporal"] = out["spatio_temporal"] + spatio_temporal_loss(t, ss, dt, K, E, M) / levels
         return out
@@ -197,7 +199,7 @@ class DrivingForward(nn.Module):
             raw: ``[3, V, 3, H, W]`` images (loss targets); net: the same, colour-jittered (network inputs);
             Ks ``[V, 3, 3]``; cam_to_ego ``[V, 4, 4]``; noise ``[V, 2, H, W]`` automask tie-break;
             lpips: LPIPS module for the render loss (None: the term is off and not reported).
-            step: the training step (for the preset's warm-up; None: no warm-up).
+            step: the training step (for the preset's warm-ups; None: after them).
             ego_motion_gt: the data's ego motion ``[M_{t->t-1}, M_{t->t+1}]`` (each ``[4, 4]``, ego
                 coordinates at t to ego at the other frame); required when the preset's
                 ``pose_source`` is "dataset", where it replaces the pose network (which then gets
@@ -232,7 +234,9 @@ class DrivingForward(nn.Module):
         # pose's depth is towards the far plane; bench/RESULTS.md, DrivingForward)
         warm = step is not None and step < p.warmup_steps
         d_t = depth.detach() if warm else depth
-        terms = self.photometric_terms(tgt, srcs, depth, d_t, Ks, E, Tc, M, noise)
+        # the auto-mask for the preset's first automask_steps steps (all of them by default)
+        automask = p.automask_steps is None or (step is not None and step < p.automask_steps)
+        terms = self.photometric_terms(tgt, srcs, depth, d_t, Ks, E, Tc, M, noise, automask)
         terms["smooth"] = smoothness_loss(depth, tgt)
         inv_E = invert_rigid(E)
         # the render's view of the motion: a constant when the preset says so (no render gradient

@@ -60,8 +60,9 @@ class DFPreset(Preset):
         photometric_scales: levels of the image pyramid the photometric terms average over (2x2
             block means per level); 1: full resolution only, as in the paper.
         w_smooth, w_spatial, w_spatio_temporal, w_render, w_lpips: loss weights (reprojection = 1).
-        automask: the reprojection loss's minimum includes the unwarped frames' errors (monodepth2's
-            auto-mask, the paper); False: the warped frames only.
+        automask_steps: for how many first steps the reprojection loss's minimum includes the
+            unwarped frames' errors (monodepth2's auto-mask); None: every step, as in the paper;
+            0: never (the minimum over the warped frames only).
         automask_noise: the monodepth2 tie-break noise added to the identity reprojection error.
         background: render background colour (white in the release).
         near_plane, far_plane: renderer clipping.
@@ -122,7 +123,7 @@ class DFPreset(Preset):
     w_spatio_temporal: float = 0.1
     w_render: float = 0.01
     w_lpips: float = 0.05
-    automask: bool = True
+    automask_steps: int | None = None
     automask_noise: float = 1e-5
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     near_plane: float = 0.01
@@ -157,6 +158,8 @@ class DFPreset(Preset):
                              f"{self.height}x{self.width}, got {self.photometric_scales}")
         if self.warmup_steps < 0:
             raise ValueError(f"preset {self.name}: warmup_steps must be >= 0, got {self.warmup_steps}")
+        if self.automask_steps is not None and (isinstance(self.automask_steps, bool) or self.automask_steps < 0):
+            raise ValueError(f"preset {self.name}: automask_steps must be None or an int >= 0, got {self.automask_steps!r}")
         if self.lr_warmup < 0:
             raise ValueError(f"preset {self.name}: lr_warmup must be >= 0, got {self.lr_warmup}")
         if self.pose_source not in ("network", "dataset"):
