@@ -330,3 +330,14 @@ def test_road_classes_put_the_sidewalk_in_the_road_set(tmp_path):
     assert road_count(TINY.replace(road_classes=both), ground) > road_count(TINY, plain)
     with pytest.raises(ValueError, match=r"road_classes: expected ground classes"):
         TINY.replace(road_classes=("road", "sky"))
+
+
+def test_a_checkpoint_from_before_road_init_and_road_classes_resumes_as_it_trained():
+    from clsplat.models.common.presets import preset_from_saved
+    saved = get_preset("autosplat", "demo").to_dict()
+    for k in ("road_init", "road_classes"):
+        del saved[k]                                 # a record written before issue 19 added them
+    old = preset_from_saved("autosplat", saved)
+    assert old.road_init == "flat" and old.road_classes == ("road",)
+    now = preset_from_saved("autosplat", get_preset("autosplat", "demo").to_dict())
+    assert now == get_preset("autosplat", "demo")    # a current record is its preset, unchanged

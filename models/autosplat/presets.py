@@ -96,6 +96,19 @@ class AutoSplatPreset(Preset):
     dynamic_threshold: float = 0.5    # metres of track displacement above which a track is dynamic
     seed: int = 0
 
+    #: what a checkpoint written before a field existed ran with, where that differs from the
+    #: field's default (issue 19 added both; an older run resumed keeps its road as it trained it)
+    BEFORE_FIELD = {"road_init": "flat", "road_classes": ["road"]}
+
+    @classmethod
+    def upgrade(cls, saved: dict) -> dict:
+        """A checkpoint's preset record, with the fields added since it was written set to the
+        values its run used (``BEFORE_FIELD``), not to today's defaults."""
+        saved = super().upgrade(saved)
+        if not isinstance(saved, dict):
+            return saved
+        return {**{k: v for k, v in cls.BEFORE_FIELD.items() if k not in saved}, **saved}
+
     def __post_init__(self) -> None:
         def bad(field: str, why: str) -> ValueError:
             return ValueError(f"AutoSplatPreset({self.name!r}).{field}: {why}, got {getattr(self, field)!r}")
