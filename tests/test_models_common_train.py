@@ -198,7 +198,7 @@ def test_checkpoint_from_before_a_new_preset_field_loads_while_the_field_keeps_i
     presets.check_preset_matches(old, P("x"), "old.pt")
     with pytest.raises(ValueError, match="old.pt.*added_later: None != 0.5"):
         presets.check_preset_matches(old, P("x", added_later=0.5), "old.pt")
-    with pytest.raises(ValueError, match="size: 3 != 4"):
+    with pytest.raises(ValueError, match="preset 'x' differs from the one asked for .*size: 3 != 4"):
         presets.check_preset_matches(old, P("x", size=4), "old.pt")
 
 

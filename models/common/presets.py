@@ -107,8 +107,12 @@ def check_preset_matches(saved: dict, preset: Preset, where: str) -> None:
     if not diff:
         return
     shown = ", ".join(f"{k}: {saved.get(k)!r} != {mine.get(k)!r}" for k in diff[:5])
+    more = ", ..." if len(diff) > 5 else ""
+    if saved.get("name") == mine.get("name"):   # same name, other fields: --set changes, or an older code's
+        raise ValueError(f"{where}: checkpoint's preset {mine.get('name')!r} differs from the one asked for "
+                         f"(checkpoint != now: {shown}{more})")
     raise ValueError(f"{where}: checkpoint was made with preset {saved.get('name')!r}, not "
-                     f"{mine.get('name')!r} ({shown}{', ...' if len(diff) > 5 else ''})")
+                     f"{mine.get('name')!r} ({shown}{more})")
 
 
 def apply_sets(preset: Preset, sets: list[str] | None, **fields: Any) -> Preset:
