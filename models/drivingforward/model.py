@@ -171,9 +171,10 @@ class DrivingForward(nn.Module):
         Level s averages the images over 2^s x 2^s blocks and the depth through its disparity (so a
         depth edge's far side does not swamp the block), with the intrinsics scaled to match: a
         coarser level sees a displacement of n pixels as n / 2^s, which widens the basin where the
-        motion is large against the texture (the near road). Arguments as in
-        :meth:`training_losses` (``d_t``: the depth the temporal terms see; ``depth``: the one the
-        spatial term sees; ``automask``: the reprojection minimum includes the unwarped frames).
+        motion is large against the texture (the near road; measured worse, bench/RESULTS.md issue
+        17). Arguments as in :meth:`training_losses` (``d_t``: the depth the temporal terms see;
+        ``depth``: the one the spatial term sees; ``automask``: the reprojection minimum includes
+        the unwarped frames).
         Returns ``reproj, spatial, spatio_temporal`` scalars.
         """
         levels = self.preset.photometric_scales
