@@ -159,3 +159,13 @@ def test_without_automask_every_seen_pixel_takes_the_warped_minimum(seq):
     best = torch.cat(errs, 1).min(1).values
     assert unmasked == pytest.approx(float(best[torch.isfinite(best)].mean()), rel=1e-6)
     assert masked < unmasked           # the identity errors join the minimum only with the auto-mask
+
+
+def test_without_automask_a_frame_no_source_sees_costs_zero_not_nan(seq):
+    fr = seq["frames"]
+    tgt, Ks = fr[1]["images"], fr[1]["Ks"]
+    depth = torch.full_like(fr[1]["depths"][:, None], 5.0)
+    behind = torch.eye(4).expand(6, 4, 4).clone()
+    behind[:, 2, 3] = -100.0                           # every point lands behind the source camera
+    loss = L.temporal_loss(tgt, [fr[0]["images"]], depth, Ks, [behind], automask=False)
+    assert float(loss) == 0.0

@@ -98,8 +98,12 @@ def temporal_loss(target: Tensor, sources: list[Tensor], depth: Tensor, Ks: Tens
         idt = photometric_error(src, target)
         ident.append(idt + (noise[:, k:k + 1] if noise is not None else 0.0))
     err = torch.cat(ident + reproj, 1).min(dim=1).values
-    # without the identity errors a pixel no source sees keeps _INVALID: it takes no part
-    return err.mean() if automask else err[err < _INVALID].mean()
+    if automask:
+        return err.mean()
+    # without the identity errors a pixel no source sees keeps _INVALID: it takes no part, and a
+    # frame no source sees at all costs 0 (not the NaN of an empty mean)
+    seen = err < _INVALID
+    return torch.where(seen, err, torch.zeros_like(err)).sum() / seen.sum().clamp_min(1)
 
 
 def _neighbour_errors(target: Tensor, sources: Tensor, depth: Tensor, Ks: Tensor, T: Tensor,
