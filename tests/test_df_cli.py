@@ -173,14 +173,28 @@ def test_two_process_data_parallel_equals_one_process(tmp_path):
     one = torch.load(tmp_path / "one" / "checkpoint.pt", weights_only=True)
     two = torch.load(tmp_path / "two" / "checkpoint.pt", weights_only=True)
     assert two["step"] == one["step"] == 1
-    stats = ("running_mean", "running_var", "num_batches_tracked")
-    compared = 0
-    for k, v in one["model"].items():
-        if k.endswith(stats):
-            continue
-        assert torch.allclose(v, two["model"][k], rtol=1e-5, atol=1e-7), (k, float((v - two["model"][k]).abs().max()))
-        compared += 1
-    assert compared > 100
+    # The gradients (Adam's first moment after one step, 0.1 g) must agree. The weights must agree
+    # wherever the gradient is clearly non-zero: Adam's first step moves every weight by about
+    # lr * sign(g), so an element whose gradient is summation noise around zero may move by +lr in
+    # one run and -lr in the other, and only those are left out of the weight comparison.
+    from clsplat.models.common.presets import get_preset
+    from clsplat.models.drivingforward.cli import make_optimizer
+    from clsplat.models.drivingforward.model import DrivingForward
+
+    model = DrivingForward(get_preset("drivingforward", "tiny"))
+    names = {id(q): k for k, q in model.named_parameters()}
+    params = [names[id(q)] for g in make_optimizer(model, model.preset).param_groups for q in g["params"]]
+    moments = [one["optimizer"]["state"][i]["exp_avg"] for i in range(len(params))]
+    assert len(one["optimizer"]["state"]) == len(two["optimizer"]["state"]) == len(params)
+    for i, (k, m) in enumerate(zip(params, moments)):
+        assert one["model"][k].shape == m.shape, k
+        m2 = two["optimizer"]["state"][i]["exp_avg"]
+        scale = float(m.abs().max())
+        assert torch.allclose(m, m2, rtol=1e-4, atol=1e-6 * scale + 1e-12), (k, float((m - m2).abs().max()), scale)
+        clear = m.abs() > 1e-4 * scale
+        w1, w2 = one["model"][k][clear], two["model"][k][clear]
+        assert torch.allclose(w1, w2, rtol=1e-5, atol=1e-7), (k, float((w1 - w2).abs().max()))
+    assert len(params) > 100
     la = json.loads((tmp_path / "one" / "log.jsonl").read_text().splitlines()[0])
     lb = json.loads((tmp_path / "two" / "log.jsonl").read_text().splitlines()[0])
     assert la["loss"] == pytest.approx(lb["loss"], rel=1e-5) and "skipped" not in la and "skipped" not in lb

@@ -169,3 +169,31 @@ def test_without_automask_a_frame_no_source_sees_costs_zero_not_nan(seq):
     behind[:, 2, 3] = -100.0                           # every point lands behind the source camera
     loss = L.temporal_loss(tgt, [fr[0]["images"]], depth, Ks, [behind], automask=False)
     assert float(loss) == 0.0
+
+
+def test_automask_margin_masks_only_pixels_the_unwarped_frame_wins_by_more_than_it(seq):
+    """With a margin m the identity error joins the minimum as e_id + m: a pixel is masked (no
+    depth gradient) only where no warp comes within m of the unwarped frame."""
+    fr = seq["frames"]
+    tgt, Ks = fr[1]["images"], fr[1]["Ks"]
+    depth = (fr[1]["depths"].clamp(max=200)[:, None] * 2.0).requires_grad_(True)
+    srcs = [fr[0]["images"], fr[2]["images"]]
+    Tc = [_true_camera_motion(fr, s).float() for s in (0, 2)]
+    ident = torch.cat([photometric_error(s, tgt) for s in srcs], 1).min(1).values
+    warped = []
+    for src, T in zip(srcs, Tc):
+        w, valid = warp(src, depth[:, 0].detach(), Ks, Ks, T)
+        warped.append(torch.where(valid > 0, photometric_error(w, tgt), torch.full_like(valid, float("inf"))))
+    best = torch.cat(warped, 1).min(1).values
+    m = 0.05
+    loss = L.temporal_loss(tgt, srcs, depth, Ks, Tc, margin=m)
+    assert float(loss) == pytest.approx(float(torch.minimum(ident + m, best).mean()), rel=1e-5)
+    (g,) = torch.autograd.grad(loss, depth)
+    took_warp = (best < ident + m)[:, None] & (g != 0)
+    # a pixel whose warp is worse than no warp but by less than m now gets a gradient ...
+    assert bool((took_warp & (best > ident)[:, None]).any())
+    # ... and none where the unwarped frame wins by more than m there and at the 3x3 neighbours
+    # that share the pixel through SSIM's window
+    near_used = torch.nn.functional.max_pool2d((best <= ident + m)[:, None].float(), 3, 1, 1) > 0
+    assert bool((~near_used).any()) and not bool((~near_used & (g != 0)).any())
+    assert float(L.temporal_loss(tgt, srcs, depth, Ks, Tc, margin=0.0)) < float(loss)

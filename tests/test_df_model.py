@@ -8,6 +8,7 @@ from clsplat.models.common.gaussians import GaussianSet
 from clsplat.models.common.geometry import unproject
 from clsplat.models.common.presets import get_preset
 from clsplat.models.drivingforward.data import colour_jitter, gt_ego_motion, load_triplet
+from clsplat.models.drivingforward.losses import smoothness_loss
 from clsplat.models.drivingforward.model import DrivingForward
 
 TINY = get_preset("drivingforward", "tiny")
@@ -238,3 +239,19 @@ def test_automask_steps_keep_the_auto_mask_for_the_first_steps_only(sample):
     assert r[2] > r[0]            # without the identity errors in the minimum the error cannot be lower
     with pytest.raises(ValueError, match="automask_steps"):
         TINY.replace(automask_steps=-1)
+
+
+def test_smooth_order_selects_the_smoothness_term(sample):
+    torch.manual_seed(0)
+    m = DrivingForward(TINY)
+    args = (sample["images"], sample["images"], sample["Ks"], sample["cam_to_ego"])
+    with torch.no_grad():
+        first = m.training_losses(*args)
+        m.preset = TINY.replace(smooth_order=2)
+        second = m.training_losses(*args)
+    depth = m.depth_net(sample["images"][1], sample["Ks"], sample["cam_to_ego"])["depth"].detach()
+    torch.testing.assert_close(second["smooth"], smoothness_loss(depth, sample["images"][1], order=2))
+    assert float(first["smooth"]) != float(second["smooth"])
+    torch.testing.assert_close(first["reproj"], second["reproj"])
+    with pytest.raises(ValueError, match="smooth_order"):
+        TINY.replace(smooth_order=3)

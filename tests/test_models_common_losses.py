@@ -93,6 +93,26 @@ def test_edge_aware_smoothness():
         edge_aware_smoothness(disp, torch.rand(2, 3, 10, 11))
 
 
+def test_second_order_smoothness_is_zero_on_planes_and_not_on_kinks():
+    """order 2 penalises curvature of the disparity: nothing on a plane's disparity (affine in the
+    pixel coordinates), which order 1 does penalise; a kink costs; image edges damp it."""
+    y, x = torch.meshgrid(torch.arange(10.0), torch.arange(12.0), indexing="ij")
+    plane = (0.5 + 0.1 * x + 0.3 * y)[None, None]
+    flat = torch.zeros(1, 3, 10, 12)
+    assert float(edge_aware_smoothness(plane, flat, order=2)) == pytest.approx(0.0, abs=1e-6)
+    assert float(edge_aware_smoothness(plane, flat, order=1)) > 0.1
+    kink = (1.0 + (x - 6).abs())[None, None]
+    # one column of |dxx| = 2 / mean among 10 second-difference columns
+    torch.testing.assert_close(edge_aware_smoothness(kink, flat, order=2), 2 / kink.mean() / 10)
+    edges = torch.zeros(1, 3, 10, 12)
+    edges[..., 6:] = 1.0
+    assert edge_aware_smoothness(kink, edges, order=2) < edge_aware_smoothness(kink, flat, order=2)
+    with pytest.raises(ValueError, match="order"):
+        edge_aware_smoothness(plane, flat, order=3)
+    with pytest.raises(ValueError, match="disp: needs H, W >= 3"):
+        edge_aware_smoothness(torch.ones(1, 1, 2, 5), torch.zeros(1, 3, 2, 5), order=2)
+
+
 def test_chamfer_matches_brute_force_and_chunks():
     g = torch.Generator().manual_seed(2)
     p = torch.randn(2, 300, 3, generator=g, dtype=torch.float64) * 20 + 50  # far from the origin

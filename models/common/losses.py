@@ -66,30 +66,41 @@ def photometric_error(a: Tensor, b: Tensor) -> Tensor:
     return 0.85 * dssim + 0.15 * l1
 
 
-def edge_aware_smoothness(disp: Tensor, img: Tensor) -> Tensor:
+def edge_aware_smoothness(disp: Tensor, img: Tensor, order: int = 1) -> Tensor:
     """monodepth2's edge-aware smoothness of disparity: the disparity is divided by its per-image
-    mean (so the term does not shrink the depth scale), then
+    mean (so the term does not shrink the depth scale), then, for ``order`` 1,
     ``mean |dx d| * exp(-mean_c |dx I|) + mean |dy d| * exp(-mean_c |dy I|)``.
+
+    ``order`` 2 penalises the second differences ``|dxx d|`` and ``|dyy d|`` instead, each weighted
+    by ``exp(-max of the two image gradients it spans)``. The disparity of a plane is affine in the
+    pixel coordinates (1/Z = n . K^-1 p / d), so this term is zero on any plane (a road, a facade)
+    and pulls a weakly textured patch towards the plane of its neighbours rather than towards
+    their constant disparity.
 
     disp: [B, 1, H, W] (positive); img: [B, C, H, W] with the same B, H, W -> scalar.
     """
+    if order not in (1, 2):
+        raise ValueError(f"order: expected 1 or 2, got {order!r}")
     if not isinstance(disp, Tensor) or disp.dim() != 4 or disp.shape[1] != 1:
         raise ValueError(f"disp: expected shape [B, 1, H, W], got {list(getattr(disp, 'shape', []))}")
     if not isinstance(img, Tensor) or img.dim() != 4:
         raise ValueError(f"img: expected shape [B, C, H, W], got {list(getattr(img, 'shape', []))}")
     if img.shape[0] != disp.shape[0] or img.shape[-2:] != disp.shape[-2:]:
         raise ValueError(f"img: shape {list(img.shape)} does not match disp {list(disp.shape)} in B, H, W")
-    if min(disp.shape[-2:]) < 2:
-        raise ValueError(f"disp: needs H, W >= 2, got {list(disp.shape[-2:])}")
+    if min(disp.shape[-2:]) < order + 1:
+        raise ValueError(f"disp: needs H, W >= {order + 1} for order {order}, got {list(disp.shape[-2:])}")
     for t, name in ((disp, "disp"), (img, "img")):
         if not torch.isfinite(t).all():
             raise ValueError(f"{name}: contains NaN or inf")
     d = disp / (disp.mean(dim=(2, 3), keepdim=True) + 1e-7)
-    dx = (d[..., :, :-1] - d[..., :, 1:]).abs()
-    dy = (d[..., :-1, :] - d[..., 1:, :]).abs()
+    dx = d[..., :, :-1] - d[..., :, 1:]
+    dy = d[..., :-1, :] - d[..., 1:, :]
     ix = (img[..., :, :-1] - img[..., :, 1:]).abs().mean(1, keepdim=True)
     iy = (img[..., :-1, :] - img[..., 1:, :]).abs().mean(1, keepdim=True)
-    return (dx * torch.exp(-ix)).mean() + (dy * torch.exp(-iy)).mean()
+    if order == 2:
+        dx, dy = dx[..., :, :-1] - dx[..., :, 1:], dy[..., :-1, :] - dy[..., 1:, :]
+        ix, iy = torch.maximum(ix[..., :, :-1], ix[..., :, 1:]), torch.maximum(iy[..., :-1, :], iy[..., 1:, :])
+    return (dx.abs() * torch.exp(-ix)).mean() + (dy.abs() * torch.exp(-iy)).mean()
 
 
 def _nearest_indices(p: Tensor, q: Tensor, max_elems: int) -> tuple[Tensor, Tensor]:

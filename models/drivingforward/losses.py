@@ -75,7 +75,7 @@ def brightness_normalise(warped: Tensor, target: Tensor, valid: Tensor, eps: flo
 
 
 def temporal_loss(target: Tensor, sources: list[Tensor], depth: Tensor, Ks: Tensor, T_to_src: list[Tensor],
-                  noise: Tensor | None = None, automask: bool = True) -> Tensor:
+                  noise: Tensor | None = None, automask: bool = True, margin: float = 0.0) -> Tensor:
     """Auto-masked minimum reprojection loss.
 
     Args:
@@ -85,6 +85,9 @@ def temporal_loss(target: Tensor, sources: list[Tensor], depth: Tensor, Ks: Tens
         noise: ``[V, len(sources), H, W]`` tie-break noise for the identity errors (monodepth2 1e-5 randn).
         automask: the identity errors join the minimum (monodepth2, the paper); False: the minimum
             over the warped frames only, so every pixel a source sees gets a gradient.
+        margin: added to the identity errors: the unwarped frame masks a pixel only when it beats
+            every warp by more than this (0: monodepth2's mask, which also drops a pixel whose
+            warp is merely no better than no warp, e.g. a wrong warp over uniform asphalt).
     Returns:
         scalar, mean over cameras and pixels.
     """
@@ -96,7 +99,7 @@ def temporal_loss(target: Tensor, sources: list[Tensor], depth: Tensor, Ks: Tens
         if not automask:
             continue
         idt = photometric_error(src, target)
-        ident.append(idt + (noise[:, k:k + 1] if noise is not None else 0.0))
+        ident.append(idt + margin + (noise[:, k:k + 1] if noise is not None else 0.0))
     err = torch.cat(ident + reproj, 1).min(dim=1).values
     if automask:
         return err.mean()
@@ -170,9 +173,10 @@ def spatio_temporal_loss(target: Tensor, sources: list[Tensor], depth: Tensor, K
     return _masked_mean_per_pair(torch.where(valid > 0, err, torch.zeros_like(err)), valid, pairs, V)
 
 
-def smoothness_loss(depth: Tensor, images: Tensor) -> Tensor:
-    """Edge-aware smoothness of disparity 1/depth (mean-normalised inside the shared function)."""
-    return edge_aware_smoothness(1.0 / depth, images)
+def smoothness_loss(depth: Tensor, images: Tensor, order: int = 1) -> Tensor:
+    """Edge-aware smoothness of disparity 1/depth (mean-normalised inside the shared function);
+    ``order`` 1: first differences (the paper), 2: second differences (zero on planes)."""
+    return edge_aware_smoothness(1.0 / depth, images, order)
 
 
 def render_loss(render: Tensor, target: Tensor, lpips=None, w_lpips: float = 0.05) -> dict[str, Tensor]:

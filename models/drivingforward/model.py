@@ -186,7 +186,7 @@ class DrivingForward(nn.Module):
             K = Ks if f == 1 else scale_intrinsics(Ks, 1.0 / f)
             t, ss = pool(tgt), [pool(x) for x in srcs]
             nz = None if noise is None else noise[..., ::f, ::f]
-            out["reproj"] = out["reproj"] + temporal_loss(t, ss, dt, K, Tc, nz, automask) / levels
+            out["reproj"] = out["reproj"] + temporal_loss(t, ss, dt, K, Tc, nz, automask, self.preset.automask_margin) / levels
             out["spatial"] = out["spatial"] + spatial_loss(t, dep, K, E) / levels
             out["spatio_temporal"] = out["spatio_temporal"] + spatio_temporal_loss(t, ss, dt, K, E, M) / levels
         return out
@@ -238,7 +238,7 @@ class DrivingForward(nn.Module):
         # the auto-mask for the preset's first automask_steps steps (all of them by default)
         automask = p.automask_steps is None or (step is not None and step < p.automask_steps)
         terms = self.photometric_terms(tgt, srcs, depth, d_t, Ks, E, Tc, M, noise, automask)
-        terms["smooth"] = smoothness_loss(depth, tgt)
+        terms["smooth"] = smoothness_loss(depth, tgt, p.smooth_order)
         inv_E = invert_rigid(E)
         # the render's view of the motion: a constant when the preset says so (no render gradient
         # reaches the pose network; tests/test_df_model.py)

@@ -62,12 +62,16 @@ class DFPreset(Preset):
             block means per level); 1: full resolution only, as in the paper. (Issue 17: 3 levels gave
             AbsRel 1.20 against 0.61 at 300 steps of ``small``; 1 in every preset.)
         w_smooth, w_spatial, w_spatio_temporal, w_render, w_lpips: loss weights (reprojection = 1).
+        smooth_order: 1: the smoothness term penalises the disparity's first differences (the
+            paper); 2: its second differences, which vanish on planes.
         automask_steps: for how many first steps the reprojection loss's minimum includes the
             unwarped frames' errors (monodepth2's auto-mask); None: every step, as in the paper;
             0: never (the minimum over the warped frames only). (Issue 17: 0 took seed 0 from AbsRel
             0.61 to 0.39 at 300 steps of ``small``, seed 1 from 0.50 to 0.47, and collapsed seed 2 to
             the far plane; None in every preset.)
         automask_noise: the monodepth2 tie-break noise added to the identity reprojection error.
+        automask_margin: added to the identity errors as well: a pixel is masked only where the
+            unwarped frame beats every warp by more than this; 0: the paper's auto-mask.
         background: render background colour (white in the release).
         near_plane, far_plane: renderer clipping.
         lr, batch_size, steps: Adam learning rate, global batch and default step count.
@@ -123,12 +127,14 @@ class DFPreset(Preset):
     scale_beta: float = 100.0
     photometric_scales: int = 1
     w_smooth: float = 0.001
+    smooth_order: int = 1
     w_spatial: float = 0.03
     w_spatio_temporal: float = 0.1
     w_render: float = 0.01
     w_lpips: float = 0.05
     automask_steps: int | None = None
     automask_noise: float = 1e-5
+    automask_margin: float = 0.0
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     near_plane: float = 0.01
     far_plane: float = 80.0
@@ -164,6 +170,10 @@ class DFPreset(Preset):
             raise ValueError(f"preset {self.name}: warmup_steps must be >= 0, got {self.warmup_steps}")
         if self.automask_steps is not None and (isinstance(self.automask_steps, bool) or self.automask_steps < 0):
             raise ValueError(f"preset {self.name}: automask_steps must be None or an int >= 0, got {self.automask_steps!r}")
+        if self.smooth_order not in (1, 2):
+            raise ValueError(f"preset {self.name}: smooth_order must be 1 or 2, got {self.smooth_order!r}")
+        if not self.automask_margin >= 0:
+            raise ValueError(f"preset {self.name}: automask_margin must be >= 0, got {self.automask_margin!r}")
         if self.lr_warmup < 0:
             raise ValueError(f"preset {self.name}: lr_warmup must be >= 0, got {self.lr_warmup}")
         if self.pose_source not in ("network", "dataset"):
