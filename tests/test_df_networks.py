@@ -119,6 +119,41 @@ def test_depth_network_shapes_and_metric_range(sample):
     assert torch.allclose(d.flatten(), torch.tensor([80.0, 3.0]))
 
 
+def test_ground_prior_is_the_generators_road_depth_and_the_decoders_zero(sample):
+    """ground_prior_depth meets the synthetic street's ground exactly where the camera sees road;
+    with the prior on, a decoder whose last conv outputs 0 predicts that depth (capped)."""
+    from clsplat.models.drivingforward.depth import depth_to_sigma, ground_prior_depth, sigma_to_depth
+
+    H, W = TINY.height, TINY.width
+    Ks, E = sample["Ks"], sample["cam_to_ego"]
+    prior = ground_prior_depth(Ks, E, H, W, cap=30.0)
+    true = sample["depths"][1][:, None]
+    # ground pixels: the true depth's point lies on the ego frame's z = 0 (nearer than the cap)
+    v, u = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    rays = torch.linalg.inv(Ks) @ torch.stack([u, v, torch.ones_like(u)]).reshape(3, -1)
+    z = (E[:, 2:3, :3] @ rays).reshape(-1, 1, H, W) * true.clamp(max=1e3) + E[:, 2, 3].view(-1, 1, 1, 1)
+    road = (z.abs() < 1e-3) & (true < 30.0)
+    assert road.sum() > 1000
+    torch.testing.assert_close(prior[road], true[road].to(prior.dtype), rtol=1e-3, atol=1e-4)
+    assert float(prior.max()) == 30.0 and bool((prior[:, :, : H // 2 - 1] == 30.0).all())   # above the horizon
+    fx = Ks[:, 0, 0]
+    sig = depth_to_sigma(prior, fx, TINY.min_depth, TINY.max_depth, TINY.focal_ref)
+    torch.testing.assert_close(sigma_to_depth(sig, fx, TINY.min_depth, TINY.max_depth, TINY.focal_ref), prior)
+    torch.manual_seed(0)
+    net = DepthNetwork(TINY.replace(ground_prior_cap=30.0))
+    torch.nn.init.zeros_(net.decoder.dispconv.weight)
+    torch.nn.init.zeros_(net.decoder.dispconv.bias)
+    with torch.no_grad():
+        depth = net(sample["images"][1], Ks, E)["depth"]
+    torch.testing.assert_close(depth, prior, rtol=1e-3, atol=1e-3)
+    with pytest.raises(ValueError, match="ground_prior_cap"):
+        TINY.replace(ground_prior_cap=1.0)
+    below = E.clone()
+    below[:, 2, 3] -= 2.0                              # an ego frame 2 m above the cameras (a roof LiDAR's)
+    with pytest.raises(ValueError, match="ground_prior_cap: the ground prior needs the ego frame's z = 0"):
+        ground_prior_depth(Ks, below, H, W, cap=30.0)
+
+
 def test_gaussian_network_heads(sample):
     torch.manual_seed(0)
     dnet, gnet = DepthNetwork(TINY), GaussianNetwork(TINY)

@@ -25,7 +25,8 @@ import torch.nn.functional as F
 from ..common.backbones import ResNet18
 from .fusion import VolumetricFusion, scale_intrinsics
 
-__all__ = ["MultiLevelReduce", "DepthDecoder", "DepthNetwork", "sigma_to_depth", "normalise_image", "he_init"]
+__all__ = ["MultiLevelReduce", "DepthDecoder", "DepthNetwork", "sigma_to_depth", "depth_to_sigma", "ground_prior_depth",
+           "normalise_image", "he_init"]
 
 
 def normalise_image(x: Tensor) -> Tensor:
@@ -95,9 +96,10 @@ class DepthDecoder(nn.Module):
             cin = c
         self.dispconv = nn.Conv2d(cin, 1, 3, 1, 1, padding_mode="reflect")
 
-    def forward(self, x: Tensor, skips: tuple[Tensor, Tensor] | None = None) -> Tensor:
+    def forward(self, x: Tensor, skips: tuple[Tensor, Tensor] | None = None, logit_offset: Tensor | None = None) -> Tensor:
         """``[B, in, h, w] -> sigma [B, 1, 8h, 8w]`` in (0, 1); ``skips`` = (``[B, c4, 2h, 2w]``,
-        ``[B, c2, 4h, 4w]``) when built with ``skip_channels``."""
+        ``[B, c2, 4h, 4w]``) when built with ``skip_channels``; ``logit_offset`` ``[B, 1, 8h, 8w]``
+        is added before the sigmoid (a depth prior; None: none, the paper)."""
         if any(self.skip_at) and skips is None:
             raise ValueError("skips: this decoder was built with skip_channels; pass the 1/4 and 1/2 features")
         pending = list(skips) if any(self.skip_at) else []
@@ -108,7 +110,8 @@ class DepthDecoder(nn.Module):
             if join:
                 x = torch.cat([x, pending.pop(0)], dim=1)
             x = stage["upconv_1"](x)
-        return torch.sigmoid(self.dispconv(x))
+        logits = self.dispconv(x)
+        return torch.sigmoid(logits if logit_offset is None else logits + logit_offset)
 
 
 def sigma_to_depth(sigma: Tensor, fx: Tensor, min_depth: float, max_depth: float, focal_ref: float) -> Tensor:
@@ -121,6 +124,37 @@ def sigma_to_depth(sigma: Tensor, fx: Tensor, min_depth: float, max_depth: float
     """
     inv = 1.0 / max_depth + (1.0 / min_depth - 1.0 / max_depth) * sigma
     return (1.0 / inv) * (fx / focal_ref).view(-1, 1, 1, 1)
+
+
+def ground_prior_depth(Ks: Tensor, cam_to_ego: Tensor, height: int, width: int, cap: float) -> Tensor:
+    """Depth (along each camera's axis) at which every pixel's ray meets the ground plane z = 0 of
+    the ego frame, ``cap`` where it meets it farther or not at all (above the horizon).
+
+    Ks: ``[V, 3, 3]``; cam_to_ego: ``[V, 4, 4]`` -> ``[V, 1, height, width]`` metres. The ego
+    frame must stand on the ground (z up, z = 0 the road: the synthetic rig, nuScenes' ego frame,
+    clsplat's PandaSet writer); a camera at or below z = 0 is a ValueError, since the prior would
+    then be garbage (a real PandaSet sequence's ego frame is its roof LiDAR's).
+    """
+    if bool((cam_to_ego[:, 2, 3] <= 0).any()):
+        raise ValueError("ground_prior_cap: the ground prior needs the ego frame's z = 0 to be the ground, but "
+                         f"camera heights are {[round(float(h), 3) for h in cam_to_ego[:, 2, 3]]} m; set it to None")
+    v, u = torch.meshgrid(torch.arange(height, dtype=Ks.dtype, device=Ks.device) + 0.5,
+                          torch.arange(width, dtype=Ks.dtype, device=Ks.device) + 0.5, indexing="ij")
+    pix = torch.stack([u, v, torch.ones_like(u)], 0).reshape(3, -1)                 # [3, HW]
+    rays = torch.linalg.inv(Ks) @ pix                                              # camera frame, z = 1
+    down = (cam_to_ego[:, 2:3, :3] @ rays)[:, 0]                                   # ego z per unit depth
+    h = cam_to_ego[:, 2, 3:4]                                                      # camera height
+    t = torch.where(down < -1e-6, h / (-down).clamp_min(1e-6), torch.full_like(down, cap))
+    return t.clamp(max=cap).reshape(-1, 1, height, width)
+
+
+def depth_to_sigma(depth: Tensor, fx: Tensor, min_depth: float, max_depth: float, focal_ref: float) -> Tensor:
+    """The inverse of :func:`sigma_to_depth` (depth clamped into the mapped range first)."""
+    lo = min_depth * fx / focal_ref
+    hi = max_depth * fx / focal_ref
+    d = torch.minimum(torch.maximum(depth, lo.view(-1, 1, 1, 1)), hi.view(-1, 1, 1, 1))
+    inv = (1.0 / d) * (fx / focal_ref).view(-1, 1, 1, 1)
+    return (inv - 1.0 / max_depth) / (1.0 / min_depth - 1.0 / max_depth)
 
 
 class DepthNetwork(nn.Module):
@@ -155,7 +189,12 @@ class DepthNetwork(nn.Module):
         f = self.encoder.forward_features(normalise_image(images))
         feat8 = self.reduce(f[2:5])
         fused = self.fusion(feat8, scale_intrinsics(Ks, 1.0 / 8), cam_to_ego)
-        sigma = self.decoder(fused, (f[1], f[0]) if self.preset.depth_skips else None)
         p = self.preset
+        offset = None
+        if p.ground_prior_cap is not None:
+            # the decoder predicts around the ground plane's depth (or the cap above the horizon)
+            prior = ground_prior_depth(Ks, cam_to_ego, images.shape[-2], images.shape[-1], p.ground_prior_cap)
+            offset = torch.logit(depth_to_sigma(prior, Ks[:, 0, 0], p.min_depth, p.max_depth, p.focal_ref), eps=1e-4)
+        sigma = self.decoder(fused, (f[1], f[0]) if p.depth_skips else None, offset)
         depth = sigma_to_depth(sigma, Ks[:, 0, 0], p.min_depth, p.max_depth, p.focal_ref)
         return {"depth": depth, "sigma": sigma, "f2": f[0], "f4": f[1], "f8": fused}

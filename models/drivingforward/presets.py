@@ -52,6 +52,10 @@ class DFPreset(Preset):
         depth_skips: the depth decoder also takes the encoder's 1/4 and 1/2 features (monodepth2's
             skips); False: the paper's decoder, from the fused 1/8 feature alone. (Issue 17: AbsRel
             1.62 against 0.61 at 300 steps of ``small``; off in every preset.)
+        ground_prior_cap: None (the paper): the decoder's sigmoid alone gives the depth. A value:
+            the decoder's logit is offset so that an output of 0 is the depth at which the pixel's
+            ray meets the ego frame's ground plane z = 0 (capped at this many metres, and the cap
+            above the horizon): the depth starts as a road, from the rig's known extrinsics.
         min_depth, max_depth, focal_ref: depth = 1/(1/max + (1/min - 1/max) sigma) * fx / focal_ref.
         gs_encoder_channels, gs_decoder_channels, gs_head_channels: Gaussian network widths.
         sh_degree, sh_damping, sh_damping_decay: SH degree predicted and rendered; degree l >= 1 is
@@ -114,6 +118,7 @@ class DFPreset(Preset):
     max_translation: float = 4.0
     depth_decoder_channels: tuple[int, int, int, int, int] = (16, 32, 64, 128, 256)
     depth_skips: bool = False
+    ground_prior_cap: float | None = None
     min_depth: float = 1.5
     max_depth: float = 80.0
     focal_ref: float = 300.0
@@ -170,6 +175,8 @@ class DFPreset(Preset):
             raise ValueError(f"preset {self.name}: warmup_steps must be >= 0, got {self.warmup_steps}")
         if self.automask_steps is not None and (isinstance(self.automask_steps, bool) or self.automask_steps < 0):
             raise ValueError(f"preset {self.name}: automask_steps must be None or an int >= 0, got {self.automask_steps!r}")
+        if self.ground_prior_cap is not None and not self.min_depth < self.ground_prior_cap:
+            raise ValueError(f"preset {self.name}: ground_prior_cap must be None or above min_depth, got {self.ground_prior_cap!r}")
         if self.smooth_order not in (1, 2):
             raise ValueError(f"preset {self.name}: smooth_order must be 1 or 2, got {self.smooth_order!r}")
         if not self.automask_margin >= 0:
