@@ -8,14 +8,14 @@ from clsplat.models.common.presets import get_preset
 # issue 17 (bench/RESULTS.md): nothing else may differ from the paper
 SIZE_FIELDS = {"name", "height", "width", "voxel_origin", "voxel_size", "voxel_shape", "depth_bins", "scale_cap",
                "focal_ref", "far_plane", "steps"}
-RECIPE_DEPARTURES = {"pose_translation_init", "lr_warmup"}
+RECIPE_DEPARTURES = {"pose_translation_init", "lr_warmup", "ground_prior_cap"}
 
 
 def test_paper_keeps_the_papers_recipe():
     p = get_preset("drivingforward", "paper")
     assert p.pose_source == "network" and p.pose_translation_init is None and not p.detach_render_pose
     assert p.supersample == 1 and p.pose_scale == 0.01 and p.lr == 1e-4 and p.warmup_steps == 0
-    assert p.lr_warmup == 0
+    assert p.lr_warmup == 0 and p.ground_prior_cap is None
     assert p.pose_lr is None and p.grad_clip is None
 
 

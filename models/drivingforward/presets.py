@@ -223,7 +223,11 @@ SMALL = register("drivingforward", DFPreset(
     name="small", height=64, width=112,
     voxel_origin=(-50.0, -50.0, -5.0), voxel_size=(2.5, 2.5, 2.5), voxel_shape=(40, 40, 6),
     depth_bins=16, scale_cap=0.25, focal_ref=300.0 * 112 / 640, far_plane=200.0, steps=1000,
-    pose_translation_init=(0.0, 0.0, -0.8), lr_warmup=20))
+    pose_translation_init=(0.0, 0.0, -0.8), lr_warmup=20,
+    # issue 17: from random weights the whole depth map drifts far in the first ~30 steps and
+    # carries the near road out of its photometric basin (2x too far for good); starting the
+    # decoder on the rig's ground plane took seed 0 from AbsRel 0.61 to 0.28 at 300 steps
+    ground_prior_cap=20.0))
 
 TINY = register("drivingforward", DFPreset(
     name="tiny", height=32, width=56,
