@@ -2,6 +2,8 @@
 training recipe, and every departure of ``small`` from it is a named field."""
 import dataclasses
 
+import pytest
+
 from clsplat.models.common.presets import get_preset
 
 # the fields by which the small presets shrink the problem (sizes), and the recipe departures of
@@ -25,3 +27,18 @@ def test_small_departs_from_the_paper_only_by_named_fields():
     assert diff - SIZE_FIELDS == RECIPE_DEPARTURES
     assert small.pose_translation_init == (0.0, 0.0, -0.8)          # 8 m/s x 0.1 s, forward = -z
     assert small.pose_source == "network"                           # the learned pose stays the default
+
+
+def test_a_checkpoint_from_before_a_field_existed_reads_as_the_class_default():
+    """small adopted ground_prior_cap=20 after runs were written without the field: such a
+    checkpoint ran without the prior, so it reads back with the class default (None) and still
+    loads for evaluation; resuming it under today's small is refused, naming the field."""
+    from clsplat.models.common.presets import check_preset_matches, preset_from_saved
+
+    small = get_preset("drivingforward", "small")
+    saved = {k: v for k, v in small.to_dict().items() if k != "ground_prior_cap"}
+    old = preset_from_saved("drivingforward", saved)
+    assert old.ground_prior_cap is None and old.replace(ground_prior_cap=20.0) == small
+    check_preset_matches(saved, old, "old.pt")
+    with pytest.raises(ValueError, match="ground_prior_cap: None != 20.0"):
+        check_preset_matches(saved, small, "old.pt")

@@ -12,12 +12,21 @@
   itself prefer the near road at its true depth? (``--set FIELD=VALUE`` changes the preset.)
 * ``follow CHECKPOINT``: does training follow that gradient? Adam steps (lr 1e-4) cycling over six
   training streets, printing the near-road median ratio every six steps.
+* ``basin``: the side cameras' near road alone, its true depth times a factor (true depth and
+  motion elsewhere, six training streets): the per-pixel minimum reprojection error over the
+  pixels a source sees, without and with the auto-mask, and the share the auto-mask drops. How
+  wide is the photometric minimum the network has to land in? (``--set supersample=3``.)
+* ``drift CHECKPOINT [CHECKPOINT ...]``: median predicted/true depth of the near (< 6 m) and far
+  pixels of the side and of the front/back cameras, on four held-out streets, per checkpoint (for
+  checkpoints kept at successive steps of one run: where does the near road leave its basin?).
 
 Streets come from ``--data`` (default ``synthetic``; a ``synthetic-cache:DIR`` reads a filled
 cache); held-out streets are the test split of ``--seed`` (default 0).
 
     .venv/bin/python bench/experiments/df_depth_errors.py errors RUN/checkpoint.pt --data synthetic-cache:DIR
     .venv/bin/python bench/experiments/df_depth_errors.py grads RUN/checkpoint.pt --data synthetic-cache:DIR
+    .venv/bin/python bench/experiments/df_depth_errors.py basin --data synthetic-cache:DIR [--set supersample=3]
+    .venv/bin/python bench/experiments/df_depth_errors.py drift RUN_s10/checkpoint.pt RUN_s40/checkpoint.pt --data ...
 """
 from __future__ import annotations
 
@@ -219,14 +228,85 @@ def follow(checkpoint: str, data: str, seed: int, first: int, steps: int, terms:
             print(f"step {it + 1}: near-road median pred/true {near_ratio():.3f}, loss {float(loss):.4f}")
 
 
+def basin(data: str, seed: int, scenes: int, first: int, sets: list[str] | None) -> None:
+    from clsplat.models.common.data import parse_data
+    from clsplat.models.common.geometry import warp
+    from clsplat.models.common.losses import photometric_error
+    from clsplat.models.common.presets import get_preset
+    from clsplat.models.drivingforward.cli import preset_overrides
+    from clsplat.models.drivingforward.data import load_triplet
+
+    torch.set_num_threads(1)
+    p = preset_overrides(get_preset("drivingforward", "small"), None, sets)
+    src = parse_data(data, seed=seed)
+    factors = (0.5, 0.7, 0.85, 1.0, 1.2, 1.4, 1.7, 2.0, 2.5, 3.0, 5.0)
+    acc = {f: [0.0, 0.0, 0, 0] for f in factors}    # error sum (seen), error sum (masked min), masked, seen
+    n = 0
+    for idx in range(first, first + scenes):
+        s = load_triplet(src, idx, p, "train")
+        im, Ks, Vm = s["images"], s["Ks"], s["viewmats"].float()
+        true = s["depths"][1].float().clamp(max=p.max_depth * 1.5)
+        side = torch.zeros_like(true, dtype=torch.bool)
+        side[list(SIDE_CAMERAS)] = True
+        region = side & (true < NEAR)
+        n += int(region.sum())
+        ident = torch.cat([photometric_error(im[k], im[1]) for k in (0, 2)], 1).min(1).values
+        for f in factors:
+            d = torch.where(region, true * f, true)
+            errs = []
+            for k in (0, 2):
+                w, valid = warp(im[k], d, Ks, Ks, Vm[k] @ torch.linalg.inv(Vm[1]))
+                errs.append(torch.where(valid > 0, photometric_error(w, im[1]), torch.full_like(valid, float("inf"))))
+            best = torch.cat(errs, 1).min(1).values
+            seen = region & torch.isfinite(best)
+            acc[f][0] += float(best[seen].sum())
+            acc[f][1] += float(torch.minimum(best, ident)[region].sum())
+            acc[f][2] += int((ident < best)[region].sum())
+            acc[f][3] += int(seen.sum())
+    print(f"side cameras' near road (< {NEAR:g} m, {n} px over {scenes} training streets), its depth x factor: "
+          "mean minimum reprojection error x 1e3 over the pixels a source sees | with the auto-mask; share masked")
+    for f in factors:
+        e, m, masked, seen = acc[f]
+        print(f"x{f:<5} seen {seen / n:4.0%}  {1e3 * e / seen:7.1f} | {1e3 * m / n:6.1f}   masked {masked / n:4.0%}")
+
+
+def drift(checkpoints: list[str], data: str, seed: int) -> None:
+    from clsplat.models.common.data import parse_data
+    from clsplat.models.drivingforward.checkpoint import load_model
+    from clsplat.models.drivingforward.data import load_triplet
+
+    torch.set_num_threads(1)
+    src, samples = parse_data(data, seed=seed), None
+    for ck in checkpoints:
+        model, p = load_model(ck)
+        model.eval()
+        if samples is None:
+            samples = [load_triplet(src, i, p, split="test") for i in range(4)]
+        with torch.no_grad():
+            P = torch.stack([model.depth_net(s["images"][1], s["Ks"], s["cam_to_ego"])["depth"][:, 0] for s in samples])
+        G = torch.stack([s["depths"][1] for s in samples])
+        P, G = P.double(), G.double()
+        valid = torch.isfinite(G) & (G < p.max_depth)
+        side = torch.zeros_like(G, dtype=torch.bool)
+        side[:, list(SIDE_CAMERAS)] = True
+        r = P.clamp(1e-3, p.max_depth) / G
+        cells = [f"{name} {float(r[valid & m].median()):5.2f}" for name, m in (
+            ("side<6", side & (G < NEAR)), ("front/back<6", ~side & (G < NEAR)),
+            ("side>=6", side & (G >= NEAR)), ("front/back>=6", ~side & (G >= NEAR)))]
+        step = torch.load(ck, map_location="cpu", weights_only=False).get("step", "?")
+        print(f"step {step:>5}: median predicted/true  " + "  ".join(cells) + f"  (median depth {float(P[valid].median()):.1f} m)")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
-    for name in ("errors", "grads", "landscape", "follow"):
+    for name in ("errors", "grads", "landscape", "follow", "basin", "drift"):
         a = sub.add_parser(name)
-        if name != "landscape":
+        if name == "drift":
+            a.add_argument("checkpoint", nargs="+")
+        elif name not in ("landscape", "basin"):
             a.add_argument("checkpoint")
-        a.add_argument("--set", action="append", default=None, metavar="FIELD=VALUE", help="landscape: preset change")
+        a.add_argument("--set", action="append", default=None, metavar="FIELD=VALUE", help="landscape, basin: preset change")
         a.add_argument("--data", default="synthetic")
         a.add_argument("--seed", type=int, default=0)
         a.add_argument("--scenes", type=int, default={"errors": 8, "landscape": 4}.get(name, 6))
@@ -239,6 +319,10 @@ def main(argv: list[str] | None = None) -> int:
         errors(args.checkpoint, args.data, args.seed, args.scenes)
     elif args.cmd == "landscape":
         landscape(args.data, args.seed, args.scenes, args.first, args.set)
+    elif args.cmd == "basin":
+        basin(args.data, args.seed, args.scenes, args.first, args.set)
+    elif args.cmd == "drift":
+        drift(args.checkpoint, args.data, args.seed)
     elif args.cmd == "grads":
         grads(args.checkpoint, args.data, args.seed, args.scenes, args.first)
     else:

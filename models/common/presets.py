@@ -153,8 +153,9 @@ def apply_sets(preset: Preset, sets: list[str] | None, **fields: Any) -> Preset:
 
 def preset_from_saved(family: str, saved: dict, name: str | None = None) -> Preset:
     """The preset a checkpoint was written with: its registered preset (or ``name``, when the
-    caller expects one) with the fields its run changed (``--set``) applied. Fields added to the
-    preset class after the checkpoint was written keep their defaults."""
+    caller expects one) with the fields its run changed (``--set``) applied. A field added to the
+    preset class after the checkpoint was written takes the class default, which is how the run
+    that wrote it behaved, even where the registered preset has since adopted another value."""
     if not isinstance(saved, dict):
         raise ValueError("checkpoint has no preset record")
     base = get_preset(family, name or saved.get("name", "?"))
@@ -165,6 +166,9 @@ def preset_from_saved(family: str, saved: dict, name: str | None = None) -> Pres
     mine = base.to_dict()
     changes = {k: tuple(v) if isinstance(mine.get(k), list) and isinstance(v, list) else v
                for k, v in saved.items() if k in names and k != "name" and v != mine.get(k)}
+    for f in dataclasses.fields(base):  # type: ignore[arg-type]
+        if f.name not in saved and f.default is not dataclasses.MISSING and f.default != getattr(base, f.name):
+            changes[f.name] = f.default
     return base.replace(**changes) if changes else base
 
 
