@@ -136,8 +136,9 @@ def ground_prior_depth(Ks: Tensor, cam_to_ego: Tensor, height: int, width: int, 
     then be garbage (a real PandaSet sequence's ego frame is its roof LiDAR's).
     """
     if bool((cam_to_ego[:, 2, 3] <= 0).any()):
+        heights = [round(float(h), 3) for h in cam_to_ego[:, 2, 3]]
         raise ValueError("ground_prior_cap: the ground prior needs the ego frame's z = 0 to be the ground, but "
-                         f"camera heights are {[round(float(h), 3) for h in cam_to_ego[:, 2, 3]]} m; train with --set ground_prior_cap=None")
+                         f"camera heights are {heights} m; train with --set ground_prior_cap=None")
     v, u = torch.meshgrid(torch.arange(height, dtype=Ks.dtype, device=Ks.device) + 0.5,
                           torch.arange(width, dtype=Ks.dtype, device=Ks.device) + 0.5, indexing="ij")
     pix = torch.stack([u, v, torch.ones_like(u)], 0).reshape(3, -1)                 # [3, HW]
