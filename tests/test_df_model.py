@@ -255,3 +255,13 @@ def test_smooth_order_selects_the_smoothness_term(sample):
     torch.testing.assert_close(first["reproj"], second["reproj"])
     with pytest.raises(ValueError, match="smooth_order"):
         TINY.replace(smooth_order=3)
+
+
+def test_ground_prior_trains_finite_and_passes_gradient_to_the_decoder(sample):
+    torch.manual_seed(0)
+    m = DrivingForward(TINY.replace(ground_prior_cap=20.0))
+    t = m.training_losses(sample["images"], sample["images"], sample["Ks"], sample["cam_to_ego"])
+    assert torch.isfinite(t["loss"])
+    t["loss"].backward()
+    g = m.depth_net.decoder.dispconv.weight.grad
+    assert g is not None and torch.isfinite(g).all() and g.abs().sum() > 0
