@@ -173,10 +173,14 @@ def test_two_process_data_parallel_equals_one_process(tmp_path):
     one = torch.load(tmp_path / "one" / "checkpoint.pt", weights_only=True)
     two = torch.load(tmp_path / "two" / "checkpoint.pt", weights_only=True)
     assert two["step"] == one["step"] == 1
-    # The gradients (Adam's first moment after one step, 0.1 g) must agree. The weights must agree
-    # wherever the gradient is clearly non-zero: Adam's first step moves every weight by about
-    # lr * sign(g), so an element whose gradient is summation noise around zero may move by +lr in
-    # one run and -lr in the other, and only those are left out of the weight comparison.
+    # The gradients (Adam's first moment after one step, 0.1 g) must agree to float32 summation
+    # noise. That noise is not small everywhere: the pose gradient sums ~10^5 pixel terms of both
+    # signs, and a different reduction order (two processes, then the all-reduce) moves every pose
+    # network gradient by up to 6e-4 of the tensor's largest element (measured). A wrong reduction
+    # (a missing all-reduce, a sum for a mean, a per-rank normalisation) moves it by O(1), so the
+    # bound 5e-3 separates the two. The weights must agree wherever the gradient is clearly above
+    # that noise: Adam's first step moves every weight by about lr * sign(g), so an element whose
+    # gradient is noise around zero may move by +lr in one run and -lr in the other.
     from clsplat.models.common.presets import get_preset
     from clsplat.models.drivingforward.cli import make_optimizer
     from clsplat.models.drivingforward.model import DrivingForward
@@ -190,8 +194,9 @@ def test_two_process_data_parallel_equals_one_process(tmp_path):
         assert one["model"][k].shape == m.shape, k
         m2 = two["optimizer"]["state"][i]["exp_avg"]
         scale = float(m.abs().max())
-        assert torch.allclose(m, m2, rtol=1e-4, atol=1e-6 * scale + 1e-12), (k, float((m - m2).abs().max()), scale)
-        clear = m.abs() > 1e-4 * scale
+        err = float((m - m2).abs().max())
+        assert err <= 5e-3 * scale + 1e-12, (k, err, scale)
+        clear = m.abs() > 5e-2 * scale
         w1, w2 = one["model"][k][clear], two["model"][k][clear]
         assert torch.allclose(w1, w2, rtol=1e-5, atol=1e-7), (k, float((w1 - w2).abs().max()))
     assert len(params) > 100
