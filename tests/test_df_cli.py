@@ -285,9 +285,11 @@ def test_view_serves_the_run_and_leaves_it_unchanged(runs, tmp_path, capsys):
 
 def test_lr_warmup_ramps_the_rate_and_resumes_bitwise(tmp_path):
     """``lr_warmup=N``: step s (from 1) runs at s/N of the preset's rate until the ramp is done; the
-    ramp is checkpointed with the optimiser, so a resumed run equals a straight one bit for bit."""
-    from clsplat.models.drivingforward.presets import TINY
-    warm = ("--eval-scenes", "0", "--set", "lr_warmup=4")
+    ramp is checkpointed with the optimiser, so a resumed run equals a straight one bit for bit,
+    with every departure of ``small``'s recipe on (the ground prior, the pose's initial motion)."""
+    from clsplat.models.drivingforward.presets import SMALL, TINY
+    warm = ("--eval-scenes", "0", "--set", "lr_warmup=4", "--set", f"ground_prior_cap={SMALL.ground_prior_cap}",
+            "--set", f"pose_translation_init={SMALL.pose_translation_init}")
     assert _train(tmp_path / "straight", 3, *warm) == 0
     assert _train(tmp_path / "resumed", 2, *warm) == 0
     assert _train(tmp_path / "resumed", 3, *warm, "--resume") == 0
@@ -296,5 +298,6 @@ def test_lr_warmup_ramps_the_rate_and_resumes_bitwise(tmp_path):
     assert [r["lr"] for r in logs[0]] == pytest.approx([TINY.lr * s / 4 for s in (1, 2, 3)])
     assert [r["loss"] for r in logs[0]] == [r["loss"] for r in logs[1]]
     a, b = (torch.load(tmp_path / r / "checkpoint.pt", weights_only=True) for r in ("straight", "resumed"))
+    assert a["preset"]["ground_prior_cap"] == b["preset"]["ground_prior_cap"] == SMALL.ground_prior_cap
     for k, v in a["model"].items():
         assert torch.equal(v, b["model"][k]), k
