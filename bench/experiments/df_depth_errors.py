@@ -1,7 +1,7 @@
 """Where a DrivingForward model's held-out depth error sits, and which loss term pushes it there.
 
-* ``errors CHECKPOINT``: AbsRel on the held-out streets broken down by true depth, image row band
-  and camera, with the share of the total each carries and the median predicted/true ratio there;
+* ``errors CHECKPOINT``: AbsRel on the held-out streets broken down by true depth, image row band,
+  semantic class (vehicles split into parked and moving, from the data's boxes) and camera, with the share of the total each carries and the median predicted/true ratio there;
   also the AbsRel left after median scaling (what a scale error alone explains).
 * ``grads CHECKPOINT``: on training streets, per loss term, the sum over a region's pixels of
   ``d(w L)/d log(depth)`` (negative: a descent step moves the region farther), for the side
@@ -12,10 +12,11 @@
   itself prefer the near road at its true depth? (``--set FIELD=VALUE`` changes the preset.)
 * ``follow CHECKPOINT``: does training follow that gradient? Adam steps (lr 1e-4) cycling over six
   training streets, printing the near-road median ratio every six steps.
-* ``basin``: the side cameras' near road alone, its true depth times a factor (true depth and
-  motion elsewhere, six training streets): the per-pixel minimum reprojection error over the
-  pixels a source sees, without and with the auto-mask, and the share the auto-mask drops. How
-  wide is the photometric minimum the network has to land in? (``--set supersample=3``.)
+* ``basin``: the side cameras' near road alone (``--region parked-vehicles``: the parked vehicles in
+  every camera), its true depth times a factor (true depth and motion elsewhere, six training
+  streets): the per-pixel minimum reprojection error over the pixels a source sees, without and
+  with the auto-mask, and the share the auto-mask drops. How wide is the photometric minimum the
+  network has to land in? (``--set supersample=3``.)
 * ``drift CHECKPOINT [CHECKPOINT ...]``: median predicted/true depth of the near (< 6 m) and far
   pixels of the side and of the front/back cameras, on four held-out streets, per checkpoint (for
   checkpoints kept at successive steps of one run: where does the near road leave its basin?).
@@ -25,18 +26,20 @@ cache); held-out streets are the test split of ``--seed`` (default 0).
 
     .venv/bin/python bench/experiments/df_depth_errors.py errors RUN/checkpoint.pt --data synthetic-cache:DIR
     .venv/bin/python bench/experiments/df_depth_errors.py grads RUN/checkpoint.pt --data synthetic-cache:DIR
-    .venv/bin/python bench/experiments/df_depth_errors.py basin --data synthetic-cache:DIR [--set supersample=3]
+    .venv/bin/python bench/experiments/df_depth_errors.py basin --data synthetic-cache:DIR [--set supersample=3] [--region parked-vehicles]
     .venv/bin/python bench/experiments/df_depth_errors.py drift RUN_s10/checkpoint.pt RUN_s40/checkpoint.pt --data ...
 """
 from __future__ import annotations
 
 import argparse
 
+import numpy as np
 import torch
 
 NEAR = 6.0          # metres: the near road the small preset over-estimates
 DEPTH_EDGES = (0, 5, 10, 15, 20, 30, 50, 80)
 SIDE_CAMERAS = (1, 2, 3, 4)   # rig order: front, front-left, front-right, back-left, back-right, back
+VEHICLE = 3         # index of "vehicle" in clsplat.data.scene.SEMANTIC_CLASSES
 
 
 def _load(checkpoint: str, data: str, seed: int):
@@ -49,18 +52,41 @@ def _load(checkpoint: str, data: str, seed: int):
     return model, preset, parse_data(data, seed=seed)
 
 
+MOVING = 254   # _classes(): the class index given to vehicles that move between t-1 and t+1
+
+
+def _classes(src, index: int, p, split: str, names: list[str], shape: torch.Size) -> torch.Tensor:
+    """``[V, H, W]`` uint8 semantic class of window ``index``'s frame t (255 where the data has no
+    labels). Vehicles that move in the world between t-1 and t+1 get :data:`MOVING`: the temporal
+    warps assume a static scene, and such a vehicle breaks it."""
+    kw = {"dt": p.scenes_dt, "supersample": p.supersample} if src.synthetic_streets else {}
+    fr = src.sequence(index, num_frames=3, height=p.height, width=p.width, split=split, **kw).frames
+    f = fr[1]
+    if not f.semantics:
+        return torch.full(shape, 255, dtype=torch.uint8)
+    c = torch.stack([torch.as_tensor(f.semantics[n]) for n in names]).clone()
+    box = lambda k: {b.track_id: np.asarray(b.center) for b in (fr[k].boxes or [])}  # noqa: E731
+    b0, b2 = box(0), box(2)
+    moving = [t for t in b0 if t in b2 and np.linalg.norm(b2[t] - b0[t]) > 0.1]
+    if moving and f.instances:
+        inst = torch.stack([torch.as_tensor(f.instances[n]) for n in names])
+        c[torch.isin(inst.long(), torch.tensor(moving))] = MOVING
+    return c
+
+
 def errors(checkpoint: str, data: str, seed: int, scenes: int) -> None:
     from clsplat.models.drivingforward.data import load_triplet
 
     model, p, src = _load(checkpoint, data, seed)
     model.eval()
-    P, G = [], []
+    P, G, C = [], [], []
     with torch.no_grad():
         for i in range(scenes):
             s = load_triplet(src, i, p, split="test")
             P.append(model.depth_net(s["images"][1], s["Ks"], s["cam_to_ego"])["depth"][:, 0])
             G.append(s["depths"][1])
-    P, G = torch.stack(P).double(), torch.stack(G).double()                # [S, V, H, W]
+            C.append(_classes(src, i, p, "test", s["names"], G[-1].shape))
+    P, G, C = torch.stack(P).double(), torch.stack(G).double(), torch.stack(C)   # [S, V, H, W]
     valid = torch.isfinite(G) & (G > 1e-3) & (G < p.max_depth)            # as the evaluation counts them
     pc = P.clamp(1e-3, p.max_depth)
     rel = torch.where(valid, (pc - G).abs() / G, torch.zeros_like(G))
@@ -89,6 +115,11 @@ def errors(checkpoint: str, data: str, seed: int, scenes: int) -> None:
         m = torch.zeros_like(valid)
         m[:, c] = valid[:, c]
         row(f"camera {c}", m)
+    print("by semantic class")
+    from clsplat.data.scene import SEMANTIC_CLASSES
+    for k, name in enumerate(SEMANTIC_CLASSES):
+        row(name if name != "vehicle" else "vehicle, parked", valid & (C == k))
+    row("vehicle, moving", valid & (C == MOVING))
     print("by camera group and depth")
     for name, cams in (("sides", SIDE_CAMERAS), ("front/back", tuple(c for c in range(G.shape[1]) if c not in SIDE_CAMERAS))):
         cm = torch.zeros_like(valid)
@@ -228,7 +259,7 @@ def follow(checkpoint: str, data: str, seed: int, first: int, steps: int, terms:
             print(f"step {it + 1}: near-road median pred/true {near_ratio():.3f}, loss {float(loss):.4f}")
 
 
-def basin(data: str, seed: int, scenes: int, first: int, sets: list[str] | None) -> None:
+def basin(data: str, seed: int, scenes: int, first: int, sets: list[str] | None, region_name: str = "near-road") -> None:
     from clsplat.models.common.data import parse_data
     from clsplat.models.common.geometry import warp
     from clsplat.models.common.losses import photometric_error
@@ -246,9 +277,12 @@ def basin(data: str, seed: int, scenes: int, first: int, sets: list[str] | None)
         s = load_triplet(src, idx, p, "train")
         im, Ks, Vm = s["images"], s["Ks"], s["viewmats"].float()
         true = s["depths"][1].float().clamp(max=p.max_depth * 1.5)
-        side = torch.zeros_like(true, dtype=torch.bool)
-        side[list(SIDE_CAMERAS)] = True
-        region = side & (true < NEAR)
+        if region_name == "near-road":
+            side = torch.zeros_like(true, dtype=torch.bool)
+            side[list(SIDE_CAMERAS)] = True
+            region = side & (true < NEAR)
+        else:                           # parked vehicles, every camera
+            region = _classes(src, idx, p, "train", s["names"], true.shape) == VEHICLE
         n += int(region.sum())
         ident = torch.cat([photometric_error(im[k], im[1]) for k in (0, 2)], 1).min(1).values
         for f in factors:
@@ -263,7 +297,8 @@ def basin(data: str, seed: int, scenes: int, first: int, sets: list[str] | None)
             acc[f][1] += float(torch.minimum(best, ident)[region].sum())
             acc[f][2] += int((ident < best)[region].sum())
             acc[f][3] += int(seen.sum())
-    print(f"side cameras' near road (< {NEAR:g} m, {n} px over {scenes} training streets), its depth x factor: "
+    what = f"side cameras' near road (< {NEAR:g} m" if region_name == "near-road" else "parked vehicles (every camera"
+    print(f"{what}, {n} px over {scenes} training streets), its depth x factor: "
           "mean minimum reprojection error x 1e3 over the pixels a source sees | with the auto-mask; share masked")
     for f in factors:
         e, m, masked, seen = acc[f]
@@ -312,6 +347,8 @@ def main(argv: list[str] | None = None) -> int:
         a.add_argument("--scenes", type=int, default={"errors": 8, "landscape": 4}.get(name, 6))
         a.add_argument("--first", type=int, default=200, help="first training street (grads, follow)")
         a.add_argument("--steps", type=int, default=24, help="follow: Adam steps")
+        a.add_argument("--region", default="near-road", choices=("near-road", "parked-vehicles"),
+                       help="basin: the pixels whose depth is scaled")
         a.add_argument("--terms", nargs="+", default=None, choices=("reproj", "spatial", "spatio_temporal", "smooth", "render"),
                        help="follow: train on these terms only (default: the total loss)")
     args = ap.parse_args(argv)
@@ -320,7 +357,7 @@ def main(argv: list[str] | None = None) -> int:
     elif args.cmd == "landscape":
         landscape(args.data, args.seed, args.scenes, args.first, args.set)
     elif args.cmd == "basin":
-        basin(args.data, args.seed, args.scenes, args.first, args.set)
+        basin(args.data, args.seed, args.scenes, args.first, args.set, args.region)
     elif args.cmd == "drift":
         drift(args.checkpoint, args.data, args.seed)
     elif args.cmd == "grads":
