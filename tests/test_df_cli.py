@@ -8,8 +8,10 @@ import json
 import pytest
 import torch
 
+from clsplat.models.common.data import parse_data
 from clsplat.models.common.metrics import LPIPS_OFF_MESSAGE
 from clsplat.models.drivingforward.cli import evaluate, load_model, train
+from clsplat.models.drivingforward.data import load_triplet
 
 KEYS = {"psnr", "ssim", "abs_rel", "sq_rel", "rmse", "delta1", "scale_ratio"}
 POSE_KEYS = {"pose_t_err_m", "pose_t_err_pct", "pose_r_err_deg", "pose_t_pred_m", "pose_t_true_m"}
@@ -53,6 +55,28 @@ def test_eval_reports_the_pose_networks_motion_against_the_datas(runs):
     assert a["pose_t_err_m"] >= abs(a["pose_t_true_m"] - a["pose_t_pred_m"]) - 1e-9   # triangle inequality
     assert a["pose_t_err_pct"] == pytest.approx(100 * a["pose_t_err_m"] / a["pose_t_true_m"], rel=1e-6)
     assert m["protocol"]["pose_source"] == "network"
+
+
+def test_eval_scores_the_image_blind_layout_baseline_beside_the_model(runs):
+    """``layout_*``: the per-pixel median true depth of the first training windows, the same map for
+    every held-out window, scored like the model (a model that does not beat it has not learned
+    depth from its images)."""
+    from clsplat.models.common.presets import get_preset
+    from clsplat.models.drivingforward.evaluation import layout_depth
+
+    p, src, cams = get_preset("drivingforward", "tiny"), parse_data("synthetic"), ["CAM_FRONT_LEFT"]
+    lay = layout_depth(src, p, 3, cams)
+    truth = torch.stack([load_triplet(src, i, p, "train", cams)["depths"][1] for i in range(3)]).double()
+    assert torch.isinf(truth).any()                         # sky: counted as the far limit
+    assert torch.equal(lay, truth.clamp(max=p.max_depth).median(0).values.float())
+    test = torch.stack([load_triplet(src, i, p, "test", cams)["depths"][1] for i in range(3)]).double()
+    assert not torch.equal(lay, test.clamp(max=p.max_depth).median(0).values.float())   # training windows only
+    assert layout_depth(src, p, 0, cams) is None
+    with pytest.raises(ValueError, match="--layout-windows"):
+        layout_depth(src, p, -1, cams)
+    m = json.loads((runs / "straight" / "metrics.json").read_text())
+    assert {"layout_abs_rel", "layout_delta1", "layout_scale_ratio"} <= set(m["all"])
+    assert 0 < m["all"]["layout_abs_rel"] < 1 and m["protocol"]["layout"].startswith("image-blind")
 
 
 def test_dataset_pose_run_keeps_the_pose_network_untrained_and_its_choice(runs, tmp_path, capsys):
@@ -210,9 +234,8 @@ def test_eval_on_a_pandaset_sequence_scores_depth_against_projected_lidar(runs, 
     no depth maps: depth is scored against the LiDAR sweep projected into each camera, and that
     projection agrees with the generator's depth maps."""
     from clsplat.data import write_pandaset
-    from clsplat.models.common.data import parse_data, to_torch_frame
+    from clsplat.models.common.data import to_torch_frame
     from clsplat.models.common.presets import get_preset
-    from clsplat.models.drivingforward.data import load_triplet
 
     cams = ["CAM_FRONT", "CAM_FRONT_LEFT"]
     seq = parse_data("synthetic").sequence(0, num_frames=15, height=32, width=56, lidar=True, dt=0.1, cameras=cams)

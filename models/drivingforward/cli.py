@@ -141,7 +141,7 @@ def train(argv: list[str]) -> int:
 
 def _summary(m: dict) -> str:
     keys = ("psnr", "ssim", "lpips", "abs_rel", "sq_rel", "rmse", "delta1", "scale_ratio", "oracle_psnr",
-            "pose_t_err_m", "pose_t_err_pct", "pose_r_err_deg")
+            "layout_abs_rel", "layout_delta1", "pose_t_err_m", "pose_t_err_pct", "pose_r_err_deg")
     return "eval all: " + ", ".join(f"{k} {m['all'][k]:.4g}" for k in keys if k in m["all"])
 
 
@@ -158,6 +158,9 @@ def evaluate(argv: list[str]) -> int:
                    help="input frames as offsets from t in {-1, 0, 1} (default SF: 0; MF: -1 1)")
     p.add_argument("--target", type=int, default=None, help="rendered frame offset (default SF: 1; MF: 0)")
     p.add_argument("--no-oracle", action="store_true", help="skip the oracle-depth baseline")
+    p.add_argument("--layout-windows", type=int, default=32,
+                   help="training windows behind the image-blind layout baseline (per-pixel median true "
+                        "depth; 0: skip it)")
     p.add_argument("--supersample", type=positive_int, default=None,
                    help="synthetic only: rays per pixel side of the held-out images (default: the "
                         "checkpoint's preset), to score models trained on different images on the same ones")
@@ -171,7 +174,7 @@ def evaluate(argv: list[str]) -> int:
         with staged_group(args.out) as stage:  # the three files replace an earlier evaluation's together
             m = evaluate_model(model, source, args.num_scenes, args.cameras, args.offsets, args.target, lpips,
                                out_dir=stage, oracle=not args.no_oracle, progress=not args.no_progress,
-                               step=model.trained_steps, supersample=args.supersample)
+                               step=model.trained_steps, supersample=args.supersample, layout=args.layout_windows)
         print(_summary(m))
         print(f"wrote {args.out}/metrics.json, contact_sheet.png, depth_sheet.png")
     except ValueError as e:

@@ -1,4 +1,4 @@
-"""Evaluation of a DrivingForward model on held-out windows: novel views, depth, oracle baseline.
+"""Evaluation of a DrivingForward model on held-out windows: novel views, depth, two baselines.
 
 For each held-out window (frames t-1, t, t+1), the model reconstructs Gaussians from the input
 frames (default: SF t, MF t-1 and t+1) with the *true* ego motion (the pose network is a training
@@ -19,6 +19,13 @@ The oracle-depth baseline of ``make demo`` (:func:`clsplat.pixel_recon.lift_pixe
 pixel of the input frame lifted at its true depth, one pixel's footprint, opacity 0.95, rendered
 with the mean sky colour behind) is run on the same windows at the same resolution when the
 data has depth, so that ``oracle_psnr`` can be read beside ``psnr``.
+
+The image-blind layout baseline (:func:`layout_depth`): per camera and pixel, the median ground-truth
+depth of the first ``layout`` training windows, the same map for every held-out window. It scores
+what a depth that never looks at the image scores (``layout_abs_rel``, ``layout_delta1``,
+``layout_scale_ratio`` beside the model's): on a street whose layout barely changes, such as the
+synthetic streets, it is a strong baseline (issue 17: AbsRel 0.11, delta<1.25 0.87 at ``small``'s
+size), and a model that does not beat it has not learned depth from its images.
 """
 from __future__ import annotations
 
@@ -36,7 +43,7 @@ from .data import gt_ego_motion, load_triplet
 
 FAMILY = "drivingforward"
 
-__all__ = ["evaluate_model", "OFFSETS"]
+__all__ = ["evaluate_model", "layout_depth", "OFFSETS"]
 
 #: frame offset -> index in a triplet
 OFFSETS = {-1: 0, 0: 1, 1: 2}
@@ -85,10 +92,30 @@ def _depth_colour(depth: Tensor, max_depth: float = 80.0) -> np.ndarray:
 
 
 @torch.no_grad()
+def layout_depth(source, preset, windows: int, cameras: Sequence[str] | None = None) -> Tensor | None:
+    """The image-blind layout baseline: per camera and pixel, the median true depth at frame t of
+    training windows ``0 .. windows-1`` (depth maps, or projected LiDAR where there are none; sky
+    and pixels without a return count as ``preset.max_depth``, since a layout that puts the sky far
+    is what an image-blind guess would do).
+
+    Returns ``[V, H, W]``, or None when the data has no depth (or ``windows`` is 0).
+    """
+    if isinstance(windows, bool) or not isinstance(windows, int) or windows < 0:
+        raise ValueError(f"--layout-windows: expected an int >= 0, got {windows!r}")
+    maps = []
+    for i in range(windows):
+        s = load_triplet(source, i, preset, split="train", cameras=cameras)
+        d = s["depths"][1] if "depths" in s else s.get("lidar_depth")
+        if d is None:
+            return None
+        maps.append(torch.nan_to_num(d.double(), nan=preset.max_depth, posinf=preset.max_depth).clamp(max=preset.max_depth))
+    return torch.stack(maps).median(0).values.float() if maps else None
+
+
 def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | None = None,
                    frames: Sequence[int] | None = None, target: int | None = None, lpips=None,
                    out_dir: str | Path | None = None, oracle: bool = True, progress: bool = False,
-                   step: int = 0, supersample: int | None = None) -> dict:
+                   step: int = 0, supersample: int | None = None, layout: int = 32) -> dict:
     """Novel-view and depth metrics on held-out windows ``0 .. num_scenes-1`` of the test split.
 
     Args:
@@ -99,13 +126,16 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
         lpips: optional LPIPS module; out_dir: where to write ``metrics.json`` and the contact sheets.
         oracle: also run the oracle-depth baseline (needs depth in the data).
         step: the training steps behind the model (recorded).
+        layout: training windows behind the image-blind layout baseline (:func:`layout_depth`);
+            0: not run.
         supersample: synthetic streets only: rays per pixel side of the held-out images (default:
             the model's preset, i.e. the images it trained on); depth ground truth is the centre
             ray's either way, so models trained on different images can be scored on the same ones.
     Returns:
         the ``metrics.json`` dict (:mod:`clsplat.models.common.report`): ``all`` and
         ``per_camera`` hold PSNR/SSIM[/LPIPS], depth errors and ``oracle_psnr`` (when run),
-        ``all`` also the pose errors; ``protocol`` the settings used.
+        ``all`` also the pose errors and the layout baseline's ``layout_abs_rel``,
+        ``layout_delta1``, ``layout_scale_ratio`` (when run); ``protocol`` the settings used.
     """
     from clsplat.io.contact_sheet import make_contact_sheet
 
@@ -170,9 +200,13 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
     if oracles:
         scores["oracle_psnr"] = psnr(torch.stack(oracles).flatten(0, 1), G.flatten(0, 1)).double()
     all_, per_camera = camera_blocks(scores, cams)
+    lay = layout_depth(source, data_preset, layout, cameras) if preds and layout else None
     if preds:
         P, D = torch.stack(preds), torch.stack(gdepths)       # [S, V, H, W]
         all_.update(depth_metrics(P, D, min_depth=1e-3, max_depth=p.max_depth))
+        if lay is not None:
+            m = depth_metrics(lay.expand_as(D), D, min_depth=1e-3, max_depth=p.max_depth)
+            all_.update({f"layout_{k}": m[k] for k in ("abs_rel", "delta1", "scale_ratio")})
         for c, name in enumerate(names):
             per_camera[name].update(depth_metrics(P[:, c], D[:, c], min_depth=1e-3, max_depth=p.max_depth))
     for k in ("t_err_m", "t_err_pct", "r_err_deg", "t_pred_m", "t_true_m"):
@@ -186,6 +220,8 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
                 "depth_gt": "none" if not preds else ("depth maps of the data" if "depths" in s
                                                       else "projected LiDAR at t (nearest return per pixel)"),
                 "oracle_psnr": "oracle-depth pixel reconstruction of the same target" if oracles else "not run",
+                "layout": (f"image-blind: per-pixel median true depth of {layout} training windows"
+                           if lay is not None else "not run"),
                 "pose_source": getattr(p, "pose_source", "network"),
                 "pose": ("pose network, camera 0, t -> t+1, against the data's ego motion; mean over windows"
                          if poses else "not evaluated (pose_source 'dataset': the pose network is not trained)")}
