@@ -17,6 +17,9 @@
   streets): the per-pixel minimum reprojection error over the pixels a source sees, without and
   with the auto-mask, and the share the auto-mask drops. How wide is the photometric minimum the
   network has to land in? (``--set supersample=3``.)
+* ``baselines``: depths that never look at the image, scored like a model on the held-out streets,
+  overall and per class: the layout (per-pixel median true depth of ``--windows`` training
+  windows, as ``eval`` reports it) and the ground prior alone at each of ``--caps``.
 * ``drift CHECKPOINT [CHECKPOINT ...]``: median predicted/true depth of the near (< 6 m) and far
   pixels of the side and of the front/back cameras, on four held-out streets, per checkpoint (for
   checkpoints kept at successive steps of one run: where does the near road leave its basin?).
@@ -27,6 +30,7 @@ cache); held-out streets are the test split of ``--seed`` (default 0).
     .venv/bin/python bench/experiments/df_depth_errors.py errors RUN/checkpoint.pt --data synthetic-cache:DIR
     .venv/bin/python bench/experiments/df_depth_errors.py grads RUN/checkpoint.pt --data synthetic-cache:DIR
     .venv/bin/python bench/experiments/df_depth_errors.py basin --data synthetic-cache:DIR [--set supersample=3] [--region parked-vehicles]
+    .venv/bin/python bench/experiments/df_depth_errors.py baselines --data synthetic-cache:DIR [--caps 10 20]
     .venv/bin/python bench/experiments/df_depth_errors.py drift RUN_s10/checkpoint.pt RUN_s40/checkpoint.pt --data ...
 """
 from __future__ import annotations
@@ -305,6 +309,37 @@ def basin(data: str, seed: int, scenes: int, first: int, sets: list[str] | None,
         print(f"x{f:<5} seen {seen / n:4.0%}  {1e3 * e / seen:7.1f} | {1e3 * m / n:6.1f}   masked {masked / n:4.0%}")
 
 
+def baselines(data: str, seed: int, scenes: int, windows: int, caps: list[float]) -> None:
+    """Image-blind depths scored like a model, overall and per semantic class: the layout baseline
+    (per-pixel median true depth of ``windows`` training windows) and the ground prior alone at
+    each cap (what ``ground_prior_cap`` starts the network from)."""
+    from clsplat.data.scene import SEMANTIC_CLASSES
+    from clsplat.models.common.metrics import depth_metrics
+    from clsplat.models.common.data import parse_data
+    from clsplat.models.common.presets import get_preset
+    from clsplat.models.drivingforward.data import load_triplet
+    from clsplat.models.drivingforward.depth import ground_prior_depth
+    from clsplat.models.drivingforward.evaluation import layout_depth
+
+    torch.set_num_threads(1)
+    p = get_preset("drivingforward", "small")
+    src = parse_data(data, seed=seed)
+    S = [load_triplet(src, i, p, split="test") for i in range(scenes)]
+    G = torch.stack([s["depths"][1] for s in S]).double()
+    C = torch.stack([_classes(src, i, p, "test", s["names"], G.shape[1:]) for i, s in enumerate(S)])
+    valid = torch.isfinite(G) & (G > 1e-3) & (G < p.max_depth)
+    guesses = {f"layout ({windows} training windows)": layout_depth(src, p, windows).double().expand_as(G)}
+    for cap in caps:
+        guesses[f"ground prior alone, cap {cap:g} m"] = torch.stack(
+            [ground_prior_depth(s["Ks"].double(), s["cam_to_ego"].double(), p.height, p.width, cap)[:, 0] for s in S])
+    for name, P in guesses.items():
+        m = depth_metrics(P, G, max_depth=p.max_depth)
+        rel = (P.clamp(1e-3, p.max_depth) - G).abs() / G
+        cls = " ".join(f"{n} {float(rel[valid & (C == k)].mean()):.3f}" for k, n in
+                       [*enumerate(SEMANTIC_CLASSES), (MOVING, "moving-vehicle")] if (valid & (C == k)).any())
+        print(f"{name}: AbsRel {m['abs_rel']:.3f} delta1 {m['delta1']:.3f} scale {m['scale_ratio']:.3f} | AbsRel by class: {cls}")
+
+
 def drift(checkpoints: list[str], data: str, seed: int) -> None:
     from clsplat.models.common.data import parse_data
     from clsplat.models.drivingforward.checkpoint import load_model
@@ -335,18 +370,20 @@ def drift(checkpoints: list[str], data: str, seed: int) -> None:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
-    for name in ("errors", "grads", "landscape", "follow", "basin", "drift"):
+    for name in ("errors", "grads", "landscape", "follow", "basin", "drift", "baselines"):
         a = sub.add_parser(name)
         if name == "drift":
             a.add_argument("checkpoint", nargs="+")
-        elif name not in ("landscape", "basin"):
+        elif name not in ("landscape", "basin", "baselines"):
             a.add_argument("checkpoint")
         a.add_argument("--set", action="append", default=None, metavar="FIELD=VALUE", help="landscape, basin: preset change")
         a.add_argument("--data", default="synthetic")
         a.add_argument("--seed", type=int, default=0)
-        a.add_argument("--scenes", type=int, default={"errors": 8, "landscape": 4}.get(name, 6))
+        a.add_argument("--scenes", type=int, default={"errors": 8, "baselines": 8, "landscape": 4}.get(name, 6))
         a.add_argument("--first", type=int, default=200, help="first training street (grads, follow)")
         a.add_argument("--steps", type=int, default=24, help="follow: Adam steps")
+        a.add_argument("--windows", type=int, default=32, help="baselines: training windows of the layout")
+        a.add_argument("--caps", type=float, nargs="+", default=[10.0, 20.0], help="baselines: ground prior caps (m)")
         a.add_argument("--region", default="near-road", choices=("near-road", "parked-vehicles"),
                        help="basin: the pixels whose depth is scaled")
         a.add_argument("--terms", nargs="+", default=None, choices=("reproj", "spatial", "spatio_temporal", "smooth", "render"),
@@ -356,6 +393,8 @@ def main(argv: list[str] | None = None) -> int:
         errors(args.checkpoint, args.data, args.seed, args.scenes)
     elif args.cmd == "landscape":
         landscape(args.data, args.seed, args.scenes, args.first, args.set)
+    elif args.cmd == "baselines":
+        baselines(args.data, args.seed, args.scenes, args.windows, args.caps)
     elif args.cmd == "basin":
         basin(args.data, args.seed, args.scenes, args.first, args.set, args.region)
     elif args.cmd == "drift":
