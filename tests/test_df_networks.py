@@ -141,11 +141,19 @@ def test_ground_prior_is_the_generators_road_depth_and_the_decoders_zero(sample)
     torch.testing.assert_close(sigma_to_depth(sig, fx, TINY.min_depth, TINY.max_depth, TINY.focal_ref), prior)
     torch.manual_seed(0)
     net = DepthNetwork(TINY.replace(ground_prior_cap=30.0))
-    torch.nn.init.zeros_(net.decoder.dispconv.weight)
-    torch.nn.init.zeros_(net.decoder.dispconv.bias)
     with torch.no_grad():
-        depth = net(sample["images"][1], Ks, E)["depth"]
-    torch.testing.assert_close(depth, prior, rtol=1e-3, atol=1e-3)
+        shifted = net(sample["images"][1], Ks, E)["depth"]
+    assert float(((shifted - prior).abs() / prior).max()) > 0.05    # a random output layer moves the start
+    # depth_zero_init: the untrained network predicts the prior itself, and its output layer still learns
+    torch.manual_seed(0)
+    net = DepthNetwork(TINY.replace(ground_prior_cap=30.0, depth_zero_init=True))
+    assert not net.decoder.dispconv.weight.any() and not net.decoder.dispconv.bias.any()
+    depth = net(sample["images"][1], Ks, E)["depth"]
+    torch.testing.assert_close(depth.detach(), prior, rtol=1e-3, atol=1e-3)
+    depth.mean().backward()
+    assert net.decoder.dispconv.weight.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="depth_zero_init"):
+        TINY.replace(depth_zero_init=1)
     with pytest.raises(ValueError, match="ground_prior_cap"):
         TINY.replace(ground_prior_cap=1.0)
     below = E.clone()

@@ -176,6 +176,9 @@ class DepthNetwork(nn.Module):
         skips = (64, 64) if preset.depth_skips else None     # ResNet-18's 1/4 and 1/2 widths
         self.decoder = DepthDecoder(preset.proj_channels[1], preset.depth_decoder_channels, skips)
         he_init(self.reduce, self.fusion, self.decoder, skip=(self.decoder.dispconv,))
+        if preset.depth_zero_init:       # start exactly at the prior (the decoder's zero output)
+            nn.init.zeros_(self.decoder.dispconv.weight)
+            nn.init.zeros_(self.decoder.dispconv.bias)
 
     def forward(self, images: Tensor, Ks: Tensor, cam_to_ego: Tensor) -> dict[str, Tensor]:
         """Depth of every camera of one instant.

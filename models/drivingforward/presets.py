@@ -58,6 +58,11 @@ class DFPreset(Preset):
             above the horizon): the depth starts as a road, from the rig's known extrinsics.
             (Issue 17: held-out AbsRel 0.25-0.28 against 0.50-0.61 on three seeds at 300 steps of
             ``small``; 20 in ``small``.)
+        depth_zero_init: the depth decoder's output conv starts at zero (weights and bias), so that
+            the untrained network predicts exactly the ground prior (or sigma = 0.5 without one)
+            instead of the prior shifted by the random output layer. (Issue 17: seed 2's random
+            output layer started the median depth at 43 m, where a strong smoothness term
+            saturated the sigmoid at the far plane within 12 steps.)
         min_depth, max_depth, focal_ref: depth = 1/(1/max + (1/min - 1/max) sigma) * fx / focal_ref.
         gs_encoder_channels, gs_decoder_channels, gs_head_channels: Gaussian network widths.
         sh_degree, sh_damping, sh_damping_decay: SH degree predicted and rendered; degree l >= 1 is
@@ -124,6 +129,7 @@ class DFPreset(Preset):
     depth_decoder_channels: tuple[int, int, int, int, int] = (16, 32, 64, 128, 256)
     depth_skips: bool = False
     ground_prior_cap: float | None = None
+    depth_zero_init: bool = False
     min_depth: float = 1.5
     max_depth: float = 80.0
     focal_ref: float = 300.0
@@ -182,6 +188,8 @@ class DFPreset(Preset):
             raise ValueError(f"preset {self.name}: automask_steps must be None or an int >= 0, got {self.automask_steps!r}")
         if self.ground_prior_cap is not None and not self.min_depth < self.ground_prior_cap:
             raise ValueError(f"preset {self.name}: ground_prior_cap must be None or above min_depth, got {self.ground_prior_cap!r}")
+        if not isinstance(self.depth_zero_init, bool):
+            raise ValueError(f"preset {self.name}: depth_zero_init must be True or False, got {self.depth_zero_init!r}")
         if self.smooth_order not in (1, 2):
             raise ValueError(f"preset {self.name}: smooth_order must be 1 or 2, got {self.smooth_order!r}")
         if not self.automask_margin >= 0:
