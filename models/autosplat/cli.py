@@ -182,7 +182,7 @@ def train(argv: list[str]) -> int:
     lp, msg = lpips_or_none(a.lpips_vgg, a.lpips_lin)
     print(msg, flush=True)
     from ..common.runfolder import RunFolder
-    from ..common.train import distributed_info
+    from ..common.train import distributed_info, end_distributed
     distributed_info()   # under torchrun: the process group the run folder's ranks meet in
     with RunFolder(a.out, resume=a.resume) as rf:  # the lock; outputs staged, then published as a group
         metrics = reconstruct(data, preset, switches, rf.stage, device=a.device, progress=not a.no_progress,
@@ -192,11 +192,13 @@ def train(argv: list[str]) -> int:
                               view={"host": a.view_host, "port": a.view_port, "every": a.view_every}
                               if a.view else None, batch_size=batch, views=views)
         if metrics is None:
+            end_distributed()
             return 0
         rf.publish()
     print(f"held-out PSNR {metrics['all']['psnr']:.2f} dB  SSIM {metrics['all']['ssim']:.3f}"
           f"  (train PSNR {metrics['train']['psnr']:.2f} dB); {metrics['gaussians']['total']} Gaussians; "
           f"outputs in {a.out}")
+    end_distributed()
     return 0
 
 

@@ -54,7 +54,7 @@ from .presets import Preset, check_preset_matches
 
 __all__ = ["TrainSpec", "LoopHooks", "train", "seed_everything", "set_threads", "sample_generator", "capture_rng",
            "restore_rng", "save_checkpoint", "load_checkpoint", "JsonlLog", "plot_losses", "atomic_write",
-           "distributed_info", "MAX_CONSECUTIVE_SKIPS", "CHECKPOINT_FORMAT"]
+           "distributed_info", "end_distributed", "MAX_CONSECUTIVE_SKIPS", "CHECKPOINT_FORMAT"]
 
 #: consecutive non-finite steps after which training stops with an error.
 MAX_CONSECUTIVE_SKIPS = 20
@@ -258,6 +258,16 @@ def distributed_info() -> tuple[int, int]:
     if not dist.is_initialized():
         dist.init_process_group(backend="nccl" if torch.cuda.is_available() else "gloo")
     return dist.get_rank(), dist.get_world_size()
+
+
+def end_distributed() -> None:
+    """Under torchrun, wait for every rank (rank 0 may still be evaluating or publishing the run
+    folder) and take the process group down before the interpreter exits. A rank that exits with
+    the group still up can abort in gloo's teardown ("terminate called without an active
+    exception", seen once in CI under load). No-op in one process."""
+    if dist.is_available() and dist.is_initialized():
+        dist.barrier()
+        dist.destroy_process_group()
 
 
 def _params(model: torch.nn.Module) -> list[torch.nn.Parameter]:

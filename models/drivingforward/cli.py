@@ -114,7 +114,7 @@ def train(argv: list[str]) -> int:
         watcher = train_watcher(args, lambda: model_scene(model, preset, source, args.data, cameras=args.cameras,
                                                           title="DrivingForward (training)"), args.device)
         from ..common.runfolder import RunFolder
-        from ..common.train import distributed_info
+        from ..common.train import distributed_info, end_distributed
         distributed_info()
         with RunFolder(args.out, resume=args.resume) as rf:  # the lock; outputs staged, then published as a group
             spec = TrainSpec(out_dir=rf.stage, steps=args.steps or preset.steps,
@@ -133,6 +133,7 @@ def train(argv: list[str]) -> int:
                                    step=spec.steps)
                 print(_summary(m), flush=True)
             rf.publish()
+        end_distributed()
     except ValueError as e:
         print(f"clsplat train drivingforward: {e}", file=sys.stderr)
         return 2

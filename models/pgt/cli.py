@@ -115,7 +115,7 @@ def train(argv: list[str]) -> int:
         watcher = train_watcher(args, lambda: model_scene(model, preset, source, args.data,
                                                           title=f"PGT {args.stage} (training)"), args.device)
         from ..common.runfolder import RunFolder
-        from ..common.train import distributed_info
+        from ..common.train import distributed_info, end_distributed
         distributed_info()
         with RunFolder(args.out, resume=args.resume) as rf:  # the lock; outputs staged, then published as a group
             spec = TrainSpec(out_dir=rf.stage, steps=steps, batch_size=args.batch_size or preset.batch_size,
@@ -139,6 +139,7 @@ def train(argv: list[str]) -> int:
                                              f"{source.name}")
                 print(_summary(res["metrics"]), flush=True)
             rf.publish()
+        end_distributed()
     except ValueError as e:
         print(f"clsplat train pgt: {e}", file=sys.stderr)
         return 2
