@@ -253,6 +253,19 @@ def test_eval_on_a_pandaset_sequence_scores_depth_against_projected_lidar(runs, 
     assert KEYS <= set(m["all"]) and m["all"]["n_pixels"] > 0 and "oracle_psnr" not in m["all"]
     assert m["protocol"]["depth_gt"].startswith("projected LiDAR") and m["protocol"]["data"].startswith("pandaset")
     assert (tmp_path / "eval" / "depth_sheet.png").is_file()
+    # the layout over sparse LiDAR: the median of the windows that have a return at a pixel (a
+    # missing return is unknown, not far), so it lies within the returns' range where any exists
+    from clsplat.models.drivingforward.evaluation import evaluate_model, layout_depth
+    tiny = get_preset("drivingforward", "tiny")
+    lay = layout_depth(src, tiny, 3, cams)
+    sweeps = torch.stack([load_triplet(src, i, tiny, "train", cameras=cams)["lidar_depth"] for i in range(3)])
+    hit = torch.isfinite(sweeps).any(0)
+    assert hit.float().mean() > 0.3 and (lay[~hit] == tiny.max_depth).all()
+    lo, hi = sweeps.nan_to_num(posinf=1e9).amin(0), sweeps.nan_to_num(posinf=-1.0).amax(0)
+    assert ((lay[hit] >= lo[hit]) & (lay[hit] <= hi[hit].clamp(max=tiny.max_depth))).all()
+    assert 0 < m["all"]["layout_abs_rel"] < 1
+    with pytest.raises(ValueError, match="--layout-windows"):     # checked before any depth is looked for
+        evaluate_model(torch.nn.Module(), src, layout=-1)
     # the path of a user with one recorded sequence: self-supervised training on it with the same
     # command, then held-out frames scored against projected LiDAR, with the pose against its ego poses
     seq6 = parse_data("synthetic").sequence(1, num_frames=15, height=32, width=56, lidar=True, dt=0.1)
@@ -309,10 +322,13 @@ def test_view_serves_the_run_and_leaves_it_unchanged(runs, tmp_path, capsys):
 def test_lr_warmup_ramps_the_rate_and_resumes_bitwise(tmp_path):
     """``lr_warmup=N``: step s (from 1) runs at s/N of the preset's rate until the ramp is done; the
     ramp is checkpointed with the optimiser, so a resumed run equals a straight one bit for bit,
-    with every departure of ``small``'s recipe on (the ground prior, the pose's initial motion)."""
+    with every departure of ``small``'s recipe on (the ground prior and the zero-started output layer,
+    the pose's initial motion, the second-order smoothness, no spatio-temporal term)."""
     from clsplat.models.drivingforward.presets import SMALL, TINY
     warm = ("--eval-scenes", "0", "--set", "lr_warmup=4", "--set", f"ground_prior_cap={SMALL.ground_prior_cap}",
-            "--set", f"pose_translation_init={SMALL.pose_translation_init}")
+            "--set", f"pose_translation_init={SMALL.pose_translation_init}",
+            "--set", f"depth_zero_init={SMALL.depth_zero_init}", "--set", f"smooth_order={SMALL.smooth_order}",
+            "--set", f"w_smooth={SMALL.w_smooth}", "--set", f"w_spatio_temporal={SMALL.w_spatio_temporal}")
     assert _train(tmp_path / "straight", 3, *warm) == 0
     assert _train(tmp_path / "resumed", 2, *warm) == 0
     assert _train(tmp_path / "resumed", 3, *warm, "--resume") == 0
@@ -322,5 +338,6 @@ def test_lr_warmup_ramps_the_rate_and_resumes_bitwise(tmp_path):
     assert [r["loss"] for r in logs[0]] == [r["loss"] for r in logs[1]]
     a, b = (torch.load(tmp_path / r / "checkpoint.pt", weights_only=True) for r in ("straight", "resumed"))
     assert a["preset"]["ground_prior_cap"] == b["preset"]["ground_prior_cap"] == SMALL.ground_prior_cap
+    assert "spatio_temporal" not in logs[0][0] and a["preset"]["w_spatio_temporal"] == 0.0
     for k, v in a["model"].items():
         assert torch.equal(v, b["model"][k]), k

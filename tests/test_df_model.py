@@ -265,3 +265,33 @@ def test_ground_prior_trains_finite_and_passes_gradient_to_the_decoder(sample):
     t["loss"].backward()
     g = m.depth_net.decoder.dispconv.weight.grad
     assert g is not None and torch.isfinite(g).all() and g.abs().sum() > 0
+
+
+def test_a_loss_term_of_weight_zero_is_left_out(sample, monkeypatch):
+    import clsplat.models.drivingforward.model as dfm
+
+    torch.manual_seed(0)
+    m = DrivingForward(TINY)
+    args = (sample["images"], sample["images"], sample["Ks"], sample["cam_to_ego"])
+    with torch.no_grad():
+        full = m.training_losses(*args)
+
+        def never(*a, **k):
+            raise AssertionError("a term of weight 0 was computed")
+        monkeypatch.setattr(dfm, "spatio_temporal_loss", never)
+        m.preset = TINY.replace(w_spatio_temporal=0.0)
+        no_st = m.training_losses(*args)
+        monkeypatch.setattr(dfm, "spatial_loss", never)
+        m.preset = TINY.replace(w_spatio_temporal=0.0, w_spatial=0.0)
+        neither = m.training_losses(*args)
+    assert "spatio_temporal" not in no_st and "spatial" in no_st
+    assert "spatial" not in neither and "spatio_temporal" not in neither
+    for k in ("reproj", "smooth", "spatial", "render"):
+        if k in no_st:
+            torch.testing.assert_close(no_st[k], full[k])
+    # the total is the paper's sum without the dropped terms
+    torch.testing.assert_close(no_st["loss"], full["loss"] - TINY.w_spatio_temporal * full["spatio_temporal"])
+    torch.testing.assert_close(neither["loss"], no_st["loss"] - TINY.w_spatial * full["spatial"])
+    for bad in (-0.1, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="w_spatio_temporal must be a finite number >= 0"):
+            TINY.replace(w_spatio_temporal=bad)

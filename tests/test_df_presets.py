@@ -11,7 +11,7 @@ from clsplat.models.common.presets import get_preset
 SIZE_FIELDS = {"name", "height", "width", "voxel_origin", "voxel_size", "voxel_shape", "depth_bins", "scale_cap",
                "focal_ref", "far_plane", "steps"}
 RECIPE_DEPARTURES = {"pose_translation_init", "lr_warmup", "ground_prior_cap", "smooth_order", "w_smooth",
-                     "depth_zero_init"}
+                     "depth_zero_init", "w_spatio_temporal"}
 
 
 def test_paper_keeps_the_papers_recipe():

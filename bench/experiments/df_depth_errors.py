@@ -6,7 +6,8 @@
 * ``grads CHECKPOINT``: on training streets, per loss term, the sum over a region's pixels of
   ``d(w L)/d log(depth)`` (negative: a descent step moves the region farther), for the side
   cameras and the front/back cameras apart, regions: near (< 6 m) over-estimated (> 1.25x), near
-  within 1.25x, 6-15 m, > 15 m.
+  within 1.25x, 6-15 m, > 15 m; ``--split overlap``: road and building pixels inside and outside
+  the rig's overlap as it is at their true depth (where the spatial terms should have no say).
 * ``landscape``: with the seeded initial networks, the true depth and the true motion, every loss
   term with the near road's depth (true depth < 6 m) alone multiplied by a factor: does the loss
   itself prefer the near road at its true depth? (``--set FIELD=VALUE`` changes the preset.)
@@ -28,7 +29,7 @@ Streets come from ``--data`` (default ``synthetic``; a ``synthetic-cache:DIR`` r
 cache); held-out streets are the test split of ``--seed`` (default 0).
 
     .venv/bin/python bench/experiments/df_depth_errors.py errors RUN/checkpoint.pt --data synthetic-cache:DIR
-    .venv/bin/python bench/experiments/df_depth_errors.py grads RUN/checkpoint.pt --data synthetic-cache:DIR
+    .venv/bin/python bench/experiments/df_depth_errors.py grads RUN/checkpoint.pt --data synthetic-cache:DIR [--split overlap]
     .venv/bin/python bench/experiments/df_depth_errors.py basin --data synthetic-cache:DIR [--set supersample=3] [--region parked-vehicles]
     .venv/bin/python bench/experiments/df_depth_errors.py baselines --data synthetic-cache:DIR [--caps 10 20]
     .venv/bin/python bench/experiments/df_depth_errors.py drift RUN_s10/checkpoint.pt RUN_s40/checkpoint.pt --data ...
@@ -144,7 +145,27 @@ def _regions(gt: torch.Tensor, d: torch.Tensor) -> dict[str, torch.Tensor]:
     return out
 
 
-def grads(checkpoint: str, data: str, seed: int, scenes: int, first: int) -> None:
+def _overlap_regions(src, idx: int, p, s: dict, gt: torch.Tensor, d: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Road and building pixels split by whether a rig neighbour sees them at their *true* depth
+    (the spatial terms' overlap as it would be at the truth; ``[V, 1, H, W]`` bool each)."""
+    from clsplat.models.common.geometry import invert_rigid, warp
+    from clsplat.models.drivingforward.losses import rig_neighbours
+
+    E, K = s["cam_to_ego"].float(), s["Ks"].float()
+    seen = torch.zeros_like(gt, dtype=torch.bool)
+    for c, n in rig_neighbours(E):
+        _, v = warp(s["images"][1][n:n + 1].float(), gt[c:c + 1, 0].float().clamp(max=p.max_depth * 1.5),
+                    K[c:c + 1], K[n:n + 1], invert_rigid(E[n:n + 1]) @ E[c:c + 1])
+        seen[c] |= v[0] > 0
+    C = _classes(src, idx, p, "train", s["names"], gt[:, 0].shape).unsqueeze(1)
+    road, building = C == 0, C == 2
+    return {"road, in overlap at truth": road & seen, "road, outside": road & ~seen,
+            "road, outside, > 1.5x": road & ~seen & (d > 1.5 * gt),
+            "building, in overlap": building & seen, "building, outside": building & ~seen}
+
+
+def grads(checkpoint: str, data: str, seed: int, scenes: int, first: int, split: str = "depth") -> None:
+    """``split`` "depth": the regions of :func:`_regions`; "overlap": :func:`_overlap_regions`."""
     from clsplat.models.drivingforward.data import load_triplet
 
     model, p, src = _load(checkpoint, data, seed)
@@ -167,11 +188,12 @@ def grads(checkpoint: str, data: str, seed: int, scenes: int, first: int) -> Non
             gt = s["depths"][1].unsqueeze(1)
             t = model.training_losses(s["images"], s["images"], s["Ks"], s["cam_to_ego"])
             d = box["d"].detach()
-            reg = _regions(gt, d)
+            reg = _regions(gt, d) if split == "depth" else _overlap_regions(src, idx, p, s, gt, d)
             for k, wk in w.items():
                 model.zero_grad()
                 box["d"].grad = None
-                (wk * t[k]).backward(retain_graph=True)
+                if k in t:                  # a term of weight 0 is not computed: no gradient
+                    (wk * t[k]).backward(retain_graph=True)
                 g = box["d"].grad
                 for r, m in reg.items():
                     a = acc.setdefault(r, {"pixels": 0, "ratio": []})
@@ -222,7 +244,7 @@ def landscape(data: str, seed: int, scenes: int, first: int, sets: list[str] | N
                 with torch.no_grad():
                     t = model.training_losses(s["images"], s["images"], s["Ks"], s["cam_to_ego"])
                 for k in terms:
-                    acc[f][k] += float(t[k]) / scenes
+                    acc[f][k] += float(t[k]) / scenes if k in t else float("nan")   # weight 0: not computed
     finally:
         model.depth_net.forward, model.pose_net.forward = fwd, pose_fwd
     print(f"near road (< {NEAR:g} m) depth x factor, elsewhere true; mean over {scenes} training streets, x 1e3 "
@@ -255,7 +277,7 @@ def follow(checkpoint: str, data: str, seed: int, first: int, steps: int, terms:
     for it in range(steps):
         s = streets[it % 6]
         t = model.training_losses(s["images"], s["images"], s["Ks"], s["cam_to_ego"])
-        loss = t["loss"] if not terms else sum(w[k] * t[k] for k in terms)
+        loss = t["loss"] if not terms else sum(w[k] * t[k] for k in terms if k in t)
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -386,6 +408,8 @@ def main(argv: list[str] | None = None) -> int:
         a.add_argument("--caps", type=float, nargs="+", default=[10.0, 20.0], help="baselines: ground prior caps (m)")
         a.add_argument("--region", default="near-road", choices=("near-road", "parked-vehicles"),
                        help="basin: the pixels whose depth is scaled")
+        a.add_argument("--split", default="depth", choices=("depth", "overlap"),
+                       help="grads: regions by true depth, or road/building in and outside the rig overlap at the true depth")
         a.add_argument("--terms", nargs="+", default=None, choices=("reproj", "spatial", "spatio_temporal", "smooth", "render"),
                        help="follow: train on these terms only (default: the total loss)")
     args = ap.parse_args(argv)
@@ -400,7 +424,7 @@ def main(argv: list[str] | None = None) -> int:
     elif args.cmd == "drift":
         drift(args.checkpoint, args.data, args.seed)
     elif args.cmd == "grads":
-        grads(args.checkpoint, args.data, args.seed, args.scenes, args.first)
+        grads(args.checkpoint, args.data, args.seed, args.scenes, args.first, args.split)
     else:
         follow(args.checkpoint, args.data, args.seed, args.first, args.steps, args.terms)
     return 0

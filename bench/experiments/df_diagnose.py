@@ -74,7 +74,7 @@ def landscape(preset_name: str, scenes: int, sets: list[str] | None = None,
                     with torch.no_grad():
                         t = model.training_losses(s["images"], s["images"], s["Ks"], s["cam_to_ego"])
                     for k in TERMS + ("mse", "loss"):
-                        rows.setdefault((pose, f), {}).setdefault(k, []).append(float(t[k]))
+                        rows.setdefault((pose, f), {}).setdefault(k, []).append(float(t[k]) if k in t else float("nan"))
     finally:
         model.depth_net.forward, model.pose_net.forward = depth_fwd, pose_fwd
     return {key: {k: sum(v) / len(v) for k, v in d.items()} for key, d in rows.items()}
@@ -105,7 +105,8 @@ def grads(checkpoint: str | None, preset_name: str, scenes: int) -> list[dict]:
             for k in TERMS:
                 model.zero_grad()
                 box["d"].grad = None
-                (w[k] * t[k]).backward(retain_graph=True)
+                if k in t:                      # a term of weight 0 is not computed: no gradient
+                    (w[k] * t[k]).backward(retain_graph=True)
                 g = box["d"].grad
                 row[k] = 0.0 if g is None else float((g * box["d"]).sum())
             out.append(row)
@@ -142,7 +143,7 @@ def motion(checkpoint: str | None, preset_name: str, scenes: int) -> tuple[dict,
                 with torch.no_grad():
                     t = model.training_losses(s["images"], s["images"], s["Ks"], s["cam_to_ego"])
                 for k in ("reproj", "spatio_temporal", "mse"):
-                    scan.setdefault(a, {}).setdefault(k, []).append(float(t[k]))
+                    scan.setdefault(a, {}).setdefault(k, []).append(float(t[k]) if k in t else float("nan"))
             model.pose_net.forward = pose_fwd
             outs = []
 

@@ -92,24 +92,35 @@ def _depth_colour(depth: Tensor, max_depth: float = 80.0) -> np.ndarray:
 
 
 @torch.no_grad()
+def _check_layout_windows(windows) -> None:
+    if isinstance(windows, bool) or not isinstance(windows, int) or windows < 0:
+        raise ValueError(f"--layout-windows: expected an int >= 0, got {windows!r}")
+
+
 def layout_depth(source, preset, windows: int, cameras: Sequence[str] | None = None) -> Tensor | None:
     """The image-blind layout baseline: per camera and pixel, the median true depth at frame t of
-    training windows ``0 .. windows-1`` (depth maps, or projected LiDAR where there are none; sky
-    and pixels without a return count as ``preset.max_depth``, since a layout that puts the sky far
-    is what an image-blind guess would do).
+    training windows ``0 .. windows-1``: of the depth maps (sky counts as ``preset.max_depth``,
+    since a layout that puts the sky far is what an image-blind guess would do), or, where there
+    are none, of the windows whose projected LiDAR has a return at that pixel (a pixel without a
+    return is unknown, not far; ``preset.max_depth`` where no window has one).
 
     Returns ``[V, H, W]``, or None when the data has no depth (or ``windows`` is 0).
     """
-    if isinstance(windows, bool) or not isinstance(windows, int) or windows < 0:
-        raise ValueError(f"--layout-windows: expected an int >= 0, got {windows!r}")
+    _check_layout_windows(windows)
     maps = []
     for i in range(windows):
         s = load_triplet(source, i, preset, split="train", cameras=cameras)
-        d = s["depths"][1] if "depths" in s else s.get("lidar_depth")
-        if d is None:
+        if "depths" in s:
+            d = s["depths"][1].double()
+            maps.append(torch.nan_to_num(d, nan=preset.max_depth).clamp(max=preset.max_depth))
+        elif "lidar_depth" in s:
+            d = s["lidar_depth"].double()
+            maps.append(torch.where(torch.isfinite(d), d.clamp(max=preset.max_depth), torch.nan))
+        else:
             return None
-        maps.append(torch.nan_to_num(d.double(), nan=preset.max_depth, posinf=preset.max_depth).clamp(max=preset.max_depth))
-    return torch.stack(maps).median(0).values.float() if maps else None
+    if not maps:
+        return None
+    return torch.stack(maps).nanmedian(0).values.nan_to_num(nan=preset.max_depth).float()
 
 
 def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | None = None,
@@ -139,6 +150,7 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
     """
     from clsplat.io.contact_sheet import make_contact_sheet
 
+    _check_layout_windows(layout)        # before any window is loaded, with depth in the data or not
     p = model.preset
     model.eval()
     if supersample is not None:

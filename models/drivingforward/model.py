@@ -175,10 +175,16 @@ class DrivingForward(nn.Module):
         17). Arguments as in :meth:`training_losses` (``d_t``: the depth the temporal terms see;
         ``depth``: the one the spatial term sees; ``automask``: the reprojection minimum includes
         the unwarped frames).
-        Returns ``reproj, spatial, spatio_temporal`` scalars.
+        Returns ``reproj``, and ``spatial`` and ``spatio_temporal`` where the preset weighs them
+        (a term of weight 0 is not computed, and not reported).
         """
-        levels = self.preset.photometric_scales
-        out = {"reproj": 0.0, "spatial": 0.0, "spatio_temporal": 0.0}
+        p = self.preset
+        levels = p.photometric_scales
+        out = {"reproj": 0.0}
+        if p.w_spatial > 0:
+            out["spatial"] = 0.0
+        if p.w_spatio_temporal > 0:
+            out["spatio_temporal"] = 0.0
         for s in range(levels):
             f = 2 ** s
             pool = (lambda x: x) if f == 1 else (lambda x: F.avg_pool2d(x, f))
@@ -186,9 +192,11 @@ class DrivingForward(nn.Module):
             K = Ks if f == 1 else scale_intrinsics(Ks, 1.0 / f)
             t, ss = pool(tgt), [pool(x) for x in srcs]
             nz = None if noise is None else noise[..., ::f, ::f]
-            out["reproj"] = out["reproj"] + temporal_loss(t, ss, dt, K, Tc, nz, automask, self.preset.automask_margin) / levels
-            out["spatial"] = out["spatial"] + spatial_loss(t, dep, K, E) / levels
-            out["spatio_temporal"] = out["spatio_temporal"] + spatio_temporal_loss(t, ss, dt, K, E, M) / levels
+            out["reproj"] = out["reproj"] + temporal_loss(t, ss, dt, K, Tc, nz, automask, p.automask_margin) / levels
+            if "spatial" in out:
+                out["spatial"] = out["spatial"] + spatial_loss(t, dep, K, E) / levels
+            if "spatio_temporal" in out:
+                out["spatio_temporal"] = out["spatio_temporal"] + spatio_temporal_loss(t, ss, dt, K, E, M) / levels
         return out
 
     def training_losses(self, raw: Tensor, net: Tensor, Ks: Tensor, cam_to_ego: Tensor,
@@ -207,7 +215,8 @@ class DrivingForward(nn.Module):
                 no gradient), else unused.
         Returns:
             ``loss`` (weighted total) and the terms ``reproj, smooth, spatial, spatio_temporal, render,
-            mse`` (and ``lpips`` when on), and the logged-only ``diag_depth_median`` and
+            mse`` (``spatial`` and ``spatio_temporal`` only where their weight is above 0; ``lpips``
+            when on), and the logged-only ``diag_depth_median`` and
             ``diag_translation`` (metres, pose network t -> t+1), no gradient.
         """
         p = self.preset
@@ -262,6 +271,9 @@ class DrivingForward(nn.Module):
         terms.update(r)
         terms["diag_depth_median"] = depth.detach().median()   # logged, not optimised: shows a collapse
         terms["diag_translation"] = T_next.detach()[:3, 3].norm()
-        terms["loss"] = (terms["reproj"] + p.w_smooth * terms["smooth"] + p.w_spatial * terms["spatial"]
-                         + p.w_spatio_temporal * terms["spatio_temporal"] + p.w_render * terms["render"])
+        loss = terms["reproj"] + p.w_smooth * terms["smooth"]
+        for k, w in (("spatial", p.w_spatial), ("spatio_temporal", p.w_spatio_temporal)):
+            if k in terms:                      # a term of weight 0 was not computed
+                loss = loss + w * terms[k]
+        terms["loss"] = loss + p.w_render * terms["render"]
         return terms
