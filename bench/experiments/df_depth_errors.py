@@ -1,7 +1,8 @@
 """Where a DrivingForward model's held-out depth error sits, and which loss term pushes it there.
 
 * ``errors CHECKPOINT``: AbsRel on the held-out streets broken down by true depth, image row band,
-  semantic class (vehicles split into parked and moving, from the data's boxes) and camera, with the share of the total each carries and the median predicted/true ratio there;
+  semantic class (vehicles split into parked and moving, from the data's boxes), camera, and the
+  road's bottom corners per camera, with the share of the total each carries and the median predicted/true ratio there;
   also the AbsRel left after median scaling (what a scale error alone explains).
 * ``grads CHECKPOINT``: on training streets, per loss term, the sum over a region's pixels of
   ``d(w L)/d log(depth)`` (negative: a descent step moves the region farther), for the side
@@ -125,6 +126,19 @@ def errors(checkpoint: str, data: str, seed: int, scenes: int) -> None:
     for k, name in enumerate(SEMANTIC_CLASSES):
         row(name if name != "vehicle" else "vehicle, parked", valid & (C == k))
     row("vehicle, moving", valid & (C == MOVING))
+    print("road, by camera: the bottom-left and bottom-right corners (a quarter of the height and width each) and the rest")
+    H, W = G.shape[2:]
+    road = valid & (C == 0)
+    corner = torch.zeros_like(valid)
+    for c in range(G.shape[1]):
+        for name, cols in (("bottom-left", slice(0, W // 4)), ("bottom-right", slice(W - W // 4, W)), ("rest", None)):
+            m = torch.zeros_like(valid)
+            if cols is None:
+                m[:, c] = road[:, c] & ~corner[:, c]
+            else:
+                m[:, c, H - H // 4:, cols] = road[:, c, H - H // 4:, cols]
+                corner[:, c] |= m[:, c]
+            row(f"cam {c} {name}", m)
     print("by camera group and depth")
     for name, cams in (("sides", SIDE_CAMERAS), ("front/back", tuple(c for c in range(G.shape[1]) if c not in SIDE_CAMERAS))):
         cm = torch.zeros_like(valid)
