@@ -91,12 +91,12 @@ def _depth_colour(depth: Tensor, max_depth: float = 80.0) -> np.ndarray:
     return colormaps["magma"](np.clip(inv / inv.max() if inv.max() > 0 else inv, 0, 1))[..., :3].astype(np.float32)
 
 
-@torch.no_grad()
 def _check_layout_windows(windows) -> None:
     if isinstance(windows, bool) or not isinstance(windows, int) or windows < 0:
         raise ValueError(f"--layout-windows: expected an int >= 0, got {windows!r}")
 
 
+@torch.no_grad()
 def layout_depth(source, preset, windows: int, cameras: Sequence[str] | None = None) -> Tensor | None:
     """The image-blind layout baseline: per camera and pixel, the median true depth at frame t of
     training windows ``0 .. windows-1``: of the depth maps (sky counts as ``preset.max_depth``,
