@@ -1,4 +1,4 @@
-"""Issue 18's measurements on the multi-view protocol: what each departure from EcoSplat's
+"""The budget stage's ablation on the multi-view protocol (issue 18): what each departure from EcoSplat's
 stage 2 is worth, at equal per-view counts, without retraining where the change is a choice at
 evaluation time.
 
@@ -19,7 +19,7 @@ per view (the high-frequency weighting) and renders the targets:
 Writes ``--out`` (JSON: rows of method, budget, n_gaussians, psnr, psnr_covered, ssim,
 render_ms, per-sample PSNRs) and prints a markdown table.
 
-Run: ``python bench/experiments/pgt_issue18.py --checkpoint U/checkpoint.pt --views 8
+Run: ``python bench/experiments/pgt_budget_ablation.py --checkpoint U/checkpoint.pt --views 8
 --budgets 1,0.1,0.05 --num-scenes 4 --out bench/out/pgt18_ablation.json``.
 """
 from __future__ import annotations
