@@ -124,10 +124,54 @@ def test_tracker_noise_is_correlated_and_keeps_the_exact_boxes():
     assert a.metadata["tracker_noise"]["seed"] == 1 and math.isclose(a.metadata["tracker_noise"]["rho"], 0.9)
 
 
-def test_eval_autosplat_scores_every_view_set(tmp_path):
-    run, ev = tmp_path / "run", tmp_path / "eval"
+#: where each ``--views`` set writes its section of metrics.json (``recorded`` also ``pose_correction``
+#: under tracker noise)
+SECTIONS = {"recorded": "train", "far-side": "far_side", "lane-change": "lane_change", "appearance": "appearance"}
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """One tiny AutoSplat run on the protocol street, shared by the eval tests; trained with
+    ``--views lane-change`` alone, so the training command's own summary runs without ``train``."""
+    run = tmp_path_factory.mktemp("autosplat") / "run"
     assert train(["--data", "synthetic:views", "--preset", "tiny", "--frames", "0:4", "--scale", "0.25",
-                  "--cameras", "CAM_FRONT", "CAM_FRONT_LEFT", "--no-progress", "--out", str(run)]) == 0
+                  "--cameras", "CAM_FRONT", "CAM_FRONT_LEFT", "--no-progress", "--views", "lane-change",
+                  "--out", str(run)]) == 0
+    m = json.loads((run / "metrics.json").read_text())
+    assert "train" not in m and set(m["lane_change"]) == {"1m", "2m", "3m"}
+    return run
+
+
+@pytest.mark.parametrize("views", [["far-side"], ["lane-change"], ["appearance"], ["recorded"],
+                                   ["lane-change", "far-side"]], ids=lambda v: "+".join(v))
+def test_eval_autosplat_scores_each_view_set_alone(tiny_run, tmp_path, capsys, views):
+    """Issue 33: ``--views far-side`` (or ``lane-change``) alone ended in ``KeyError: 'train'`` in the
+    summary line; every set alone and a combination now exit 0 through the console entry point,
+    writing exactly the sections asked for."""
+    from clsplat.cli import console
+    out = tmp_path / "ev"
+    capsys.readouterr()
+    assert console(["eval", "autosplat", "--checkpoint", str(tiny_run / "checkpoint.pt"), "--data", "synthetic:views",
+                    "--views", *views, "--out", str(out)]) == 0
+    cap = capsys.readouterr()
+    assert "Traceback" not in cap.err and f"wrote {out}/metrics.json" in cap.out
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["protocol"]["views"] == views
+    for v, key in SECTIONS.items():
+        assert (key in m) == (v in views), (v, key)
+    assert ("pose_correction" in m) == ("recorded" in views)
+    assert np.isfinite(m["all"]["psnr"]) and m["all"]["images"] > 0   # the held-out frames, always
+    if "far-side" in views:
+        assert np.isfinite(m["far_side"]["psnr_objects"]) and "far side" in cap.out
+    if "lane-change" in views:
+        assert all(np.isfinite(v["psnr"]) for v in m["lane_change"].values()) and "lane change 1m" in cap.out
+    if "appearance" in views:
+        assert np.isfinite(m["appearance"]["psnr_changing_pixels"])
+    assert ("train PSNR" in cap.out) == ("recorded" in views)
+
+
+def test_eval_autosplat_scores_every_view_set(tiny_run, tmp_path):
+    run, ev = tiny_run, tmp_path / "eval"
     assert evaluate(["--checkpoint", str(run / "checkpoint.pt"), "--views", "far-side", "lane-change", "appearance",
                      "recorded", "--out", str(ev)]) == 0
     m = json.loads((ev / "metrics.json").read_text())

@@ -69,6 +69,23 @@ def _add_views_arg(p: argparse.ArgumentParser) -> None:
                         "far-side and appearance need generated data")
 
 
+def _summary(metrics: dict) -> str:
+    """The one-line result of a run: held-out PSNR / SSIM, the training frames' PSNR when the
+    ``recorded`` set was scored (only it writes ``train``), and each other view set's headline."""
+    line = f"held-out PSNR {metrics['all']['psnr']:.2f} dB  SSIM {metrics['all']['ssim']:.3f}"
+    if "train" in metrics:
+        line += f"  (train PSNR {metrics['train']['psnr']:.2f} dB)"
+    fmt = lambda v: "n/a" if v is None else f"{v:.2f} dB"  # noqa: E731  (None: no pixels / no generator)
+    if "far_side" in metrics:
+        line += f"; far side {fmt(metrics['far_side'].get('psnr_objects'))} on object pixels"
+    lc = metrics.get("lane_change")
+    if lc and all(v is not None for v in lc.values()):
+        line += "; lane change " + " / ".join(f"{k} {fmt(v['psnr'])}" for k, v in lc.items())
+    if "appearance" in metrics:
+        line += f"; changing pixels {fmt(metrics['appearance'].get('psnr_changing_pixels'))}"
+    return line
+
+
 def reconstruct(data, preset, switches, out: Path, *, device=None, progress: bool = True,
                 checkpoint_every: int = 100, resume: bool = False, stop_after: int | None = None,
                 lpips=(None, "LPIPS off: no weights given"), extra: dict | None = None,
@@ -195,9 +212,7 @@ def train(argv: list[str]) -> int:
             end_distributed()
             return 0
         rf.publish()
-    print(f"held-out PSNR {metrics['all']['psnr']:.2f} dB  SSIM {metrics['all']['ssim']:.3f}"
-          f"  (train PSNR {metrics['train']['psnr']:.2f} dB); {metrics['gaussians']['total']} Gaussians; "
-          f"outputs in {a.out}")
+    print(f"{_summary(metrics)}; {metrics['gaussians']['total']} Gaussians; outputs in {a.out}")
     end_distributed()
     return 0
 
@@ -236,6 +251,5 @@ def evaluate(argv: list[str]) -> int:
     m = metrics_report("autosplat", tr.preset.name, tr.step, ev["protocol"], ev["all"], ev["per_camera"],
                        switches=tr.switches.to_dict(), eval_seconds=ev["eval_seconds"], **sections)
     write_metrics(out, m)
-    print(f"held-out PSNR {m['all']['psnr']:.2f} dB  SSIM {m['all']['ssim']:.3f}  (train PSNR "
-          f"{m['train']['psnr']:.2f} dB) at step {tr.step}; wrote {out}/metrics.json")
+    print(f"{_summary(m)} at step {tr.step}; wrote {out}/metrics.json")
     return 0
