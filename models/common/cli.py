@@ -15,7 +15,7 @@ import sys
 
 __all__ = ["dispatch", "train_command", "eval_command", "add_common_args", "add_view_args", "add_eval_args",
            "add_lpips_args", "lpips_from_args", "positive_int", "add_trust_pickle_arg", "no_weights",
-           "add_eval_scenes_arg"]
+           "add_eval_scenes_arg", "add_eval_split_arg"]
 
 
 def positive_int(text: str) -> int:
@@ -67,6 +67,13 @@ def add_eval_scenes_arg(p: argparse.ArgumentParser) -> None:
     """--eval-scenes: held-out scenes a feed-forward family evaluates at the end of training."""
     p.add_argument("--eval-scenes", type=int, default=2,
                    help="held-out scenes evaluated at the end into OUT/metrics.json (default 2; 0: none)")
+
+
+def add_eval_split_arg(p: argparse.ArgumentParser) -> None:
+    """--eval-split: the held-out split scored (``val``, where preset fields are chosen, or ``test``,
+    reported once per recipe)."""
+    p.add_argument("--eval-split", choices=("val", "test"), default="test",
+                   help="held-out split to score: val (choose preset fields here) or test (report once; default)")
 
 
 def add_view_args(p: argparse.ArgumentParser) -> None:

@@ -1,7 +1,11 @@
 """Training and evaluation data for the models: ``--data`` specs -> DrivingSequence windows.
 
-    synthetic          a new procedural street (clsplat.data.synthetic) per sample index; train
-                       and test streets never share a seed
+    synthetic          a new procedural street (clsplat.data.synthetic) per sample index, in the
+                       family's default world (DrivingForward: ``varied``; the others: ``classic``);
+                       train, validation and test streets never share a seed
+    synthetic:WORLD    the same in a named world: ``classic`` (the one street of the earlier
+                       releases), ``varied`` (speed, path, road, layout, traffic and sun drawn per
+                       street) or ``straight`` (varied, but the ego keeps its lane on a straight road)
     synthetic-cache:DIR  the same streets, read from an on-disk cache (clsplat.data.synthetic_cache;
                        fill it with ``clsplat data synth``); a street the cache lacks is generated
                        and added to it
@@ -10,8 +14,10 @@
                        (clsplat.data.load_nuscenes_scene; default v1.0-mini, scene 0)
 
 A :class:`DataSource` hands out windows of ``num_frames`` consecutive frames at the model's
-resolution. For real data the first 80 % of the frames are the train split and the last 20 % the
-test split, so that held-out windows never overlap training frames.
+resolution, from one of three splits: ``train``, ``val`` (where every preset field is chosen) and
+``test`` (reported once per recipe). Synthetic splits are disjoint seed ranges; for real data the
+first 70 % of the frames are the train split, the next 10 % the validation split and the last 20 %
+the test split, so that held-out windows never overlap training frames.
 """
 from __future__ import annotations
 
@@ -26,13 +32,21 @@ import torch.nn.functional as F
 from clsplat.data import CAMERA_NAMES, Camera, DrivingSequence, Frame
 from clsplat.data.synthetic import SyntheticConfig, generate_sequence
 
-__all__ = ["DataSource", "parse_data", "resize_sequence", "to_torch_frame", "TEST_SEED_OFFSET"]
+__all__ = ["DataSource", "parse_data", "resize_sequence", "to_torch_frame", "TEST_SEED_OFFSET", "VAL_SEED_OFFSET",
+           "SPLITS", "WORLDS"]
 
 #: synthetic test streets use seeds from here on; train streets use seeds below it.
 TEST_SEED_OFFSET = 1_000_000
-#: share of a real sequence's frames (from the start) used for training; the rest is held out.
+#: synthetic validation streets use seeds from here on (above every test seed a run reaches).
+VAL_SEED_OFFSET = 2_000_000
+#: share of a real sequence's frames (from the start) outside the test split: the train split
+#: and, at its end, the validation split (``VAL_SHARE`` of the frames).
 TRAIN_SHARE = 0.8
-_SPLITS = ("train", "test")
+VAL_SHARE = 0.1
+SPLITS = ("train", "val", "test")
+#: the synthetic worlds (``SyntheticConfig.world``)
+WORLDS = ("classic", "varied", "straight")
+_SEED_OFFSET = {"train": 0, "val": VAL_SEED_OFFSET, "test": TEST_SEED_OFFSET}
 
 
 def _check_cameras(cameras: Sequence[str] | None, available: Sequence[str]) -> list[str]:
@@ -62,13 +76,15 @@ class DataSource:
         seed: base seed; synthetic street ``index`` of the train split has seed ``seed + index``.
         synthetic: extra :class:`SyntheticConfig` fields for synthetic streets (e.g. num_parked).
         version, scene: nuScenes version folder and scene (index, name or token).
+        world: synthetic world (one of :data:`WORLDS`); None: ``default_world``.
+        default_world: the world of ``--data synthetic`` without a name (the family's choice).
         safe_pickle: PandaSet's pickled DataFrames are read with the allow-listed unpickler
             (True, the default); False trusts the files (``--trust-pickle``).
     """
 
     def __init__(self, kind: str, path: str | Path | None = None, seed: int = 0,
                  synthetic: dict | None = None, version: str = "v1.0-mini", scene: int | str = 0,
-                 safe_pickle: bool = True) -> None:
+                 safe_pickle: bool = True, world: str | None = None, default_world: str = "classic") -> None:
         if kind not in ("synthetic", "synthetic-cache", "pandaset", "nuscenes"):
             raise ValueError(f"kind: expected 'synthetic', 'synthetic-cache', 'pandaset' or 'nuscenes', got {kind!r}")
         self._cache = None
@@ -87,13 +103,22 @@ class DataSource:
         bad = [k for k in self.synthetic if k not in SyntheticConfig.__dataclass_fields__]
         if bad:
             raise ValueError(f"synthetic: unknown SyntheticConfig fields {bad}")
+        for name, w in (("world", world), ("default_world", default_world)):
+            if w is not None and w not in WORLDS:
+                raise ValueError(f"{name}: expected one of {list(WORLDS)}, got {w!r}")
+        if "world" in self.synthetic:
+            raise ValueError("synthetic: give the world as --data synthetic:WORLD, not as a SyntheticConfig field")
+        self.world = world if world is not None else default_world
         self.version, self.scene = version, scene
         self.safe_pickle = safe_pickle
         self._full: DrivingSequence | None = None  # the loaded real sequence (native resolution)
 
     @property
     def name(self) -> str:
-        return self.kind if self.path is None else f"{self.kind}:{self.path}"
+        if self.synthetic_streets:
+            base = self.kind if self.path is None else f"{self.kind}:{self.path}"
+            return base if self.path is not None else f"synthetic:{self.world}"
+        return f"{self.kind}:{self.path}"
 
     def __repr__(self) -> str:
         return f"DataSource({self.name!r}, seed={self.seed})"
@@ -119,8 +144,9 @@ class DataSource:
         return self._full
 
     def _window_starts(self, n_frames: int, num_frames: int, split: str) -> range:
-        n_train = int(round(n_frames * TRAIN_SHARE))
-        lo, hi = (0, n_train) if split == "train" else (n_train, n_frames)
+        n_held = int(round(n_frames * TRAIN_SHARE))
+        n_train = int(round(n_frames * (TRAIN_SHARE - VAL_SHARE)))
+        lo, hi = {"train": (0, n_train), "val": (n_train, n_held), "test": (n_held, n_frames)}[split]
         if hi - lo < num_frames:
             raise ValueError(f"num_frames: the {split} split of {self.name} has {hi - lo} frames, "
                              f"fewer than the {num_frames} a window needs")
@@ -136,7 +162,7 @@ class DataSource:
             index: sample index >= 0 (synthetic: which street; real: which window, cycling).
             num_frames: frames in the window.
             height, width: image size; real images are resampled and intrinsics scaled.
-            split: "train" or "test".
+            split: "train", "val" or "test".
             cameras: camera names (default: all); other cameras are never rendered or loaded.
             lidar: synthetic only: simulate LiDAR (real data carries what the files hold).
             dt, t0, supersample: synthetic only: frame interval, time of the first frame and rays
@@ -146,13 +172,14 @@ class DataSource:
         """
         if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or index < 0:
             raise ValueError(f"index: expected a non-negative int, got {index!r}")
-        if split not in _SPLITS:
-            raise ValueError(f"split: expected 'train' or 'test', got {split!r}")
+        if split not in SPLITS:
+            raise ValueError(f"split: expected one of {list(SPLITS)}, got {split!r}")
         _check_size(num_frames, height, width)
         if self.synthetic_streets:
             names = _check_cameras(cameras, CAMERA_NAMES)
-            seed = self.seed + int(index) + (TEST_SEED_OFFSET if split == "test" else 0)
-            fields = {**self.synthetic, "seed": seed, "num_frames": num_frames, "height": height,
+            seed = self.seed + int(index) + _SEED_OFFSET[split]
+            world = {} if self.world == "classic" else {"world": self.world}   # classic: the earlier config, bit for bit
+            fields = {**self.synthetic, **world, "seed": seed, "num_frames": num_frames, "height": height,
                       "width": width, "cameras": tuple(names), "lidar": lidar}
             if dt is not None:
                 fields["dt"] = dt
@@ -173,17 +200,25 @@ class DataSource:
         return resize_sequence(window, height, width)
 
 
+_DATA_FORMS = "'synthetic[:WORLD]', 'synthetic-cache:DIR', 'pandaset:PATH' or 'nuscenes:PATH'"
+
+
 def parse_data(spec: str, seed: int = 0, **kwargs) -> DataSource:
-    """A :class:`DataSource` from a ``--data`` spec (see the module docstring)."""
+    """A :class:`DataSource` from a ``--data`` spec (see the module docstring); ``kwargs`` go to
+    :class:`DataSource` (``default_world``: the world of a plain ``synthetic``)."""
     if not isinstance(spec, str) or not spec:
-        raise ValueError(f"data: expected 'synthetic', 'synthetic-cache:DIR', 'pandaset:PATH' or 'nuscenes:PATH', got {spec!r}")
+        raise ValueError(f"data: expected {_DATA_FORMS}, got {spec!r}")
     if spec == "synthetic":
         return DataSource("synthetic", seed=seed, **kwargs)
     kind, sep, rest = spec.partition(":")
+    if kind == "synthetic":
+        if rest not in WORLDS:
+            raise ValueError(f"data: unknown synthetic world {rest!r} in {spec!r}; expected one of {list(WORLDS)}")
+        return DataSource("synthetic", seed=seed, world=rest, **kwargs)
     if kind == "synthetic-cache" and sep and rest:
         return DataSource("synthetic-cache", rest, seed=seed, **kwargs)
     if not sep or kind not in ("pandaset", "nuscenes") or not rest:
-        raise ValueError(f"data: expected 'synthetic', 'synthetic-cache:DIR', 'pandaset:PATH' or 'nuscenes:PATH', got {spec!r}")
+        raise ValueError(f"data: expected {_DATA_FORMS}, got {spec!r}")
     if kind == "nuscenes":
         path, _, scene = rest.partition("#")
         path, _, version = path.partition("@")

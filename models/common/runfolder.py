@@ -39,10 +39,11 @@ STAGING = ".staging"
 LOCK = ".lock"
 MANIFEST = ".manifest.json"
 #: what a resumed run needs from the run it continues
-RESUME_FILES = ("checkpoint.pt", "log.jsonl")
+RESUME_FILES = ("checkpoint.pt", "log.jsonl", "val_curve.jsonl")
 #: output names of the model commands: in a folder written before manifests existed, these
 #: are taken to be the previous run's files (and replaced as a group with it)
 KNOWN_RUN_FILES = ("checkpoint.pt", "log.jsonl", "loss.png", "metrics.json", "budget.json", "scene.ply",
+                   "val_curve.jsonl", "val_curve.png",
                    "contact_sheet.png", "far_side.png",
                    "depth_sheet.png", "lateral_shift_*m.png", "budget_*.png", "*_sheet.png")
 

@@ -20,7 +20,7 @@ from torch import Tensor
 
 from ..common.data import DataSource, to_torch_frame
 
-__all__ = ["load_triplet", "colour_jitter", "gt_ego_motion", "lidar_depth"]
+__all__ = ["load_triplet", "colour_jitter", "gt_ego_motion", "camera0_motion", "ego_speed", "lidar_depth"]
 
 
 def load_triplet(source: DataSource, index: int, preset, split: str = "train",
@@ -30,12 +30,13 @@ def load_triplet(source: DataSource, index: int, preset, split: str = "train",
     Args:
         source: a :class:`DataSource` (synthetic: a new street per index).
         index: window / street index; preset: gives the image size and the frame interval.
-        split: "train" or "test"; cameras: camera names (default: all, rig order).
+        split: "train", "val" or "test"; cameras: camera names (default: all, rig order).
     Returns:
         ``images [3, V, 3, H, W]``, ``Ks [V, 3, 3]``, ``cam_to_ego [V, 4, 4]``, ``depths [3, V, H, W]``
         (when the data has depth maps; inf = sky), else ``lidar_depth [V, H, W]`` at t when it has
         LiDAR (NaN: no return), ``viewmats [3, V, 4, 4]`` world-to-camera,
-        ``ego_to_world [3, 4, 4]``, ``names`` (list of camera names).
+        ``ego_to_world [3, 4, 4]``, ``timestamps [3]`` (seconds, float64), ``names`` (list of camera
+        names).
     """
     kw = {"dt": preset.scenes_dt, "supersample": preset.supersample} if source.synthetic_streets else {}
     seq = source.sequence(index, num_frames=3, height=preset.height, width=preset.width, split=split,
@@ -43,7 +44,8 @@ def load_triplet(source: DataSource, index: int, preset, split: str = "train",
     frames = [to_torch_frame(seq, f) for f in range(3)]
     out = {"images": torch.stack([f["images"] for f in frames]), "Ks": frames[1]["Ks"],
            "cam_to_ego": frames[1]["cam_to_ego"], "viewmats": torch.stack([f["viewmats"] for f in frames]),
-           "ego_to_world": torch.stack([f["ego_to_world"] for f in frames]), "names": list(seq.camera_names)}
+           "ego_to_world": torch.stack([f["ego_to_world"] for f in frames]), "names": list(seq.camera_names),
+           "timestamps": torch.tensor([float(f.timestamp) for f in seq.frames[:3]], dtype=torch.float64)}
     if all("depths" in f for f in frames):
         out["depths"] = torch.stack([f["depths"] for f in frames])
     elif seq.frames[1].lidar is not None:
@@ -86,6 +88,23 @@ def gt_ego_motion(sample: dict[str, Tensor], ref: int = 1) -> list[Tensor]:
     """True ego motion ``M_{ref->f}`` ``[4, 4]`` (ego coordinates at ``ref`` to ego at f) for every frame."""
     E = sample["ego_to_world"].double()
     return [(torch.linalg.inv(E[f]) @ E[ref]).to(sample["Ks"].dtype) for f in range(E.shape[0])]
+
+
+def camera0_motion(sample: dict[str, Tensor], later: int = 2, earlier: int = 1) -> Tensor:
+    """True motion ``[4, 4]`` (float64) of camera 0 from frame ``earlier`` to ``later`` of a triplet,
+    in that camera's frame (``p_later = T p_earlier``): what the pose network predicts."""
+    E0 = sample["cam_to_ego"][0].double()
+    M = torch.linalg.inv(sample["ego_to_world"][later].double()) @ sample["ego_to_world"][earlier].double()
+    return torch.linalg.inv(E0) @ M @ E0
+
+
+def ego_speed(sample: dict[str, Tensor]) -> float:
+    """The ego's mean speed (m/s) from frame t to t+1 of a triplet: distance over time."""
+    E = sample["ego_to_world"].double()
+    dt = float(sample["timestamps"][2] - sample["timestamps"][1])
+    if not dt > 0:
+        raise ValueError(f"timestamps: frames t and t+1 must be in time order, got {sample['timestamps'].tolist()}")
+    return float((E[2, :3, 3] - E[1, :3, 3]).norm()) / dt
 
 
 def colour_jitter(images: Tensor, generator: torch.Generator,

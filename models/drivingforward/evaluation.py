@@ -26,6 +26,20 @@ what a depth that never looks at the image scores (``layout_abs_rel``, ``layout_
 ``layout_scale_ratio`` beside the model's): on a street whose layout barely changes, such as the
 synthetic streets, it is a strong baseline (issue 17: AbsRel 0.11, delta<1.25 0.87 at ``small``'s
 size), and a model that does not beat it has not learned depth from its images.
+
+The constant-motion control (:func:`training_controls`): the mean over the same training windows
+of camera 0's true motion from t to t+1 (translation and axis-angle rotation averaged), predicted
+for every held-out window whatever its images show: ``constant_motion_t_err_m`` and
+``constant_motion_t_err_pct`` beside the pose network's ``pose_t_err_m`` and ``pose_t_err_pct``.
+A pose network that has not learned motion from its images scores about what this scores.
+
+Speed bins: every held-out window is put in one bin by the ego's true speed from t to t+1
+(:data:`SPEED_BINS`: ``standing`` below 0.5 m/s, ``0.5-5``, ``5-10``, ``10-15`` m/s), and
+``speed_bins`` in ``metrics.json`` holds, per bin, the same keys as ``all`` (pooled over that bin's
+windows only) and ``windows``, the count (a bin without windows holds only ``windows: 0``). Pose
+percentages are undefined where the true motion is below 1 mm, so the ``standing`` bin is read in
+metres. Medians over windows (``pose_t_err_pct_median``, ``constant_motion_t_err_pct_median``, and
+the ``_m`` forms) stand beside the means.
 """
 from __future__ import annotations
 
@@ -38,15 +52,28 @@ import torch
 from torch import Tensor
 
 from ..common.metrics import depth_metrics, pose_errors, psnr
-from ..common.report import camera_blocks, image_scores, metrics_report, write_metrics
-from .data import gt_ego_motion, load_triplet
+from ..common.report import camera_blocks, image_scores, mean_scores, metrics_report, write_metrics
+from .data import camera0_motion, ego_speed, gt_ego_motion, load_triplet
 
 FAMILY = "drivingforward"
 
-__all__ = ["evaluate_model", "layout_depth", "OFFSETS"]
+__all__ = ["evaluate_model", "layout_depth", "training_controls", "speed_bin", "validation_point", "OFFSETS",
+           "SPEED_BINS"]
 
 #: frame offset -> index in a triplet
 OFFSETS = {-1: 0, 0: 1, 1: 2}
+#: ego-speed bins (name, lower bound inclusive, upper bound exclusive; m/s) of the held-out windows
+SPEED_BINS: tuple[tuple[str, float, float], ...] = (
+    ("standing", 0.0, 0.5), ("0.5-5", 0.5, 5.0), ("5-10", 5.0, 10.0), ("10-15", 10.0, float("inf")))
+_POSE_KEYS = ("t_err_m", "t_err_pct", "r_err_deg", "t_pred_m", "t_true_m")
+
+
+def speed_bin(speed: float) -> str:
+    """The name of the :data:`SPEED_BINS` bin of an ego speed in m/s."""
+    for name, lo, hi in SPEED_BINS:
+        if lo <= speed < hi:
+            return name
+    raise ValueError(f"speed: expected a finite speed >= 0 m/s, got {speed!r}")
 
 
 def _oracle_render(sample: dict, inputs: Sequence[int], target: int, device=None) -> Tensor:
@@ -97,19 +124,31 @@ def _check_layout_windows(windows) -> None:
 
 
 @torch.no_grad()
-def layout_depth(source, preset, windows: int, cameras: Sequence[str] | None = None) -> Tensor | None:
-    """The image-blind layout baseline: per camera and pixel, the median true depth at frame t of
-    training windows ``0 .. windows-1``: of the depth maps (sky counts as ``preset.max_depth``,
-    since a layout that puts the sky far is what an image-blind guess would do), or, where there
-    are none, of the windows whose projected LiDAR has a return at that pixel (a pixel without a
-    return is unknown, not far; ``preset.max_depth`` where no window has one).
+def training_controls(source, preset, windows: int, cameras: Sequence[str] | None = None,
+                      layout: bool = True) -> tuple[Tensor | None, Tensor | None]:
+    """The two image-blind controls, from training windows ``0 .. windows-1``.
 
-    Returns ``[V, H, W]``, or None when the data has no depth (or ``windows`` is 0).
+    * the layout depth: per camera and pixel, the median true depth at frame t: of the depth maps
+      (sky counts as ``preset.max_depth``, since a layout that puts the sky far is what an
+      image-blind guess would do), or, where there are none, of the windows whose projected LiDAR
+      has a return at that pixel (a pixel without a return is unknown, not far;
+      ``preset.max_depth`` where no window has one);
+    * the constant motion: camera 0's true motion from t to t+1, translation and axis-angle rotation
+      averaged over the windows (what a pose network that ignores its images would best predict).
+
+    Returns ``(layout [V, H, W] or None, motion [4, 4] float64 or None)``: None when the data has no
+    depth (layout) or ``windows`` is 0.
     """
+    from ..common.geometry import matrix_to_axis_angle, se3_exp
+    from .data import camera0_motion
+
     _check_layout_windows(windows)
-    maps = []
+    maps, moves, no_depth = [], [], not layout
     for i in range(windows):
         s = load_triplet(source, i, preset, split="train", cameras=cameras)
+        moves.append(camera0_motion(s))
+        if no_depth:
+            continue
         if "depths" in s:
             d = s["depths"][1].double()
             maps.append(torch.nan_to_num(d, nan=preset.max_depth).clamp(max=preset.max_depth))
@@ -117,17 +156,40 @@ def layout_depth(source, preset, windows: int, cameras: Sequence[str] | None = N
             d = s["lidar_depth"].double()
             maps.append(torch.where(torch.isfinite(d), d.clamp(max=preset.max_depth), torch.nan))
         else:
-            return None
-    if not maps:
-        return None
-    return torch.stack(maps).nanmedian(0).values.nan_to_num(nan=preset.max_depth).float()
+            no_depth = True
+    if not moves:
+        return None, None
+    T = torch.stack(moves)
+    aa = torch.stack([matrix_to_axis_angle(R) for R in T[:, :3, :3]]).mean(0)
+    motion = se3_exp(aa, T[:, :3, 3].mean(0)).double()
+    lay = None if no_depth or not maps else \
+        torch.stack(maps).nanmedian(0).values.nan_to_num(nan=preset.max_depth).float()
+    return lay, motion
 
 
+def layout_depth(source, preset, windows: int, cameras: Sequence[str] | None = None) -> Tensor | None:
+    """The image-blind layout baseline alone (:func:`training_controls`): ``[V, H, W]`` or None."""
+    return training_controls(source, preset, windows, cameras)[0]
+
+
+def _pose_summary(records: list[dict], prefix: str) -> dict:
+    """Means (and medians of the translation errors) over windows of :func:`pose_errors` records."""
+    out = {}
+    for k in _POSE_KEYS:
+        vals = [q[k] for q in records if q[k] is not None]
+        if vals:
+            out[f"{prefix}{k}"] = float(np.mean(vals))
+            if k in ("t_err_m", "t_err_pct"):
+                out[f"{prefix}{k}_median"] = float(np.median(vals))
+    return out
+
+
+@torch.no_grad()
 def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | None = None,
                    frames: Sequence[int] | None = None, target: int | None = None, lpips=None,
                    out_dir: str | Path | None = None, oracle: bool = True, progress: bool = False,
-                   step: int = 0, supersample: int | None = None, layout: int = 32) -> dict:
-    """Novel-view and depth metrics on held-out windows ``0 .. num_scenes-1`` of the test split.
+                   step: int = 0, supersample: int | None = None, layout: int = 32, split: str = "test") -> dict:
+    """Novel-view, depth and pose metrics on held-out windows ``0 .. num_scenes-1`` of ``split``.
 
     Args:
         model: a :class:`~.model.DrivingForward` (eval mode is set here).
@@ -137,20 +199,24 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
         lpips: optional LPIPS module; out_dir: where to write ``metrics.json`` and the contact sheets.
         oracle: also run the oracle-depth baseline (needs depth in the data).
         step: the training steps behind the model (recorded).
-        layout: training windows behind the image-blind layout baseline (:func:`layout_depth`);
-            0: not run.
+        layout: training windows behind the image-blind controls (:func:`training_controls`: the
+            layout depth and the constant motion); 0: not run.
+        split: "val" (where preset fields are chosen) or "test" (reported once per recipe).
         supersample: synthetic streets only: rays per pixel side of the held-out images (default:
             the model's preset, i.e. the images it trained on); depth ground truth is the centre
             ray's either way, so models trained on different images can be scored on the same ones.
     Returns:
         the ``metrics.json`` dict (:mod:`clsplat.models.common.report`): ``all`` and
         ``per_camera`` hold PSNR/SSIM[/LPIPS], depth errors and ``oracle_psnr`` (when run),
-        ``all`` also the pose errors and the layout baseline's ``layout_abs_rel``,
-        ``layout_delta1``, ``layout_scale_ratio`` (when run); ``protocol`` the settings used.
+        ``all`` also the pose errors, the layout baseline's ``layout_abs_rel``, ``layout_delta1``,
+        ``layout_scale_ratio`` and the constant-motion control's ``constant_motion_*`` (when run);
+        ``speed_bins`` the same per ego-speed bin; ``protocol`` the settings used.
     """
     from clsplat.io.contact_sheet import make_contact_sheet
 
     _check_layout_windows(layout)        # before any window is loaded, with depth in the data or not
+    if split not in ("val", "test"):
+        raise ValueError(f"--eval-split: expected 'val' or 'test', got {split!r}")
     p = model.preset
     model.eval()
     if supersample is not None:
@@ -168,6 +234,8 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
     ti = OFFSETS[target]
     renders, gts, preds, gdepths, oracles, names = [], [], [], [], [], None
     poses: list[dict] = []
+    truths: list[Tensor] = []                                  # camera 0's true motion t -> t+1 per window
+    speeds: list[float] = []
     learned_pose = getattr(p, "pose_source", "network") == "network"
     first = None
     iterator = range(num_scenes)
@@ -175,7 +243,7 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
         from tqdm import tqdm
         iterator = tqdm(iterator, desc="eval", unit="scene")
     for i in iterator:
-        s = load_triplet(source, i, data_preset, split="test", cameras=cameras)
+        s = load_triplet(source, i, data_preset, split=split, cameras=cameras)
         names = s["names"]
         Ks, E = s["Ks"], s["cam_to_ego"]
         M = gt_ego_motion(s)                                   # ego_t -> ego_f
@@ -192,8 +260,10 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
             r = torch.cat(rows)
         else:
             r = model.render(g, viewmats, Ks)[0]
+        T_true = camera0_motion(s)
+        truths.append(T_true)
+        speeds.append(ego_speed(s))
         if learned_pose:
-            T_true = torch.linalg.inv(E[0].double()) @ M[2].double() @ E[0].double()
             poses.append(pose_errors(model.pose_net(s["images"][1], s["images"][2], Ks, E), T_true))
         renders.append(r.clamp(0, 1))
         gts.append(s["images"][ti])
@@ -211,21 +281,39 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
     scores = image_scores(R.flatten(0, 1), G.flatten(0, 1), lpips)
     if oracles:
         scores["oracle_psnr"] = psnr(torch.stack(oracles).flatten(0, 1), G.flatten(0, 1)).double()
-    all_, per_camera = camera_blocks(scores, cams)
-    lay = layout_depth(source, data_preset, layout, cameras) if preds and layout else None
-    if preds:
-        P, D = torch.stack(preds), torch.stack(gdepths)       # [S, V, H, W]
-        all_.update(depth_metrics(P, D, min_depth=1e-3, max_depth=p.max_depth))
-        if lay is not None:
-            m = depth_metrics(lay.expand_as(D), D, min_depth=1e-3, max_depth=p.max_depth)
-            all_.update({f"layout_{k}": m[k] for k in ("abs_rel", "delta1", "scale_ratio")})
+    _, per_camera = camera_blocks(scores, cams)
+    lay, motion = training_controls(source, data_preset, layout, cameras, layout=bool(preds)) if layout else (None, None)
+    constant = [pose_errors(motion.to(T.dtype), T) for T in truths] if motion is not None else []
+    P = torch.stack(preds) if preds else None                  # [S, V, H, W]
+    D = torch.stack(gdepths) if preds else None
+
+    def block(windows: list[int]) -> dict:
+        """Every ``all`` key over the held-out windows ``windows`` (images, pixels pooled)."""
+        w = torch.tensor(windows, dtype=torch.long)
+        images = (w[:, None] * V + torch.arange(V)[None]).reshape(-1)
+        out = mean_scores(scores, images)
+        if P is not None:
+            out.update(depth_metrics(P[w], D[w], min_depth=1e-3, max_depth=p.max_depth))
+            if lay is not None:
+                m = depth_metrics(lay.expand_as(D[w]), D[w], min_depth=1e-3, max_depth=p.max_depth)
+                out.update({f"layout_{k}": m[k] for k in ("abs_rel", "delta1", "scale_ratio")})
+        if poses:
+            out.update(_pose_summary([poses[j] for j in windows], "pose_"))
+        if constant:
+            out.update(_pose_summary([constant[j] for j in windows], "constant_motion_"))
+        out["speed_mps"] = float(np.mean([speeds[j] for j in windows]))
+        out["windows"] = len(windows)
+        return out
+
+    all_ = block(list(range(S)))
+    if P is not None:
         for c, name in enumerate(names):
             per_camera[name].update(depth_metrics(P[:, c], D[:, c], min_depth=1e-3, max_depth=p.max_depth))
-    for k in ("t_err_m", "t_err_pct", "r_err_deg", "t_pred_m", "t_true_m"):
-        vals = [q[k] for q in poses if q[k] is not None]
-        if vals:
-            all_[f"pose_{k}"] = float(np.mean(vals))
-    protocol = {"data": source.name, "split": "test", "scenes": num_scenes, "images": S * V, "cameras": names,
+    by_bin: dict[str, list[int]] = {name: [] for name, _, _ in SPEED_BINS}
+    for j, v in enumerate(speeds):
+        by_bin[speed_bin(v)].append(j)
+    speed_bins = {name: block(ws) if ws else {"windows": 0} for name, ws in by_bin.items()}
+    protocol = {"data": source.name, "split": split, "scenes": num_scenes, "images": S * V, "cameras": names,
                 "mode": p.mode, "frames": list(frames), "target": target,
                 **({"supersample": data_preset.supersample} if source.synthetic_streets else {}),
                 "lpips": "on" if lpips is not None else "off (no weights given)",
@@ -234,10 +322,14 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
                 "oracle_psnr": "oracle-depth pixel reconstruction of the same target" if oracles else "not run",
                 "layout": (f"image-blind: per-pixel median true depth of {layout} training windows"
                            if lay is not None else "not run"),
+                "constant_motion": (f"image-blind: camera 0's true motion t -> t+1 averaged over {layout} "
+                                    "training windows, for every held-out window" if constant else "not run"),
+                "speed_bins": "held-out windows by the ego's true speed t -> t+1: " + ", ".join(
+                    f"{n} [{lo:g}, {hi:g}) m/s" for n, lo, hi in SPEED_BINS),
                 "pose_source": getattr(p, "pose_source", "network"),
                 "pose": ("pose network, camera 0, t -> t+1, against the data's ego motion; mean over windows"
                          if poses else "not evaluated (pose_source 'dataset': the pose network is not trained)")}
-    out = metrics_report(FAMILY, p.name, step, protocol, all_, per_camera)
+    out = metrics_report(FAMILY, p.name, step, protocol, all_, per_camera, speed_bins=speed_bins)
     if out_dir is not None:
         od = Path(out_dir)
         od.mkdir(parents=True, exist_ok=True)
@@ -250,4 +342,36 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
         if d is not None:
             make_contact_sheet(_depth_colour(d[0]), _depth_colour(d[1]), od / "depth_sheet.png", names=names,
                                title=f"depth at t: prediction | ground truth (inverse depth); AbsRel {out['all']['abs_rel']:.3f}")
+    return out
+
+
+@torch.no_grad()
+def validation_point(model, source, num_scenes: int, cameras: Sequence[str] | None = None) -> dict:
+    """One point of the validation learning curve: depth at t and the pose network's camera-0 motion
+    t -> t+1 on validation windows ``0 .. num_scenes-1`` (no rendering, no controls; cheap enough to
+    run every few steps). The model's train/eval mode is restored.
+
+    Returns ``{"abs_rel", "delta1", "scale_ratio", ["pose_t_err_m", "pose_t_err_pct", ...]}``.
+    """
+    was_training = model.training
+    model.eval()
+    p = model.preset
+    preds, gts, poses = [], [], []
+    try:
+        for i in range(num_scenes):
+            s = load_triplet(source, i, p, split="val", cameras=cameras)
+            gt = s["depths"][1] if "depths" in s else s.get("lidar_depth")
+            if gt is not None:
+                preds.append(model.depth_net(s["images"][1], s["Ks"], s["cam_to_ego"])["depth"][:, 0])
+                gts.append(gt)
+            if getattr(p, "pose_source", "network") == "network":
+                T = model.pose_net(s["images"][1], s["images"][2], s["Ks"], s["cam_to_ego"])
+                poses.append(pose_errors(T, camera0_motion(s).to(T.dtype)))
+    finally:
+        model.train(was_training)
+    out = {}
+    if preds:
+        m = depth_metrics(torch.stack(preds), torch.stack(gts), min_depth=1e-3, max_depth=p.max_depth)
+        out.update({k: m[k] for k in ("abs_rel", "delta1", "scale_ratio")})
+    out.update(_pose_summary(poses, "pose_"))
     return out
