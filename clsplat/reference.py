@@ -21,6 +21,7 @@ import torch
 from . import constants as K
 from .config import RenderConfig
 from .quaternion import quat_to_rotmat
+from .sh import SH_C, SH_C4, sh_basis  # noqa: F401  (the engine's basis; SH_C re-exported)
 from .validate import check_rasterization_inputs
 
 __all__ = ["project", "sh_colors", "composite", "rasterization", "_rasterization", "SH_C"]
@@ -113,39 +114,6 @@ def project(means, quats, scales, opacities, viewmats, Ks, width: int, height: i
     return {"means2d": torch.where(v3, xy, 0 * xy), "conics": torch.where(v3, conics, 0 * conics),
             "depths": z, "radii": radii, "opacities": torch.where(vis, op, 0 * op),
             "rects": rects, "visible": vis}
-
-
-SH_C = (0.2820947917738781, 0.48860251190292, 1.092548430592079, 0.3153915652525201,
-        0.5462742152960395, 2.285228997322329, 0.4570457994644658, 1.445305721320277,
-        1.865881662950577, 1.119528997770346, 0.5900435899266435, 0.9461746957575601)
-# degree 4: the constants of gsplat's basis, in the order they appear below
-SH_C4 = (0.6258357354491763, 1.770130769779931, 3.31161143515146, 0.47308734787878,
-         4.683325804901025, 2.007139630671868, 1.984313483298443, 1.006230589874905)
-
-
-def sh_basis(d: torch.Tensor, degree: int) -> torch.Tensor:
-    """[..., 3] unit directions -> [..., (degree+1)^2] real SH basis (gsplat's convention)."""
-    x, y, z = d.unbind(-1)
-    b = [torch.full_like(x, SH_C[0])]
-    if degree >= 1:
-        b += [-SH_C[1] * y, SH_C[1] * z, -SH_C[1] * x]
-    if degree >= 2:
-        z2, c1, s1 = z * z, x * x - y * y, 2 * x * y
-        b += [SH_C[4] * s1, -SH_C[2] * z * y, SH_C[11] * z2 - SH_C[3], -SH_C[2] * z * x, SH_C[4] * c1]
-    if degree >= 3:
-        t0 = -SH_C[5] * z2 + SH_C[6]
-        t1 = SH_C[7] * z
-        c2, s2 = x * c1 - y * s1, x * s1 + y * c1
-        b += [-SH_C[10] * s2, t1 * s1, t0 * y, z * (SH_C[8] * z2 - SH_C[9]), t0 * x, t1 * c1, -SH_C[10] * c2]
-    if degree >= 4:
-        k = SH_C4
-        c3, s3 = x * c2 - y * s2, x * s2 + y * c2
-        t = z * (-k[4] * z2 + k[5])
-        u = k[2] * z2 - k[3]
-        w = -k[1] * z
-        b += [k[0] * s3, w * s2, u * s1, t * y, k[6] * z * b[12] - k[7] * b[6], t * x, u * c1,
-              w * c2, k[0] * c3]
-    return torch.stack(b, -1)
 
 
 def camera_centres(viewmats: torch.Tensor) -> torch.Tensor:

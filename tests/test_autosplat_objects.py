@@ -45,7 +45,7 @@ def test_mirrored_covariance_is_reflected_and_positive_definite():
 
 
 def test_mirror_sh_reflects_the_colour_function():
-    from clsplat.reference import sh_basis
+    from clsplat.sh import sh_basis
     g = _random_set(n=5, degree=3, dtype=torch.float64)
     d = torch.nn.functional.normalize(torch.randn(40, 3, dtype=torch.float64), dim=-1)
     B = sh_basis(d, 3)

@@ -86,6 +86,15 @@ def test_engine_imports_nothing_above_it():
     assert not bad, f"the engine imports models/bench: {bad}"
 
 
+def test_no_production_module_imports_the_float64_reference():
+    """clsplat.reference is the tests' oracle: the engine and the model families take what they
+    share with it (the SH basis, clsplat/sh.py) from the engine's own modules. The benchmarks may
+    measure against it."""
+    bad = sorted(m for m, deps in _graph().items()
+                 if "clsplat.reference" in deps and not m.startswith("clsplat.bench"))
+    assert not bad, f"production modules import the test oracle clsplat.reference: {bad}"
+
+
 def test_no_import_cycles():
     g = _graph()
     index, low, stack, on, cycles, counter = {}, {}, [], set(), [], [0]

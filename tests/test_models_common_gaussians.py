@@ -8,7 +8,7 @@ import torch
 
 from clsplat.models.common import geometry as G
 from clsplat.models.common.gaussians import GaussianSet, rotate_sh
-from clsplat.reference import sh_basis
+from clsplat.sh import sh_basis
 
 F64 = torch.float64
 

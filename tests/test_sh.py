@@ -1,4 +1,5 @@
-"""kernels/sh.cl (clsplat.stages.sh_colors) against clsplat.reference.sh_colors."""
+"""kernels/sh.cl (clsplat.stages.sh_colors) against clsplat.reference.sh_colors, and the torch-side
+basis clsplat/sh.py (which the reference and the model families both use)."""
 from __future__ import annotations
 
 import pytest
@@ -53,3 +54,27 @@ def test_sh_float32(rt, cfg32, make_scene, reference, degree):
     want = reference.sh_colors(s32["colors"], s32["means"], s32["viewmats"], degree)
     assert got.dtype == torch.float32
     assert (got.double() - want).abs().max() <= 2e-6
+
+
+def test_the_torch_basis_is_orthonormal_to_degree_4_and_the_references_own():
+    """clsplat.sh.sh_basis integrates to the identity Gram matrix over the sphere (real SH are
+    orthonormal), which checks every constant and sign pattern up to degree 4; the float64
+    reference evaluates this same function (one definition, in the engine's module)."""
+    import numpy as np
+
+    from clsplat import reference, sh
+    assert reference.sh_basis is sh.sh_basis
+    # Gauss-Legendre in cos(theta) and uniform phi: exact for the degree-8 products of two basis functions
+    z, wz = np.polynomial.legendre.leggauss(12)
+    phi = torch.arange(24, dtype=F64) * (2 * torch.pi / 24)
+    z, wz = torch.tensor(z, dtype=F64), torch.tensor(wz, dtype=F64)
+    r = (1 - z * z).sqrt()
+    d = torch.stack([r[:, None] * phi.cos(), r[:, None] * phi.sin(), z[:, None].expand(-1, 24)], -1)
+    w = (wz[:, None] * (2 * torch.pi / 24)).expand(-1, 24)
+    B = sh.sh_basis(d, 4).reshape(-1, 25)
+    gram = B.T @ (w.reshape(-1, 1) * B)
+    assert (gram - torch.eye(25, dtype=F64)).abs().max() < 1e-12
+    for degree in range(5):
+        assert sh.sh_basis(d[:2, :2], degree).shape == (2, 2, (degree + 1) ** 2)
+    with pytest.raises(ValueError, match="degree"):
+        sh.sh_basis(d, 5)

@@ -22,11 +22,11 @@ from typing import Sequence
 import torch
 
 from clsplat.io.ply import read_ply, rgb_to_sh, sh_to_rgb, write_ply
-from clsplat.reference import sh_basis
+from clsplat.sh import sh_basis
 
 __all__ = ["GaussianSet", "rotate_sh", "sh_rotation_matrices", "rgb_to_sh", "sh_to_rgb"]
 
-#: highest SH degree the basis (clsplat.reference.sh_basis) and the engine evaluate.
+#: highest SH degree the basis (clsplat.sh.sh_basis) and the engine evaluate.
 MAX_SH_DEGREE = 3
 
 
