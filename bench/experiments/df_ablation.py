@@ -1,5 +1,5 @@
 """DrivingForward issue-17 ablation: a table of held-out metrics and one figure of learning curves
-over several run folders written by ``clsplat train drivingforward`` (``bench/RESULTS.md``,
+over several run folders written by ``clsplat train drivingforward`` (``bench/notes/drivingforward_training.md``,
 "DrivingForward learns from random initialisation (issue 17)").
 
 Each run folder holds ``log.jsonl`` and ``metrics.json`` (the training command's ``--eval-scenes``

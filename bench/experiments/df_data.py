@@ -1,5 +1,5 @@
 """DrivingForward training data: what a sample costs ray-cast on the fly against read from the
-synthetic-street cache (``bench/RESULTS.md``, issue 17, "Data share of a step").
+synthetic-street cache (``bench/notes/synthetic_data.md``, issue 17, "Data share of a step").
 
 For each supersample factor, ``--samples`` training samples (frames t-1, t, t+1 of six cameras at
 the preset's size, :func:`~clsplat.models.drivingforward.data.load_triplet`) are loaded three ways:

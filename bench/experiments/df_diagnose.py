@@ -1,6 +1,6 @@
 """DrivingForward depth-collapse diagnosis: which loss term moves the depth scale, and where to.
 
-Two probes on fresh synthetic training streets (``bench/RESULTS.md``, DrivingForward, "Why the
+Two probes on fresh synthetic training streets (``bench/notes/drivingforward_training.md``, "Why the
 depth collapses"):
 
 * ``landscape``: every loss term with the depth replaced by the generator's true depth times a

@@ -7,7 +7,7 @@ RUN/speed/pgt_speed.json and RUN/matching/pgt_matching.json (whichever exist) an
   base loss, render and depth terms; budget-stage render and L_io terms with the sampled κ;
 * ``FIG/pgt_budget.png``: a copy of the evaluation's budget curve (PSNR against count and render
   time, Pareto front);
-* markdown tables on stdout (budget curve, depth, speed, matchers) for the PGT section of bench/RESULTS.md.
+* markdown tables on stdout (budget curve, depth, speed, matchers) for the PGT section of bench/notes/pgt_ecosplat.md.
 
 Run: ``python bench/experiments/pgt_figures.py bench/out/pgt --figures bench/figures``.
 """

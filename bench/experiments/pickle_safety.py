@@ -1,6 +1,6 @@
 """Cost of the safe (allow-listed) unpickler against the trusting one on a PandaSet-sized sequence.
 
-Figure: the "Safe by default (issue 23)" table in bench/RESULTS.md. Command:
+Figure: the "Safe by default (issue 23)" table in bench/notes/hardening.md (summary: bench/RESULTS.md). Command:
 
     nice -n 10 .venv/bin/python bench/experiments/pickle_safety.py --frames 80 --points 100000 --repeats 3
 
