@@ -166,3 +166,18 @@ def test_every_package_folder_is_in_setup_cfg():
     folders = {m for m, p in _modules().items() if p.name == "__init__.py"}
     assert folders <= listed, f"package folders missing from setup.cfg [options] packages: {sorted(folders - listed)}"
     assert listed <= folders, f"setup.cfg lists packages with no folder: {sorted(listed - folders)}"
+
+
+def test_every_package_data_pattern_in_setup_cfg_matches_a_file():
+    """A package_data glob that matches nothing (``*.cl`` for ``clsplat.bench``, which has none)
+    is a stale entry: the wheel would silently ship without what it names."""
+    cfg = configparser.ConfigParser()
+    cfg.read(ROOT / "setup.cfg")
+    stale = []
+    for pkg, globs in cfg["options.package_data"].items():
+        # the source folder: the longest installed package name that prefixes pkg, then the rest
+        src, inst = max(((s, p) for s, p in PACKAGES.items() if pkg == p or pkg.startswith(p + ".")),
+                        key=lambda sp: len(sp[1]))
+        base = ROOT.joinpath(src, *pkg[len(inst):].split(".")[1:])
+        stale += [f"{pkg} = {g}" for g in (x.strip() for x in globs.split(",")) if g and not any(base.glob(g))]
+    assert not stale, f"setup.cfg package_data entries that match no file: {stale}"
