@@ -71,9 +71,16 @@ from .config import (
 )
 from .rig import ego_pose, make_rig, render_view
 from .street import StreetScene
+from .world import SPEED_BINS, WORLDS, WorldParams, classic_world, draw_world, speed_bin
 
 __all__ = [
     "SyntheticConfig",
+    "WorldParams",
+    "draw_world",
+    "classic_world",
+    "speed_bin",
+    "SPEED_BINS",
+    "WORLDS",
     "StreetScene",
     "RenderOutput",
     "VehicleSpec",
@@ -99,8 +106,9 @@ def generate_sequence(config: SyntheticConfig | None = None, **overrides) -> Dri
         **overrides: fields of :class:`SyntheticConfig` to replace, e.g. ``num_frames=2``.
     Returns:
         :class:`DrivingSequence` with images, depths, semantics, instances, boxes, and LiDAR
-        (if enabled) per frame; ``metadata`` holds the config and the :class:`StreetScene`
-        (key ``"scene"``) for rendering extra viewpoints.
+        (if enabled) per frame; ``metadata`` holds the config, the :class:`StreetScene`
+        (key ``"scene"``) for rendering extra viewpoints and the street's :class:`WorldParams`
+        (key ``"world"``: its ego pose and speed as functions of time, its drawn parameters).
     """
     cfg = config if config is not None else SyntheticConfig()
     if not isinstance(cfg, SyntheticConfig):
@@ -112,9 +120,18 @@ def generate_sequence(config: SyntheticConfig | None = None, **overrides) -> Dri
         cfg = SyntheticConfig(**{**cfg.__dict__, **overrides})
     cfg.validate()
     duration = cfg.t0 + cfg.dt * (cfg.num_frames - 1)
-    scene = StreetScene(cfg.seed, (-80.0, cfg.speed * duration + 160.0), cfg.num_parked, cfg.num_moving,
-                        cfg.poles, cfg.trees, cfg.blink_period, cfg.speed, cfg.signals, cfg.shadow,
-                        cfg.fine_texture)
+    if cfg.world == "classic":
+        world = classic_world(cfg.seed, cfg.speed, cfg.lane_change, cfg.lane_change_duration, cfg.num_parked,
+                              cfg.num_moving)
+        scene = StreetScene(cfg.seed, (-80.0, cfg.speed * duration + 160.0), cfg.num_parked, cfg.num_moving,
+                            cfg.poles, cfg.trees, cfg.blink_period, cfg.speed, cfg.signals, cfg.shadow,
+                            cfg.fine_texture)
+    else:
+        world = draw_world(cfg.seed, cfg.world)
+        s_range = (world.ego_distance(min(cfg.t0, 0.0)) - 80.0, world.ego_distance(duration) + 160.0)
+        scene = StreetScene(cfg.seed, s_range, world.num_parked, world.num_moving, cfg.poles, cfg.trees,
+                            cfg.blink_period, world.v0, cfg.signals, cfg.shadow, cfg.fine_texture, world=world,
+                            t_range=(min(cfg.t0, 0.0), max(4.0, duration)))
     cams = make_rig(cfg.width, cfg.height, cfg.hfov_deg, cfg.back_hfov_deg, cfg.lateral_shift)
     if cfg.cameras is not None:
         by_name = {c.name: c for c in cams}
@@ -122,11 +139,12 @@ def generate_sequence(config: SyntheticConfig | None = None, **overrides) -> Dri
     frames = []
     for k in range(cfg.num_frames):
         t = cfg.t0 + k * cfg.dt
-        E = ego_pose(t, cfg.speed, cfg.lane_change, cfg.lane_change_duration)
+        E = ego_pose(t, cfg.speed, cfg.lane_change, cfg.lane_change_duration) if cfg.world == "classic" \
+            else world.ego_pose(t)
         imgs, deps, sems, insts = {}, {}, {}, {}
         for c in cams:
             r = render_view(scene, c, E, t, cfg.supersample)
             imgs[c.name], deps[c.name], sems[c.name], insts[c.name] = r.rgb, r.depth, r.semantic, r.instance
         lid = scene.lidar(E, t) if cfg.lidar else None
         frames.append(Frame(t, E, imgs, deps, sems, insts, lid, scene.boxes(t)))
-    return DrivingSequence(cams, frames, name=f"synthetic-seed{cfg.seed}", metadata={"config": cfg, "scene": scene})
+    return DrivingSequence(cams, frames, name=f"synthetic-seed{cfg.seed}", metadata={"config": cfg, "scene": scene, "world": world})

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -72,6 +73,12 @@ class SyntheticConfig:
             vehicles: detail a few pixels wide at PandaSet-like resolutions, so that a blurred
             reconstruction costs SSIM (the default street's texture varies over 0.5 m and more,
             which blur hardly changes). 0 (default) leaves the street as it was, bit for bit.
+        world: ``"classic"`` (default: the street above, bit for bit), ``"varied"`` (speed profile,
+            path curvature, lane change, road width, layout, traffic, sun, gradient and crossfall
+            drawn per street from ``seed``; ``speed``, ``lane_change``, ``lane_change_duration``,
+            ``num_parked`` and ``num_moving`` are then ignored) or ``"straight"`` (drawn like
+            varied, but a straight road, no lane change, constant speed, traffic on the ego's left
+            only). See :mod:`clsplat.data.synthetic.world`.
     """
 
     height: int = 176
@@ -97,6 +104,7 @@ class SyntheticConfig:
     signals: bool = False
     shadow: bool = False
     fine_texture: float = 0.0
+    world: str = "classic"
 
     def validate(self) -> None:
         """Raise ValueError naming the first bad field."""
@@ -133,6 +141,8 @@ class SyntheticConfig:
         if not (isinstance(self.fine_texture, (int, float)) and not isinstance(self.fine_texture, bool)
                 and 0.0 <= self.fine_texture <= 1.0):
             raise ValueError(f"SyntheticConfig.fine_texture must be a number in [0, 1], got {self.fine_texture!r}")
+        if self.world not in ("classic", "varied", "straight"):
+            raise ValueError(f"SyntheticConfig.world must be one of ['classic', 'varied', 'straight'], got {self.world!r}")
         if not (isinstance(self.lateral_shift, (int, float)) and abs(self.lateral_shift) <= 5.0):
             raise ValueError(f"SyntheticConfig.lateral_shift must be a number in [-5, 5] m, got {self.lateral_shift!r}")
 
@@ -151,9 +161,16 @@ class VehicleSpec:
     blink: bool = False
     signals: bool = False     # brake lights and side indicators
     brake_phase: float = 0.0  # seconds: brake lights are on while (t + phase) mod BRAKE_PERIOD < half of it
+    #: the varied worlds: ``x0``/``y`` are street coordinates ``(s, l)`` of
+    #: :class:`~clsplat.data.synthetic.world.WorldParams`, ``heading`` is relative to the road, and
+    #: the vehicle stands on the ground (tilted with it); None: the classic street
+    world: Any = None
 
     def pose(self, t: float) -> np.ndarray:
         """``[4, 4]`` box-centre-to-world transform at time ``t``."""
+        if self.world is not None and self.world.world != "classic":
+            s = self.x0 + self.speed * t * math.cos(self.heading)
+            return self.world.surface_pose(s, self.y, self.heading, lift=self.size[2] / 2)
         x = self.x0 + self.speed * t * math.cos(self.heading)
         c, s = math.cos(self.heading), math.sin(self.heading)
         R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -175,6 +192,7 @@ class _Box:
     signals: bool = False     # brake lights and side indicators (``SyntheticConfig.signals``)
     brake_on: bool = False
     indicator_on: bool = False
+    ground: float = 0.0       # façades: height of the ground at the face above the box's bottom (m)
 
 
 @dataclass

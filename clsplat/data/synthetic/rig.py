@@ -12,6 +12,7 @@ import numpy as np
 from ..scene import CAMERA_NAMES, Camera, make_transform
 from .config import _RIG_POS, CAMERA_HEIGHT, RIG_YAWS_DEG, RenderOutput
 from .street import StreetScene
+from .world import classic_ego_pose
 
 def make_rig(width: int = 320, height: int = 176, hfov_deg: float = 70.0, back_hfov_deg: float = 85.0,
              lateral_shift: float = 0.0) -> list[Camera]:
@@ -32,19 +33,10 @@ def make_rig(width: int = 320, height: int = 176, hfov_deg: float = 70.0, back_h
 
 
 def ego_pose(t: float, speed: float = 8.0, lane_change: bool = True, lane_change_duration: float = 3.0) -> np.ndarray:
-    """``[4, 4]`` ego-to-world at time ``t``: along +x at ``speed``, optional smooth lane change
-    from y=-1.75 to y=+1.75 during ``[0, lane_change_duration]``."""
-    y0, y1 = -1.75, 1.75
-    x = speed * t
-    if lane_change:
-        u = min(max(t / lane_change_duration, 0.0), 1.0)
-        y = y0 + (y1 - y0) * (3 * u * u - 2 * u**3)
-        dydt = (y1 - y0) * (6 * u - 6 * u * u) / lane_change_duration if 0 < u < 1 else 0.0
-    else:
-        y, dydt = y0, 0.0
-    yaw = math.atan2(dydt, speed) if speed > 0 else 0.0
-    c, s = math.cos(yaw), math.sin(yaw)
-    return make_transform(R=[[c, -s, 0], [s, c, 0], [0, 0, 1]], t=[x, y, 0.0])
+    """``[4, 4]`` ego-to-world of the classic street at time ``t``: along +x at ``speed``, optional
+    smooth lane change from y=-1.75 to y=+1.75 during ``[0, lane_change_duration]`` (the varied
+    worlds: :meth:`~clsplat.data.synthetic.world.WorldParams.ego_pose`)."""
+    return classic_ego_pose(t, speed, lane_change, lane_change_duration)
 
 
 def render_view(scene: StreetScene, camera: Camera, ego_to_world, t: float, supersample: int = 1,

@@ -14,6 +14,7 @@ from ..scene import Box3D, LidarPoints, invert_transform, make_transform, rotmat
 from .config import (_AMBIENT, _SUN, BRAKE_PERIOD, FOOTBRIDGE_HALF, FOOTBRIDGE_X, FOOTBRIDGE_Z, LIDAR_MOUNT,
                      ROAD_HALF, SEM, SIDEWALK_OUT, RenderOutput, VehicleSpec, _Box)
 from .textures import _box_albedo, _ground_albedo, _signal_lamps, _sky
+from .world import S_MID, WorldParams
 
 class StreetScene:
     """A procedural street; deterministic from ``seed``.
@@ -24,6 +25,13 @@ class StreetScene:
         num_parked, num_moving, poles, trees, blink_period, signals, shadow, fine_texture: see
             :class:`~clsplat.data.synthetic.config.SyntheticConfig`.
         ego_speed: speed of the ego vehicle; moving vehicles drive at speeds relative to it.
+        world: the street's :class:`~clsplat.data.synthetic.world.WorldParams`; None or a classic
+            one: the classic street (the arguments above, bit for bit).  A varied one lays the
+            street out along its centre line (``x_range`` is then the range of ``s``, clipped to
+            the window of a curved road) on its height field, with its own vehicle counts, road
+            width and sun; ``num_parked``, ``num_moving`` and ``ego_speed`` are ignored.
+        t_range: ``(t_lo, t_hi)`` seconds over which moving vehicles of a varied world are kept
+            clear of the ego and of each other (the generator passes ``[0, max(4, end)]``).
     """
 
     def __init__(
@@ -39,6 +47,8 @@ class StreetScene:
         signals: bool = False,
         shadow: bool = False,
         fine_texture: float = 0.0,
+        world: WorldParams | None = None,
+        t_range: tuple[float, float] = (0.0, 4.0),
     ) -> None:
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ValueError(f"seed must be a non-negative int, got {seed!r}")
@@ -47,6 +57,13 @@ class StreetScene:
         self.seed = int(seed)
         self.fine_texture = float(fine_texture)
         self.blink_period = float(blink_period)
+        self.world = world
+        self.varied = world is not None and world.world != "classic"
+        self.sun = _SUN
+        if self.varied:
+            self.sun = world.sun
+            self._layout_varied(world, x_range, poles, trees, signals, shadow, t_range)
+            return
         # one random stream per feature, so that extending x_range only appends content
         rng = np.random.default_rng([self.seed, 1])
         self.static: list[_Box] = []
@@ -107,6 +124,125 @@ class StreetScene:
         if shadow:
             deck = _Box(make_transform(t=[FOOTBRIDGE_X, 0.0, FOOTBRIDGE_Z]), np.array(FOOTBRIDGE_HALF), "bridge",
                         SEM["building"], 0, np.array([0.5, 0.5, 0.52]))
+            self.static.append(deck)
+            self.casters.append(deck)
+        self.moving_ids = {v.track_id for v in self.vehicles if v.speed != 0}
+
+    # ----------------------------------------------------------------------------------
+    def _layout_varied(self, w: WorldParams, s_range, poles: bool, trees: bool, signals: bool, shadow: bool,
+                       t_range) -> None:
+        """Lay the street of a varied world out along its centre line (see the class docstring)."""
+        k = w.curvature
+        smin, smax = float(s_range[0]), float(s_range[1])
+        if k != 0.0:
+            half = math.pi / abs(k) - 20.0
+            smin, smax = max(smin, S_MID - half), min(smax, S_MID + half)
+        self.s_range = (smin, smax)
+
+        def ground_at(s: float, l: float) -> float:
+            x, y = w.to_world(s, l)
+            return float(w.height(float(x), float(y)))
+
+        def footprint_low(T: np.ndarray, hx: float, hy: float) -> float:
+            pts = T[:3, 3][None, :2] + np.array([[a * hx, b * hy] for a in (-1, 0, 1) for b in (-1, 0, 1)]) @ T[:2, :2].T
+            return float(np.min(w.height(pts[:, 0], pts[:, 1])))
+
+        rng = np.random.default_rng([self.seed, 1])
+        self.static: list[_Box] = []
+        key = 0
+        hb0, hb1 = w.building_height
+        for side in (1.0, -1.0):
+            s = smin + rng.uniform(0, 6)
+            while s < smax:
+                width = rng.uniform(8, 20)
+                present = rng.uniform() < 0.85
+                d = rng.uniform(8, 14)
+                hgt = rng.uniform(hb0, hb1)
+                col = np.array([0.55, 0.45, 0.38]) + rng.uniform(-0.18, 0.25, 3)
+                setback = rng.uniform(0.0, 1.5)
+                gap = rng.uniform(0.5, 4.0)
+                l_face = side * (w.sidewalk_out + setback)
+                stretch = 1.0 - k * l_face          # arc length along the face per metre of s
+                if k * side > 0:                     # inner side of a curve: the face's ends come closer
+                    width = min(width, 2.0 * math.sqrt(0.8 * abs(1.0 / k - l_face)))
+                if present:
+                    sc = s + 0.5 * width / stretch
+                    lc = side * (w.sidewalk_out + setback + d / 2)
+                    g_face = ground_at(sc, l_face)
+                    T = w.upright_pose(sc, lc, 0.0)
+                    bottom = min(footprint_low(T, width / 2, d / 2), g_face) - 0.5
+                    top = g_face + hgt
+                    T[2, 3] = 0.5 * (bottom + top)
+                    key += 1
+                    self.static.append(_Box(T, np.array([width / 2, d / 2, (top - bottom) / 2]), "facade",
+                                            SEM["building"], 0, np.clip(col, 0.1, 0.95), key, ground=g_face - bottom))
+                s += (width + gap) / stretch
+        rng = np.random.default_rng([self.seed, 2])
+        if poles:
+            for side in (1.0, -1.0):
+                for s in np.arange(smin + rng.uniform(0, 25), smax, 25.0):
+                    l = side * (w.road_half + 0.6)
+                    g = ground_at(float(s), l)
+                    self.static.append(_Box(w.upright_pose(float(s), l, g + 2.85), np.array([0.08, 0.08, 3.15]), "pole",
+                                            SEM["other"], 0, np.array([0.45, 0.47, 0.5])))
+        rng = np.random.default_rng([self.seed, 3])
+        key = 1000
+        if trees:
+            for side in (1.0, -1.0):
+                for s in np.arange(smin + rng.uniform(5, 30), smax, 30.0):
+                    key += 1
+                    l = side * (w.road_half + min(1.8, 0.6 * w.sidewalk))
+                    g = ground_at(float(s), l)
+                    self.static.append(_Box(w.upright_pose(float(s), l, g + 1.35), np.array([0.15, 0.15, 1.65]),
+                                            "trunk", SEM["other"], 0, np.array([0.35, 0.24, 0.14])))
+                    self.static.append(_Box(w.upright_pose(float(s), l, g + 4.2), np.array([1.3, 1.3, 1.2]), "canopy",
+                                            SEM["other"], 0, np.array([0.2, 0.45, 0.15]) * rng.uniform(0.8, 1.2), key))
+        # vehicles: moving ones (track ids 1..) in the driving lanes, then parked ones at the kerbs
+        rng = np.random.default_rng([self.seed, 4])
+        self.vehicles: list[VehicleSpec] = []
+        ts = np.arange(float(t_range[0]), float(t_range[1]) + 1e-9, 0.1)
+        ego_s = np.array([w.ego_distance(float(t)) for t in ts])
+        ego_l = np.array([w.ego_lateral(float(s))[0] for s in ego_s])
+        tracks = [(ego_s, ego_l, 4.8, 1.9)]              # the ego's own footprint over time
+        straight = w.world == "straight"
+        tid = 1
+        for i in range(w.num_moving):
+            for _ in range(30):
+                lane = w.lane_width / 2 * (1.0 if (straight or rng.uniform() < 0.5) else -1.0)
+                heading = 0.0 if rng.uniform() < 0.5 else math.pi
+                speed = rng.uniform(3.0, 14.0)
+                s0 = rng.uniform(-30.0, 60.0)
+                size = (rng.uniform(4.2, 4.8), rng.uniform(1.8, 2.0), rng.uniform(1.45, 1.6))
+                vs = s0 + speed * ts * math.cos(heading)
+                clear = all(np.all((np.abs(vs - ts_s) > (size[0] + L2) / 2 + 1.5)
+                                   | (np.abs(lane - ts_l) > (size[1] + W2) / 2 + 0.4))
+                            for ts_s, ts_l, L2, W2 in tracks)
+                if clear:
+                    tracks.append((vs, np.full(ts.size, lane), size[0], size[1]))
+                    self.vehicles.append(VehicleSpec(tid, size, tuple(rng.uniform(0.1, 0.9, 3)), s0, lane, speed,
+                                                     heading, blink=(tid == 1), signals=bool(signals),
+                                                     brake_phase=0.5 + 0.8 * (tid - 1), world=w))
+                    tid += 1
+                    break
+        slots = rng.permutation(np.arange(-30.0, 60.0, 7.0))
+        for i in range(w.num_parked):
+            if straight:
+                side, slot = -1.0, slots[i]
+            else:
+                side = 1.0 if i % 2 == 0 else -1.0
+                slot = slots[i // 2 + (0 if side > 0 else len(slots) // 2)]
+            s = float(slot + rng.uniform(-1, 1))
+            size = (rng.uniform(4.0, 4.9), rng.uniform(1.75, 2.0), rng.uniform(1.4, 1.7))
+            heading = 0.0 if rng.uniform() < 0.5 else math.pi
+            self.vehicles.append(VehicleSpec(tid, size, tuple(rng.uniform(0.1, 0.9, 3)), s,
+                                             side * (w.road_half - 1.15), 0.0, heading, world=w))
+            tid += 1
+        self.casters: list[_Box] = []
+        if shadow:
+            g = ground_at(FOOTBRIDGE_X, 0.0)
+            half = np.array([FOOTBRIDGE_HALF[0], max(FOOTBRIDGE_HALF[1], w.sidewalk_out + 2.0), FOOTBRIDGE_HALF[2]])
+            deck = _Box(w.upright_pose(FOOTBRIDGE_X, 0.0, g + FOOTBRIDGE_Z), half, "bridge", SEM["building"], 0,
+                        np.array([0.5, 0.5, 0.52]))
             self.static.append(deck)
             self.casters.append(deck)
         self.moving_ids = {v.track_id for v in self.vehicles if v.speed != 0}
@@ -175,10 +311,14 @@ class StreetScene:
         Hh, Ww = dirs.shape[:2]
         s = np.full((Hh, Ww), np.inf)
         pid = np.full((Hh, Ww), -2, dtype=np.int32)
-        dz = dirs[..., 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            sg = -origin[2] / dz
-        g = (dz < 0) & (sg > 0)
+        if self.varied:
+            sg = self.world.ground_hit(origin, dirs)
+            g = np.isfinite(sg)
+        else:
+            dz = dirs[..., 2]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                sg = -origin[2] / dz
+            g = (dz < 0) & (sg > 0)
         s[g] = sg[g]
         pid[g] = -1
         for i, b in enumerate(prims):
@@ -213,7 +353,7 @@ class StreetScene:
         for b in self.casters:
             R = b.T[:3, :3]
             ol = (points - b.T[:3, 3]) @ R
-            dl = R.T @ _SUN
+            dl = R.T @ self.sun
             with np.errstate(divide="ignore", invalid="ignore"):
                 t1 = (-b.half - ol) / dl
                 t2 = (b.half - ol) / dl
@@ -248,13 +388,20 @@ class StreetScene:
         gi = np.nonzero(pf == -1)[0]
         if gi.size:
             p = origin + sf[gi, None] * d[gi]
-            a, sm = _ground_albedo(p[:, 0], p[:, 1], self.seed, self.fine_texture)
+            if self.varied:
+                w = self.world
+                ss, ll = w.to_street(p[:, 0], p[:, 1])
+                a, sm = _ground_albedo(ss, ll, self.seed, self.fine_texture, w.road_half, w.lane_width, w.sidewalk_out)
+                sun_z = np.clip(w.normal(p[:, 0], p[:, 1]) @ self.sun, 0.0, None)
+            else:
+                a, sm = _ground_albedo(p[:, 0], p[:, 1], self.seed, self.fine_texture)
+                sun_z = _SUN[2]
             alb[gi] = a
             sem[gi] = sm
             lit = np.full(gi.size, 1.0)
             if lighting and self.casters:
                 lit[self.in_shadow(p)] = 0.0
-            rgb[gi] = a * ((_AMBIENT + (1 - _AMBIENT) * _SUN[2] * lit)[:, None] if lighting else 1.0)
+            rgb[gi] = a * ((_AMBIENT + (1 - _AMBIENT) * sun_z * lit)[:, None] if lighting else 1.0)
         hit = np.nonzero(pf >= 0)[0]
         if hit.size:
             order = hit[np.argsort(pf[hit], kind="stable")]
@@ -278,7 +425,7 @@ class StreetScene:
                     nl = np.zeros_like(pl)
                     nl[np.arange(idx.size), axis] = np.sign(pl[np.arange(idx.size), axis])
                     nw = nl @ b.T[:3, :3].T
-                    lam = _AMBIENT + (1 - _AMBIENT) * np.clip(nw @ _SUN, 0, None)
+                    lam = _AMBIENT + (1 - _AMBIENT) * np.clip(nw @ self.sun, 0, None)
                     if self.casters:
                         shadowed = self.in_shadow(p)
                         lam[shadowed] = _AMBIENT

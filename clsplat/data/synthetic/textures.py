@@ -43,15 +43,19 @@ def fine_grain(u: np.ndarray, v: np.ndarray, seed: int, amplitude: float) -> np.
     return 1.0 + amplitude * (2.0 * g - 1.0)
 
 
-def _ground_albedo(x: np.ndarray, y: np.ndarray, seed: int, fine: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """Albedo ``[N,3]`` and semantic ``[N]`` of ground points; ``fine``: the grain's amplitude."""
+def _ground_albedo(x: np.ndarray, y: np.ndarray, seed: int, fine: float = 0.0, road_half: float = ROAD_HALF,
+                   lane_line: float = 3.5, sidewalk_out: float = SIDEWALK_OUT) -> tuple[np.ndarray, np.ndarray]:
+    """Albedo ``[N,3]`` and semantic ``[N]`` of ground points at street coordinates ``x`` (along the
+    road) and ``y`` (lateral) ``[N]``; ``fine``: the grain's amplitude; ``road_half``: the road's
+    half-width, ``lane_line``: lateral offset of the lines between the driving and the kerbside
+    lanes, ``sidewalk_out``: the sidewalk's outer edge (defaults: the classic street)."""
     n = x.shape[0]
     alb = np.empty((n, 3))
     sem = np.empty(n, dtype=np.uint8)
     ay = np.abs(y)
-    road = ay <= ROAD_HALF
-    side = (ay > ROAD_HALF) & (ay <= SIDEWALK_OUT)
-    grass = ay > SIDEWALK_OUT
+    road = ay <= road_half
+    side = (ay > road_half) & (ay <= sidewalk_out)
+    grass = ay > sidewalk_out
     noise = 0.6 * _value_noise(x * 2.0, y * 2.0, seed + 11) + 0.4 * _value_noise(x * 0.3, y * 0.3, seed + 12)
     # road
     g = 0.22 + 0.12 * noise[road]
@@ -59,8 +63,8 @@ def _ground_albedo(x: np.ndarray, y: np.ndarray, seed: int, fine: float = 0.0) -
     sem[road] = SEM["road"]
     xr, yr = x[road], y[road]
     mark = (np.abs(yr) < 0.08) & (np.mod(xr, 6.0) < 3.0)  # dashed centre line
-    mark |= np.abs(np.abs(yr) - 3.5) < 0.075  # parking-lane lines
-    mark |= np.abs(np.abs(yr) - (ROAD_HALF - 0.15)) < 0.075  # edge lines
+    mark |= np.abs(np.abs(yr) - lane_line) < 0.075  # parking-lane lines
+    mark |= np.abs(np.abs(yr) - (road_half - 0.15)) < 0.075  # edge lines
     sub = alb[road]
     sub[mark] = [0.92, 0.92, 0.88]
     alb[road] = sub
@@ -136,7 +140,7 @@ def _box_albedo(b: _Box, pl: np.ndarray, seed: int, fine: float = 0.0) -> tuple[
         # u: horizontal coordinate along the face (world x on +-y faces, world y on +-x faces)
         u = np.where(axis == 1, x + wx[0], y + wx[1])
         vert = axis != 2
-        zr_w = zr
+        zr_w = zr - b.ground  # height above the ground at the face (0 on the classic street)
         floor = np.floor(zr_w / 3.2)
         fz = zr_w - floor * 3.2
         fu = np.mod(u, 2.6)
