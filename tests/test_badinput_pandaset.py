@@ -192,6 +192,26 @@ def test_malformed_cuboids(root, fn, what):
         load_pandaset(root)
 
 
+@pytest.mark.parametrize("safe", [True, False])
+@pytest.mark.parametrize("column", ["yaw", "position.x", "position.y", "position.z",
+                                    "dimensions.x", "dimensions.y", "dimensions.z"])
+def test_one_cuboid_cell_that_is_not_a_number(root, column, safe):
+    """One bad cell in an otherwise numeric column (the column is then of object dtype: pandas
+    refuses ``df.loc[1, "yaw"] = "abc"`` on a float64 column with its own TypeError, which is
+    the writer's problem, not the reader's) gives one line naming the file, the row and the column."""
+    def one_bad_cell(df):
+        col = df[column].astype(object)
+        col.iloc[1] = "abc"
+        return df.assign(**{column: col})
+
+    rewrite(root / "annotations/cuboids/00.pkl.gz", one_bad_cell)
+    with pytest.raises(ValueError) as e:
+        load_pandaset(root, safe_pickle=safe)
+    msg = str(e.value)
+    assert "\n" not in msg and "cuboids/00.pkl.gz" in msg
+    assert f"row 1, column {column!r}: expected a number, got 'abc'" in msg
+
+
 @pytest.mark.parametrize("frames", [["0"], [0.5], [None], [True]])
 def test_frames_of_the_wrong_type(root, frames):
     with pytest.raises(ValueError, match="^frames: expected a list of ints"):
