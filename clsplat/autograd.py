@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from . import stages
+from . import plan, stages
 from .config import RenderConfig
 from .runtime import Runtime, read_back
 
@@ -46,6 +46,7 @@ class Settings:
     events: list | None = None
     isect: tuple | None = None  # (tile offsets, sorted keys) of the forward, for ``meta``
     absgrad_sink: object = None  # callable(absgrad [C,N,2]); default: set means2d.absgrad
+    pixel_reserve: int = 0  # bytes of pixel buffers still to come (clsplat.plan)
 
 
 def _finite_grad(name: str, g: torch.Tensor | None) -> None:
@@ -148,11 +149,14 @@ class RasterizeFn(torch.autograd.Function):
         a = {"means2d": arr(means2d.detach()), "conics": arr(conics.detach()),
              "opacities": arr(opacities.detach()), "feats": arr(feats.detach()),
              "rects": arr(rects, read_only=True), "extents": arr(extents)}
+        want_grad = any(ctx.needs_input_grad[:4])  # False under no_grad or for constants
+        per_isect = plan.intersection_bytes(feats.shape[-1], feats.element_size(), grad=want_grad,
+                                            absgrad=s.absgrad)
         offsets, keys = stages.bin_tiles(rt, cfg, a["rects"], arr(depths.detach()), s.width,
-                                         s.height, s.tile_size, events=s.events)
+                                         s.height, s.tile_size, events=s.events,
+                                         per_intersection=per_isect, reserve=s.pixel_reserve)
         # bin_tiles has read the offsets back and nothing writes them after the scan
         stages.sort_segments(rt, cfg, keys, offsets, events=s.events, host_offsets=offsets.tensor)
-        want_grad = any(ctx.needs_input_grad[:4])  # False under no_grad or for constants
         out, T, last = stages.composite(rt, cfg, a["means2d"], a["conics"], a["opacities"],
                                         a["extents"], a["feats"], offsets, keys, s.width, s.height,
                                         s.tile_size, save_last=want_grad, events=s.events)

@@ -1,15 +1,26 @@
-"""Host memory available now, and the check every large host allocation passes first.
+"""Memory this process may still allocate, and the check every large host allocation passes first.
 
 Loaders (``.ply`` vertices, decoded images) and the engine's device arrays size their buffers
 from numbers a file or an argument gives; :func:`check_host_memory` refuses a size that cannot
 fit with a ValueError naming what asked for it, before the allocator is asked and fails (or
 the kernel's OOM killer steps in).
+
+What may be allocated (:func:`host_allowance`) is the smaller of the host memory available
+now (Linux ``MemAvailable``) and, where the process runs under an address-space limit
+(``RLIMIT_AS``, e.g. ``ulimit -v``), that limit less the address space already in use
+(``VmSize``): under such a limit allocations fail long before the machine runs short.
 """
 from __future__ import annotations
 
 import os
 
-__all__ = ["available_host_memory", "check_host_memory"]
+try:
+    import resource
+except ImportError:  # not on Windows
+    resource = None  # type: ignore[assignment]
+
+__all__ = ["available_host_memory", "address_space_in_use", "host_allowance", "check_host_memory",
+           "fmt_bytes"]
 
 
 def available_host_memory() -> int:
@@ -29,9 +40,50 @@ def available_host_memory() -> int:
         return 1 << 62
 
 
+def address_space_in_use() -> int:
+    """Bytes of virtual address space this process has mapped (Linux ``VmSize``; 0 elsewhere)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmSize:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0
+
+
+def _address_space_limit() -> int | None:
+    """The soft ``RLIMIT_AS`` in bytes, or None where there is none."""
+    if resource is None:
+        return None
+    soft = resource.getrlimit(resource.RLIMIT_AS)[0]
+    return None if soft == resource.RLIM_INFINITY else int(soft)
+
+
+def fmt_bytes(n: int) -> str:
+    """``n`` bytes for a message: GiB with one decimal from 1 GiB on, else MiB."""
+    return f"{n / 2**30:.1f} GiB" if n >= 2**30 else f"{n >> 20} MiB"
+
+
+def host_allowance() -> tuple[int, str]:
+    """(bytes this process may allocate now, what bounds them, for a message).
+
+    The host memory available now, or less under an address-space limit (``RLIMIT_AS``):
+    the limit less the address space in use."""
+    avail = available_host_memory()
+    limit = _address_space_limit()
+    if limit is not None:
+        used = address_space_in_use()
+        left = max(0, limit - used)
+        if left < avail:
+            return left, (f"the process's address-space limit (RLIMIT_AS {fmt_bytes(limit)}, "
+                          f"{fmt_bytes(used)} of it in use)")
+    return avail, f"the host memory available now ({fmt_bytes(avail)})"
+
+
 def check_host_memory(nbytes: int, what: str) -> None:
-    """ValueError naming ``what`` if ``nbytes`` exceed the host memory available now."""
-    host = available_host_memory()
-    if nbytes > host:
-        raise ValueError(f"{what} needs {nbytes >> 20} MiB, more than the {host >> 20} MiB of host memory "
-                         "available now")
+    """ValueError naming ``what`` if ``nbytes`` exceed what this process may allocate now."""
+    allowed, why = host_allowance()
+    if nbytes > allowed:
+        raise ValueError(f"{what} needs {nbytes >> 20} MiB, more than the {allowed >> 20} MiB that "
+                         f"can be allocated ({why})")

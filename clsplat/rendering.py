@@ -19,6 +19,7 @@ import torch
 from .autograd import ProjectFn, RasterizeFn, Settings, ShFn
 from .config import RenderConfig
 from .packed import AbsgradSink, LazyMeta, PackedMeans2d, SparseRowsGrad, intersection_meta, pack_pairs
+from .plan import check_pixel_memory, pixel_plan
 from .runtime import Runtime, get_runtime
 from .validate import check_options, check_rasterization_inputs, check_screen_extent, rescale_large_quats
 
@@ -228,13 +229,22 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
     rt = get_runtime(device)
     if cfg.precision == "float64" and not rt.has_fp64:
         raise ValueError(f"precision: float64 needs cl_khr_fp64, which {rt.name} lacks")
+    n_col, depth_col = _channels(render_mode, D)
+    CH = n_col + (depth_col >= 0)
+    real_bytes = 8 if cfg.precision == "float64" else 4
+    # The plan knows its memory: the pixel buffers are checked before any work, the
+    # intersections (RasterizeFn, stages.bin_tiles) once their count is known.
+    want_grad = torch.is_grad_enabled() and any(
+        isinstance(v, torch.Tensor) and v.requires_grad for v in t.values())
+    pixels = pixel_plan(B, C, height, width, n_col, depth_col >= 0, real_bytes, grad=want_grad,
+                        background=backgrounds is not None,
+                        expected_depth=render_mode in ("ED", "RGB+ED"))
+    check_pixel_memory(rt, pixels)
     for e in per:
         e["quats"] = rescale_large_quats(e["quats"])
         check_screen_extent(e["means"], e["scales"], e["viewmats"], e["Ks"],
                             float(near_plane), float(far_plane), cfg.precision)
-    n_col, depth_col = _channels(render_mode, D)
-    CH = n_col + (depth_col >= 0)
-    nbytes = C * height * width * CH * (8 if cfg.precision == "float64" else 4)
+    nbytes = C * height * width * CH * real_bytes
     if nbytes > rt.device.max_mem_alloc_size:
         raise ValueError(f"width, height: a {C}x{height}x{width}x{CH} image needs {nbytes >> 20} MiB, "
                          f"over the device's {rt.device.max_mem_alloc_size >> 20} MiB allocation limit")
@@ -266,7 +276,8 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
 
     renders, Ts, isects = [], [], []
     for b in range(B):
-        st = replace(st0, absgrad_sink=None if sink is None else sink.for_batch(b))
+        st = replace(st0, absgrad_sink=None if sink is None else sink.for_batch(b),
+                     pixel_reserve=pixels.nbytes * (B - b) // B)
         _, conics_b, depths_b, opac_b, radii_b, rects_b, extents_b = proj[b]  # no select nodes
         parts = []
         if n_col:
@@ -298,7 +309,8 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
             render = torch.cat([render[..., :n_col] + T.unsqueeze(-1) * bg, render[..., n_col:]], -1)
         renders.append(render)
         Ts.append(T)
-    render, T = torch.stack(renders), torch.stack(Ts)
+    # (one batch element: a view, not a copy of every image)
+    render, T = (renders[0].unsqueeze(0), Ts[0].unsqueeze(0)) if B == 1 else (torch.stack(renders), torch.stack(Ts))
     alphas = (1 - T).unsqueeze(-1)
     if render_mode in ("ED", "RGB+ED"):
         render = torch.cat([render[..., :-1], render[..., -1:] / alphas.clamp_min(1e-10)], -1)

@@ -39,7 +39,7 @@ import numpy as np
 import pyopencl as cl
 import torch
 
-from .memory import available_host_memory
+from .memory import available_host_memory, fmt_bytes, host_allowance
 
 __all__ = [
     "BuildError", "DeviceError", "Runtime", "DeviceArray", "get_runtime", "list_devices",
@@ -320,19 +320,35 @@ class Runtime:
         self._in_flight.clear()
         self._finished_at = self.launches
 
+    def allowance(self) -> tuple[int, str]:
+        """(bytes a render may still allocate here, what bounds them, for a message).
+
+        Every device array is backed by a host tensor, so the host's allowance
+        (:func:`clsplat.memory.host_allowance`: available memory, or the process's
+        ``RLIMIT_AS`` less what is in use) bounds every device; a device with memory of its
+        own (a GPU: no shared host memory) is bounded by its global memory too."""
+        allowed, why = host_allowance()
+        if not self.shares_host_memory:
+            dev = int(self.device.global_mem_size)
+            if dev < allowed:
+                return dev, f"the device's global memory ({fmt_bytes(dev)}, {self.device.name})"
+        return allowed, why
+
     def check_memory(self, nbytes: int, what: str) -> None:
         """Refuse an allocation of ``nbytes`` for ``what`` (a message naming the argument to
-        blame) that exceeds the device's allocation limit, its global memory or the host
-        memory available now."""
-        if nbytes < HOST_CHECK_BYTES and nbytes <= self.max_alloc and nbytes <= self._limits[1]:
-            return  # small: reading /proc/meminfo per allocation cost more than the render
-        host = available_host_memory()
-        limit = min(*self._limits, host)
-        if nbytes > limit:
-            raise ValueError(f"{what} needs {nbytes >> 20} MiB, over the {limit >> 20} MiB that can "
-                             f"be allocated (device allocation limit "
-                             f"{self.device.max_mem_alloc_size >> 20} MiB, host memory available "
-                             f"{host >> 20} MiB)")
+        blame) that exceeds the device's allocation limit, its global memory or what the
+        process may allocate now (:meth:`allowance`)."""
+        max_alloc = self.max_alloc  # (fills self._limits)
+        if nbytes < HOST_CHECK_BYTES and nbytes <= max_alloc and nbytes <= self._limits[1]:
+            return  # small: reading /proc per allocation cost more than the render
+        if nbytes > max_alloc:
+            raise ValueError(f"{what} needs {nbytes >> 20} MiB, over the device allocation limit of "
+                             f"{max_alloc >> 20} MiB ({self.device.name})")
+        allowed, why = self.allowance()
+        allowed = min(allowed, self._limits[1])
+        if nbytes > allowed:
+            raise ValueError(f"{what} needs {nbytes >> 20} MiB, over the {allowed >> 20} MiB that can "
+                             f"be allocated ({why})")
 
     def array(self, tensor: torch.Tensor, read_only: bool = False) -> "DeviceArray":
         """``tensor`` on the device; ``read_only``: no command will write it, so reading it

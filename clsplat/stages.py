@@ -18,6 +18,7 @@ import torch
 
 from . import constants as K
 from .config import RenderConfig
+from .plan import check_intersection_memory
 from .runtime import DeviceArray, Runtime
 
 __all__ = ["Projection", "project", "sh_colors", "bin_tiles", "sort_segments", "tile_ranges",
@@ -135,10 +136,14 @@ def _scan_exclusive(rt: Runtime, src: DeviceArray, dst: DeviceArray, events) -> 
 
 def bin_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: DeviceArray,
               width: int, height: int, tile_size: int,
-              events: list | None = None) -> tuple[DeviceArray, DeviceArray]:
+              events: list | None = None, per_intersection: int = 16,
+              reserve: int = 0) -> tuple[DeviceArray, DeviceArray]:
     """Count, scan and scatter (camera, Gaussian, tile) intersections into tile segments.
 
-    rects [C,N,4] int32 tile rectangles and depths [C,N] from :func:`project`.
+    rects [C,N,4] int32 tile rectangles and depths [C,N] from :func:`project`. Before any
+    per-tile work, the intersections' ``per_intersection`` bytes each (keys, the sort's scratch,
+    the backward's slots: :func:`clsplat.plan.intersection_bytes`) and ``reserve`` bytes still
+    to come (the pixel buffers) are checked against what may be allocated.
 
     Returns ``tile_offsets`` [C*T+1] int32 (segment of tile t is offsets[t]:offsets[t+1]) and
     ``keys`` [M] int64 holding ulong keys (float32 depth bits << 32 | c*N+g), unsorted within
@@ -157,9 +162,9 @@ def bin_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Device
     if total >= 2**31 - 1:
         raise ValueError(f"means, scales: {total} (camera, Gaussian, tile) intersections exceed the "
                          "int32 index range; render fewer cameras, fewer or smaller Gaussians per call")
-    # Keys and the sort's scratch: 16 bytes per intersection.
-    rt.check_memory(total * 16, f"means, scales: {total} (camera, Gaussian, tile) intersections "
-                    "(render fewer cameras, fewer or smaller Gaussians per call)")
+    check_intersection_memory(rt, total, per_intersection, reserve)
+    rt.check_memory(total * 8, f"means, scales: the keys of {total} (camera, Gaussian, tile) "
+                    "intersections (render fewer cameras, fewer or smaller Gaussians per call)")
     common = (np.int32(C * N), np.int32(tiles_x), np.int32(tpc), np.int32(N), rects.buffer)
     _record(events, "bin_count", rt.launch(rt.kernel("bin", "count_tiles", defines), C * N, LOCAL_1D,
                                            *common, counts.buffer))
