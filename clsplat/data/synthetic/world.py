@@ -26,7 +26,9 @@ that window, so the cut lies half a circle away from it).
 
 Distributions of ``varied`` (per street; U = uniform, "p" = probability):
 
-* ego speed profile ``v(t) = clip(v0 + a * max(t - t_a, 0), 0, 15)`` m/s, one of
+* ego speed profile (along the road, :meth:`WorldParams.road_speed`; the true speed
+  :meth:`WorldParams.ego_speed` is a few per cent higher during a lane change or off the centre
+  line of a curve) ``v(t) = clip(v0 + a * max(t - t_a, 0), 0, 15)`` m/s, one of
   standing (p 0.15: v0 = 0, a = 0), pulling away (p 0.20: v0 = 0, a ~ U[1, 3] m/s^2,
   t_a ~ U[-1, 0.5] s), braking (p 0.20: v0 ~ U[3, 15], a ~ -U[2, 5], t_a ~ U[-1, 0.5], to a stop),
   cruising (p 0.45: v0 ~ U[0.5, 15], a ~ U[-0.3, 0.3] from t_a = 0).  Never negative.  Over 200
@@ -48,12 +50,12 @@ Distributions of ``varied`` (per street; U = uniform, "p" = probability):
 * sun azimuth ``U[0, 360)`` deg, elevation ``U[20, 70]`` deg;
 * ground height field ``h(x, y) = A sin(x / L) + B (1 - cos(x / L)) + c Lc tanh(l / Lc)`` with
   ``L ~ U[200, 500]`` m, ``A = g L`` (gradient ``g = 0`` with p 0.4, else ``U[-0.06, 0.06]``),
-  ``B = clip(q L^2, -4, 4)`` (vertical curvature ``q = 0`` with p 0.6, else
+  ``B = clip(q L^2, -12, 12)`` (vertical curvature ``q = 0`` with p 0.6, else
   ``U[-1/1500, 1/1500]`` 1/m), crossfall ``c = 0`` with p 0.4 else ``U[-0.03, 0.03]`` and
   ``Lc = 40`` m (bounded far away).  The profile runs along the start heading (world x): on a
   straight road ``x = s`` and ``g`` is the road's gradient; on a curved one the gradient turns
   into a side slope as the road turns (a road along a hillside).  Every slope is bounded by
-  ``G = |g| + |B|/L + |c|`` (at most 0.11), which the ray intersection uses.
+  ``G = |g| + |B|/L + |c|`` (at most 0.15), which the ray intersection uses.
 
 Ground intersection (:meth:`WorldParams.ground_hit`): rays rising faster than ``G`` never meet
 the ground; the others take 12 safe Lipschitz steps (``u += f / (G |d_xy| - d_z)``, ``f`` the
@@ -211,11 +213,28 @@ class WorldParams:
         return self.road_half + self.sidewalk
 
     # ------------------------------------------------------------------ ego motion
-    def ego_speed(self, t: float) -> float:
-        """Ego speed (m/s, >= 0) at time ``t``."""
+    def road_speed(self, t: float) -> float:
+        """The drawn speed profile at time ``t``: ``ds/dt`` along the centre line (m/s, >= 0)."""
         if self.speed_kind == "classic":
             return float(self.v0)
         return float(min(max(self.v0 + self.accel * max(t - self.t_accel, 0.0), 0.0), V_MAX))
+
+    def ego_speed(self, t: float) -> float:
+        """The ego's true speed at time ``t`` (m/s, >= 0): ``|d position / dt|`` in 3-D, the road
+        speed times the path's stretch (lateral motion of a lane change, the offset from the
+        centre line on a curve, the climb), at most a few per cent above it.  Classic: ``speed``
+        (its velocity along x)."""
+        v = self.road_speed(t)
+        if self.speed_kind == "classic" or v == 0.0:
+            return v
+        s, e = self.ego_distance(t), 1e-4
+        return float(v * np.linalg.norm(self._path_point(s + e) - self._path_point(s - e)) / (2 * e))
+
+    def _path_point(self, s: float) -> np.ndarray:
+        """``[3]`` the ego's ground point at path position ``s``."""
+        l = self.ego_lateral(s)[0]
+        x, y = self.to_world(s, l)
+        return np.array([float(x), float(y), float(self.height(float(x), float(y)))])
 
     def _g(self, t: float) -> float:
         """Antiderivative of :meth:`ego_speed` with ``_g(t_accel) = 0``."""
@@ -231,7 +250,8 @@ class WorldParams:
         return v0 * t1 + 0.5 * a * t1 * t1 + vend * (tau - t1)
 
     def ego_distance(self, t: float) -> float:
-        """Distance along the path travelled from ``t = 0`` to ``t`` (m; negative before 0)."""
+        """Centre-line position ``s`` of the ego at ``t`` (m, 0 at ``t = 0``): the integral of
+        :meth:`road_speed`."""
         if self.speed_kind == "classic":
             return float(self.v0 * t)
         return float(self._g(t) - self._g(0.0))
@@ -493,7 +513,7 @@ def draw_world(seed: int, world: str = "varied") -> WorldParams:
     # lane change
     u_lc = rng.uniform(size=5)
     right, left = -lane_width / 2, lane_width / 2
-    lc = (not straight) and u_lc[0] < 0.4
+    lc = bool((not straight) and u_lc[0] < 0.4)
     if lc:
         lane_from, lane_to = (right, left) if u_lc[1] < 0.5 else (left, right)
     else:
@@ -510,7 +530,7 @@ def draw_world(seed: int, world: str = "varied") -> WorldParams:
     L = 200.0 + 300.0 * u_g[0]
     grade = 0.0 if u_g[1] < 0.4 else -0.06 + 0.12 * u_g[2]
     q = 0.0 if u_g[3] < 0.6 else (-1.0 + 2.0 * u_g[4]) / 1500.0
-    vcurv = float(np.clip(q * L * L, -4.0, 4.0)) / (L * L)
+    vcurv = float(np.clip(q * L * L, -12.0, 12.0)) / (L * L)
     crossfall = 0.0 if u_g[5] < 0.4 else -0.03 + 0.06 * u_g[6]
     w = WorldParams(
         world=world, seed=int(seed), speed_kind=kind, v0=float(v0), accel=float(a), t_accel=float(ta),
@@ -519,6 +539,6 @@ def draw_world(seed: int, world: str = "varied") -> WorldParams:
         lane_width=lane_width, sidewalk=sidewalk, building_height=b_height, num_parked=num_parked,
         num_moving=num_moving, sun_azimuth_deg=sun_az, sun_elevation_deg=sun_el, grade=float(grade),
         vcurv=float(vcurv), crossfall=float(crossfall), profile_length=float(L))
-    vref = max(w.ego_speed(lc_t), w.ego_speed(lc_t + lc_dur))
+    vref = max(w.road_speed(lc_t), w.road_speed(lc_t + lc_dur))
     length = float(np.clip(lc_dur * vref, 12.0, 60.0))
     return WorldParams(**{**w.__dict__, "lc_s_start": w.ego_distance(lc_t), "lc_length": length})

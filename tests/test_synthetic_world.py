@@ -1,0 +1,233 @@
+"""Synthetic worlds (``SyntheticConfig.world``): the classic street bit for bit, the varied and
+straight worlds seeded and reproducible, their speed bins, their exact geometry (ground on the
+height field, LiDAR, camera height along the normal, vehicle pixels inside tilted boxes) and the
+straight world's promises."""
+import hashlib
+
+import numpy as np
+import pytest
+
+from clsplat.data.scene import CAMERA_NAMES, SEMANTIC_CLASSES, invert_transform, unproject_depth
+from clsplat.data.synthetic import (SPEED_BINS, SyntheticConfig, WorldParams, draw_world, generate_sequence,
+                                    make_rig, speed_bin)
+from clsplat.data.synthetic.views import mirror_across_box, shift_sideways
+
+ROAD, SIDEWALK = SEMANTIC_CLASSES.index("road"), SEMANTIC_CLASSES.index("sidewalk")
+
+
+def _seq_hash(seq) -> str:
+    h = hashlib.sha256()
+    for f in seq.frames:
+        h.update(np.ascontiguousarray(f.ego_to_world, np.float64).tobytes())
+        for c in seq.camera_names:
+            for a in (f.images[c], f.depths[c], f.semantics[c], f.instances[c]):
+                h.update(np.ascontiguousarray(a).tobytes())
+        if f.lidar is not None:
+            h.update(f.lidar.points.tobytes())
+            h.update(f.lidar.intensity.tobytes())
+        for b in f.boxes:
+            for a in (b.center, b.quat, b.size):
+                h.update(np.asarray(a, np.float64).tobytes())
+    return h.hexdigest()
+
+
+def test_classic_is_bitwise_unchanged():
+    # hashes made with _seq_hash on the tree before SyntheticConfig.world existed (commit 28ec746),
+    # same calls, same venv: the classic street must not move by one bit
+    a = generate_sequence(height=24, width=40, num_frames=2, seed=5)
+    assert _seq_hash(a) == "110a2cac318d7a784b1dc87f22235ece348b78c9b1dbcb571fad3ea53a39679f"
+    b = generate_sequence(height=24, width=40, num_frames=2, seed=2, signals=True, shadow=True, fine_texture=0.5,
+                          lane_change=False, speed=3.0, num_parked=9, num_moving=3, t0=0.7, lidar=False,
+                          supersample=2)
+    assert _seq_hash(b) == "f25afaefaf8915fcd14bafe497adaf81fcb336a823eb346d537a942bdf15ae8b"
+    assert a.metadata["world"].world == "classic" and a.metadata["world"] == draw_world(5, "classic")
+
+
+def test_world_is_validated():
+    with pytest.raises(ValueError, match=r"SyntheticConfig.world must be one of \['classic', 'varied', 'straight'\]"):
+        SyntheticConfig(world="curvy").validate()
+    with pytest.raises(ValueError, match="world must be one of"):
+        draw_world(0, "curvy")
+    with pytest.raises(ValueError, match="seed"):
+        draw_world(-1, "varied")
+
+
+def test_varied_is_seeded_and_reproducible():
+    kw = dict(height=24, width=40, num_frames=2, seed=11, world="varied")
+    a, b = generate_sequence(**kw), generate_sequence(**kw)
+    assert _seq_hash(a) == _seq_hash(b)
+    assert isinstance(a.metadata["world"], WorldParams) and a.metadata["world"] == draw_world(11, "varied")
+    draws = [draw_world(s, "varied") for s in range(20)]
+    assert len(set(draws)) == 20
+    for field in ("speed_kind", "v0", "curvature", "road_half", "sun_azimuth_deg", "num_parked", "grade",
+                  "crossfall", "lane_change"):
+        assert len({getattr(w, field) for w in draws}) > 1, field
+    assert _seq_hash(generate_sequence(**{**kw, "seed": 12})) != _seq_hash(a)
+
+
+def test_speed_bins_are_covered():
+    """DrivingForward samples t in {0, 0.1, 0.2} per street: each issue-32 bin >= 10 % over 200 seeds."""
+    counts = dict.fromkeys(SPEED_BINS, 0)
+    kinds = set()
+    for seed in range(200):
+        w = draw_world(seed, "varied")
+        kinds.add(w.speed_kind)
+        for t in (0.0, 0.1, 0.2):
+            counts[speed_bin(w.ego_speed(t))] += 1
+        v = [w.road_speed(t) for t in np.linspace(-5, 20, 101)]
+        assert min(v) >= 0 and max(v) <= 15
+        # the pose follows the speed: distance between frames = integral of the true speed
+        ts = np.linspace(0.0, 0.2, 21)
+        path = sum(np.linalg.norm(w.ego_pose(b)[:3, 3] - w.ego_pose(a)[:3, 3]) for a, b in zip(ts, ts[1:]))
+        integral = np.trapezoid([w.ego_speed(t) for t in ts], ts)
+        assert abs(path - integral) < 1e-3 * path + 1e-5, (seed, path, integral)   # 1e-5: the kink at t_a
+    assert kinds == {"standing", "pulling_away", "braking", "cruising"}
+    share = {k: n / 600 for k, n in counts.items()}
+    assert min(share.values()) >= 0.10, share
+
+
+def _sloped_curved_seed() -> int:
+    for s in range(200):
+        w = draw_world(s, "varied")
+        if (w.curvature != 0 and abs(w.grade) > 0.02 and abs(w.crossfall) > 0.01 and abs(w.vcurv) > 1e-4
+                and w.num_parked + w.num_moving > 4):
+            return s
+    raise AssertionError("no sloped street among 200 seeds")
+
+
+@pytest.fixture(scope="module")
+def sloped():
+    return generate_sequence(height=40, width=72, num_frames=2, seed=_sloped_curved_seed(), world="varied", dt=0.5)
+
+
+def test_ground_is_on_the_height_field(sloped):
+    seq = sloped
+    w, scene = seq.metadata["world"], seq.metadata["scene"]
+    assert w.curvature != 0 and w.grade != 0 and w.crossfall != 0 and w.vcurv != 0
+    n_ground = 0
+    for k, f in enumerate(seq.frames):
+        for c in CAMERA_NAMES:
+            T = seq.cam_to_world(k, c)
+            pts = unproject_depth(f.depths[c], seq.camera(c).K, T)
+            g = np.isin(f.semantics[c], [ROAD, SIDEWALK])
+            z = w.height(pts[g][:, 0], pts[g][:, 1])
+            assert np.all(np.abs(pts[g][:, 2] - z) < 1e-3), c          # float32 depth storage
+            n_ground += g.sum()
+            # the solver's own residual, in float64, on every ground ray of this view
+            K = seq.camera(c).K
+            u, v = np.meshgrid(np.arange(72) + 0.5, np.arange(40) + 0.5)
+            d = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1) @ T[:3, :3].T
+            s, pid = scene.trace(T[:3, 3], d, f.timestamp)
+            p = T[:3, 3] + s[pid == -1][:, None] * d[pid == -1]
+            assert np.all(np.abs(p[:, 2] - w.height(p[:, 0], p[:, 1])) < 1e-6)
+    assert n_ground > 1000
+    # far ground departs from the ego's plane where the road bends vertically
+    E = seq.frames[0].ego_to_world
+    pts = unproject_depth(seq.frames[0].depths["CAM_FRONT"], seq.camera("CAM_FRONT").K, seq.cam_to_world(0, "CAM_FRONT"))
+    road = seq.frames[0].semantics["CAM_FRONT"] == ROAD
+    local = pts[road] @ invert_transform(E)[:3, :3].T + invert_transform(E)[:3, 3]
+    assert np.abs(local[:, 2]).max() > 0.1
+
+
+def test_lidar_ground_points_lie_on_the_height_field(sloped):
+    seq = sloped
+    w, scene = seq.metadata["world"], seq.metadata["scene"]
+    E = seq.frames[1].ego_to_world
+    lp, sem = scene.lidar(E, seq.frames[1].timestamp, with_semantics=True)
+    g = np.isin(sem, [ROAD, SIDEWALK])
+    pw = lp.points[g].astype(np.float64) @ E[:3, :3].T + E[:3, 3]
+    assert g.sum() > 500
+    assert np.abs(pw[:, 2] - w.height(pw[:, 0], pw[:, 1])).max() < 1e-3
+    assert np.array_equal(lp.points, seq.frames[1].lidar.points)
+
+
+def test_camera_is_1p6_m_above_the_local_ground(sloped):
+    seq = sloped
+    w = seq.metadata["world"]
+    for k, f in enumerate(seq.frames):
+        E = f.ego_to_world
+        n = w.normal(E[0, 3], E[1, 3])
+        assert abs(E[2, 3] - w.height(E[0, 3], E[1, 3])) < 1e-9          # the ego stands on the ground
+        assert np.allclose(E[:3, 2], n, atol=1e-9)                        # tilted with it
+        assert abs(n[2]) < 1 - 1e-6                                       # (it is tilted)
+        for c in CAMERA_NAMES:
+            centre = seq.cam_to_world(k, c)[:3, 3]
+            assert abs((centre - E[:3, 3]) @ n - 1.6) < 1e-9
+            u = w.ground_hit(centre, -n[None])[0]                          # along the normal to the ground
+            assert abs(u - 1.6) < 5e-3, (c, u)
+
+
+def test_vehicle_pixels_inside_tilted_boxes(sloped):
+    seq = sloped
+    n = 0
+    for k, f in enumerate(seq.frames):
+        boxes = {b.track_id: b for b in f.boxes}
+        for c in CAMERA_NAMES:
+            inst = f.instances[c]
+            pts = unproject_depth(f.depths[c], seq.camera(c).K, seq.cam_to_world(k, c))
+            for tid in np.unique(inst[inst > 0]):
+                assert boxes[tid].contains(pts[inst == tid], margin=0.02).all()
+                n += 1
+    assert n > 0
+    # boxes stand on the ground, tilted with it (pitch/roll, not yaw only)
+    w = seq.metadata["world"]
+    for b in seq.frames[0].boxes:
+        from clsplat.data.scene import quat_to_rotmat
+        R = quat_to_rotmat(b.quat)
+        bottom = b.center - R[:, 2] * b.size[2] / 2
+        assert abs(bottom[2] - w.height(bottom[0], bottom[1])) < 1e-6
+        assert np.allclose(R[:, 2], w.normal(bottom[0], bottom[1]), atol=1e-6)
+
+
+def test_straight_world():
+    for seed in range(30):
+        w = draw_world(seed, "straight")
+        assert w.curvature == 0 and not w.lane_change and w.lane_from == w.lane_to < 0
+        assert w.speed_kind == "cruising" and w.accel == 0 and 5 <= w.ego_speed(0.0) <= 12
+        assert w.num_moving >= 1
+    seq = generate_sequence(height=24, width=40, num_frames=3, seed=3, world="straight", lidar=False)
+    w, scene = seq.metadata["world"], seq.metadata["scene"]
+    moving = [v for v in scene.vehicles if v.speed > 0]
+    parked = [v for v in scene.vehicles if v.speed == 0]
+    assert moving
+    for f in seq.frames:
+        E = f.ego_to_world
+        assert abs(E[1, 3] - w.lane_from) < 1e-9                          # keeps its lane on a straight road
+        for b in f.boxes:
+            lateral = (invert_transform(E)[:3, :3] @ b.center + invert_transform(E)[:3, 3])[1]
+            if b.track_id in {v.track_id for v in moving}:
+                assert lateral > 0, (b.track_id, lateral)               # every moving vehicle on the left
+    assert all(v.y < 0 for v in parked)                                   # parked on the right only
+
+
+def test_moving_vehicles_keep_clear_of_the_ego():
+    cams = make_rig(40, 24)
+    for seed in range(12):
+        w = draw_world(seed, "varied")
+        seq = generate_sequence(height=8, width=8, num_frames=5, dt=0.5, seed=seed, world="varied", lidar=False,
+                                cameras=("CAM_FRONT",))
+        for f in seq.frames:
+            centres = np.stack([f.ego_to_world @ c.cam_to_ego[:, 3] for c in cams])[:, :3]
+            for b in f.boxes:
+                assert not b.contains(centres, margin=0.3).any(), (seed, b.track_id)
+        assert seq.metadata["world"] == w
+
+
+def test_views_work_on_a_varied_street(sloped):
+    seq = sloped
+    scene = seq.metadata["scene"]
+    f = seq.frames[0]
+    c = "CAM_FRONT"
+    T = seq.cam_to_world(0, c)
+    K = seq.camera(c).K
+    shifted = shift_sideways(T, f.ego_to_world, 2.0)
+    assert np.isclose(np.linalg.norm(shifted[:3, 3] - T[:3, 3]), 2.0)
+    r = scene.render(K, shifted, 72, 40, f.timestamp)
+    assert np.isfinite(r.depth).any() and (r.semantic == ROAD).any()
+    box = f.boxes[0]
+    from clsplat.data.scene import quat_to_rotmat
+    B = np.eye(4)
+    B[:3, :3], B[:3, 3] = quat_to_rotmat(box.quat), box.center
+    M = mirror_across_box(T, B)
+    assert np.allclose(M[:3, :3] @ M[:3, :3].T, np.eye(3), atol=1e-9) and np.linalg.det(M[:3, :3]) > 0
+    scene.render(K, M, 72, 40, f.timestamp)
