@@ -60,7 +60,8 @@ def test_issue18_budget_stage_trains_on_many_views_from_a_base_with_other_budget
 def test_budget_stage_with_kappa_in_the_decoder_trains_and_evaluates(runs, tmp_path):
     """``kappa_decoder``: the budget stage trains copies of the decoder's last stages (and their κ
     FiLM) while the base decoder stays frozen; the evaluation rebuilds the copies from the
-    checkpoint's preset and keeps exact counts, with κ = 1 the base model."""
+    checkpoint's preset and keeps exact counts, with κ = 1 the base model for the naive rows and
+    the finetuned parameters unpruned for the others."""
     out = tmp_path / "kd"
     assert train(["--stage", "budget", "--init", str(runs / "base" / "checkpoint.pt"), "--preset", "tiny",
                   "--steps", "2", "--eval-scenes", "0", "--set", "kappa_decoder=2", "--set", "budget_views=4",
@@ -76,7 +77,8 @@ def test_budget_stage_with_kappa_in_the_decoder_trains_and_evaluates(runs, tmp_p
                      "--repeats", "1", "--views", "4", "--out", str(tmp_path / "ev")]) == 0
     rows = json.loads((tmp_path / "ev" / "budget.json").read_text())
     assert all(r["n_gaussians"] == round(r["budget"] * 4 * 32 * 48) for r in rows)
-    assert len({r["psnr"] for r in rows if r["budget"] == 1.0}) == 1
+    for params in ("base", "finetuned"):  # κ = 1: the base model, or the finetuned parameters unpruned
+        assert len({r["psnr"] for r in rows if r["budget"] == 1.0 and r["parameters"] == params}) == 1
 
 
 def test_base_stage_resumes_bitwise(runs, tmp_path, monkeypatch):
@@ -107,26 +109,64 @@ def test_base_stage_resumes_bitwise(runs, tmp_path, monkeypatch):
     assert all(torch.equal(a[k], b[k]) for k in b)
 
 
+NAIVE = ("random", "opacity", "grid", "dedup")
+ON_FINETUNED = tuple(f"{m}@finetuned" for m in NAIVE)
+
+
 @pytest.mark.parametrize("views", [8, 2])
 def test_eval_writes_the_budget_curve(runs, views):
+    """Every method at every κ, with issue 33's controls: each naive selection also on the
+    finetuned parameters (finite PSNR, exact counts); at κ = 1 the naive rows are the base model
+    and the finetuned model's own κ = 1 (its parameters unpruned) equals every naive selection
+    on those parameters, which keeps every pixel there."""
     out = runs / f"eval{views}"
     assert evaluate(["--checkpoint", str(runs / "budget" / "checkpoint.pt"), "--budgets", "1,0.2,0.05",
                      "--num-scenes", "1", "--repeats", "1", "--views", str(views), "--out", str(out)]) == 0
     rows = json.loads((out / "budget.json").read_text())
     assert {(r["method"], r["budget"]) for r in rows} == {
-        (m, k) for m in ("finetuned", "random", "opacity", "grid", "dedup") for k in (1.0, 0.2, 0.05)}
+        (m, k) for m in ("finetuned",) + NAIVE + ON_FINETUNED for k in (1.0, 0.2, 0.05)}
     P = views * 32 * 48
     for r in rows:
-        assert set(r) == {"method", "budget", "views", "n_gaussians", "psnr", "psnr_covered", "ssim", "render_ms"}
+        assert set(r) == {"method", "selection", "parameters", "budget", "views", "n_gaussians", "psnr",
+                          "psnr_covered", "ssim", "render_ms"}
         assert r["views"] == views
         assert r["n_gaussians"] == round(r["budget"] * P)  # exact: every method, every sample
         assert r["render_ms"] > 0 and 0 < r["psnr"] < 60 and -1 <= r["ssim"] <= 1 and 0 < r["psnr_covered"] < 60
-    full = [r for r in rows if r["budget"] == 1.0]
-    assert len({(r["psnr"], r["n_gaussians"]) for r in full}) == 1  # κ = 1 is the base model for all
+        assert r["parameters"] == ("finetuned" if r["method"] == "finetuned" or "@" in r["method"] else "base")
+        assert r["selection"] == ("learned" if r["method"] == "finetuned" else r["method"].split("@")[0])
+    row = {(r["method"], r["budget"]): r for r in rows}
+    base_full = {(r["psnr"], r["n_gaussians"]) for r in rows if r["budget"] == 1.0 and r["parameters"] == "base"}
+    assert len(base_full) == 1  # κ = 1 is the base model for the naive rows
+    for m in ON_FINETUNED:      # the selections at κ = 1 on the finetuned parameters: the finetuned model
+        assert row[(m, 1.0)]["psnr"] == row[("finetuned", 1.0)]["psnr"]
+        assert row[(m, 1.0)]["ssim"] == row[("finetuned", 1.0)]["ssim"]
+    # the budget stage trained: its unpruned parameters are not the base model's
+    assert row[("finetuned", 1.0)]["psnr"] != row[("random", 1.0)]["psnr"]
+    # opacity@finetuned ranks by the finetuned opacity: here (no importance head) the learned selection
+    for k in (0.2, 0.05):
+        assert row[("opacity@finetuned", k)]["psnr"] == row[("finetuned", k)]["psnr"]
     m = json.loads((out / "metrics.json").read_text())
+    assert m["protocol"]["split"] == "test"
     assert {"abs_rel", "delta1"} <= set(m["all"]) and {"abs_rel", "delta1"} <= set(m["depth_without_residual"])
     assert m["seconds_per_prediction"] > 0 and m["family"] == "pgt" and m["step"] >= 1
     assert (out / "budget.png").stat().st_size > 1000 and (out / "contact_sheet.png").is_file()
+
+
+def test_eval_on_the_validation_streets(runs):
+    """``--eval-split val``: other streets than the test split's (disjoint seeds), recorded in
+    the protocol; the same rows."""
+    out = runs / "eval-val"
+    assert evaluate(["--checkpoint", str(runs / "budget" / "checkpoint.pt"), "--budgets", "1,0.2", "--views", "4",
+                     "--num-scenes", "1", "--repeats", "1", "--eval-split", "val", "--out", str(out)]) == 0
+    test = runs / "eval-test4"
+    assert evaluate(["--checkpoint", str(runs / "budget" / "checkpoint.pt"), "--budgets", "1,0.2", "--views", "4",
+                     "--num-scenes", "1", "--repeats", "1", "--out", str(test)]) == 0
+    v, t = (json.loads((d / "metrics.json").read_text()) for d in (out, test))
+    assert v["protocol"]["split"] == "val" and t["protocol"]["split"] == "test"
+    assert v["all"]["psnr"] != t["all"]["psnr"]
+    rows = json.loads((out / "budget.json").read_text())
+    assert {r["method"] for r in rows} == {"finetuned", *NAIVE, *ON_FINETUNED}
+    assert all(0 < r["psnr"] < 60 for r in rows)
 
 
 def test_eval_of_a_base_checkpoint_has_only_the_baselines(runs):
@@ -148,6 +188,10 @@ def test_bad_arguments_are_clear_errors(runs, tmp_path, capsys):
         assert evaluate(["--checkpoint", str(runs / "base" / "checkpoint.pt"), "--views", views,
                          "--out", str(tmp_path / "e")]) == 2
         assert "--views" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        evaluate(["--checkpoint", str(runs / "base" / "checkpoint.pt"), "--eval-split", "train",
+                  "--out", str(tmp_path / "e")])
+    assert "--eval-split" in capsys.readouterr().err
     assert train(["--stage", "budget", "--preset", "tiny", "--steps", "1", "--out", str(tmp_path / "b")]) == 2
     assert "--init" in capsys.readouterr().err
     assert train(["--stage", "budget", "--init", str(tmp_path / "missing.pt"), "--preset", "tiny", "--steps", "1",

@@ -227,6 +227,50 @@ def test_kappa_decoder_starts_as_the_base_and_changes_the_features_with_kappa(mo
     assert plain.budget.decoder.film is None and len(plain.budget.decoder.stages) == stages
 
 
+@pytest.mark.parametrize("preset", [TINY, ISSUE18, KDEC], ids=["ecosplat", "issue18", "kappa_decoder"])
+def test_full_gives_the_finetuned_parameters_unpruned(model, preset):
+    """Issue 33's controls select from the finetuned parameters: ``full=True`` runs the stage-2
+    heads at κ and keeps every Gaussian; the model's own selection applied to them is its κ
+    output exactly; every naive selection at κ = 1 keeps every pixel, so it is the finetuned model
+    itself; random, grid and dedup pick the very pixels of the base model's row."""
+    from clsplat.models.pgt.evaluate import BASELINES, baseline_mask
+    from clsplat.models.pgt.model import learned_selection
+    images, Ks, c2w = _views(V=3, seed=7)
+    m = PGT(preset)
+    m.load_state_dict(model.state_dict())
+    m.enable_budget()
+    with torch.no_grad():
+        for prm in m.budget.parameters():   # finetuned heads that differ from the base heads
+            prm.add_(torch.randn_like(prm) * 0.1)
+        base = m(images, Ks, c2w)
+        for kappa in (0.1, 1.0):
+            ft = m(images, Ks, c2w, kappa=kappa, full=True)
+            assert ft.keep is None and len(ft.gaussians()) == 3 * TINY.height * TINY.width
+            assert not torch.equal(ft.opacities, base.opacities)      # not the base model
+            assert torch.equal(ft.depth, base.depth)                  # the depth stays the base's
+            assert int(ft.budgets.sum()) == PGT.expected_count(kappa, 3, TINY.height, TINY.width)
+            for meth in BASELINES:
+                gen = lambda: torch.Generator().manual_seed(11)  # noqa: E731  (the same draw for both rows)
+                keep_ft = baseline_mask(meth, ft, ft.budgets, Ks, c2w, gen(), preset.coverage_tol)
+                keep_base = baseline_mask(meth, base, ft.budgets, Ks, c2w, gen(), preset.coverage_tol)
+                if meth != "opacity":   # the same pixels; only the parameters differ
+                    assert torch.equal(keep_ft, keep_base), meth
+                if kappa == 1.0:
+                    assert keep_ft.all()
+                    a, b = ft.gaussians(keep_ft), ft.gaussians()
+                    for f in ("means", "quats", "scales", "opacities", "sh"):
+                        assert torch.equal(getattr(a, f), getattr(b, f)), (meth, f)
+        own = m(images, Ks, c2w, kappa=0.1)
+        ft = m(images, Ks, c2w, kappa=0.1, full=True)
+        keep = learned_selection(ft.importance, ft.budgets, preset.selection)
+        assert torch.equal(keep, own.keep)
+        a, b = ft.gaussians(keep), own.gaussians()
+        for f in ("means", "quats", "scales", "opacities", "sh"):
+            assert torch.equal(getattr(a, f), getattr(b, f)), f
+    with pytest.raises(ValueError, match="full=True needs the budget stage"):
+        model(images, Ks, c2w, full=True)
+
+
 def test_kappa_decoder_field_is_checked():
     with pytest.raises(ValueError, match="kappa_decoder"):
         TINY.replace(kappa_decoder=5)

@@ -4,25 +4,29 @@
     clsplat train pgt --stage budget --init runs/pgt-base/checkpoint.pt --data synthetic \\
                       --preset small --steps 400 --out runs/pgt-budget
     clsplat eval pgt --checkpoint runs/pgt-budget/checkpoint.pt --data synthetic --views 8 \\
-                     --budgets 1,0.5,0.2,0.1,0.05 --out runs/pgt-eval
+                     --budgets 1,0.5,0.2,0.1,0.05 [--eval-split val|test] --out runs/pgt-eval
 
 ``train`` (``--view``: watch it in the browser, clsplat view) writes the run folder of
 :func:`clsplat.models.common.train.train` (checkpoint.pt, log.jsonl, loss.png) and the evaluation
 on ``--eval-scenes`` held-out samples (as ``eval`` does: at κ = 1 on the base protocol after the
 base stage, on ``budget_views`` views after the budget stage). ``eval --views N`` (default 8: the
 multi-view protocol; 2: the base stage's two frames) writes budget.json (rows: method one of
-finetuned, random, opacity, grid, dedup; budget, views, n_gaussians, psnr, psnr_covered, ssim,
-[lpips], render_ms), budget.png (quality against Gaussian count and render time, Pareto front),
+finetuned, random, opacity, grid, dedup and, with a budget checkpoint, random@finetuned,
+opacity@finetuned, grid@finetuned, dedup@finetuned (the naive selections on the finetuned
+parameters, issue 33); selection, parameters, budget, views, n_gaussians, psnr, psnr_covered,
+ssim, [lpips], render_ms), budget.png (quality against Gaussian count and render time, Pareto front),
 metrics.json (full-set quality in the shared schema of :mod:`clsplat.models.common.report`,
 depth with and without the residual head, seconds per prediction) and contact_sheet.png.
+``--eval-split val`` scores the validation streets (disjoint seeds from train and test: where the
+budget stage's fields and steps are chosen); ``test`` (default) is reported once per recipe.
 """
 from __future__ import annotations
 
 import sys
 
 from clsplat.argparser import ArgumentParser
-from clsplat.models.common.cli import (add_common_args, add_eval_args, add_eval_scenes_arg, add_view_args,
-                                      lpips_from_args, no_weights)
+from clsplat.models.common.cli import (add_common_args, add_eval_args, add_eval_scenes_arg, add_eval_split_arg,
+                                      add_view_args, lpips_from_args, no_weights)
 from clsplat.models.common.data import parse_data
 from clsplat.models.common.presets import apply_sets, check_preset_matches, get_preset
 from clsplat.models.common.train import TrainSpec, load_checkpoint, seed_everything, set_threads
@@ -84,6 +88,7 @@ def train(argv: list[str]) -> int:
                    help="base: the pixel-aligned predictor; budget: EcoSplat stage 2 from --init")
     p.add_argument("--init", default=None, help="base checkpoint to start the budget stage from")
     add_eval_scenes_arg(p)
+    add_eval_split_arg(p)
     add_view_args(p)
     args = p.parse_args(argv)
     try:
@@ -134,9 +139,10 @@ def train(argv: list[str]) -> int:
                 res = evaluate_model(model, source, preset, [1.0] if args.stage == "base" else DEFAULT_BUDGETS,
                                      args.eval_scenes, args.seed, sheet=rf.stage / "contact_sheet.png",
                                      lpips=lpips, step=steps,
-                                     views=2 if args.stage == "base" else preset.budget_views)
+                                     views=2 if args.stage == "base" else preset.budget_views,
+                                     split=args.eval_split)
                 write_results(res, rf.stage, f"PGT {preset.name} ({args.stage}, step {steps}) on held-out "
-                                             f"{source.name}")
+                                             f"{source.name} ({args.eval_split})")
                 print(_summary(res["metrics"]), flush=True)
             rf.publish()
         end_distributed()
@@ -156,6 +162,7 @@ def evaluate(argv: list[str]) -> int:
     p.add_argument("--views", type=int, default=DEFAULT_VIEWS,
                    help="source views per sample: 2 (the base protocol: two frames of one camera) or 3..24 "
                         "(the multi-view protocol: rig cameras at several instants, targets between them)")
+    add_eval_split_arg(p)
     args = p.parse_args(argv)
     try:
         budgets = parse_budgets(args.budgets)
@@ -176,13 +183,14 @@ def evaluate(argv: list[str]) -> int:
         from .evaluate import evaluate_model, write_results
         with staged_group(args.out) as stage:  # the four files replace an earlier evaluation's together
             res = evaluate_model(model, source, preset, budgets, args.num_scenes, args.seed, args.repeats,
-                                 sheet=stage / "contact_sheet.png", lpips=lpips, step=int(ck["step"]), views=views)
+                                 sheet=stage / "contact_sheet.png", lpips=lpips, step=int(ck["step"]), views=views,
+                                 split=args.eval_split)
             res["metrics"]["checkpoint"] = str(args.checkpoint)
-            write_results(res, stage, f"PGT {preset.name} (step {ck['step']}) on held-out {source.name}, "
-                                      f"{views} views")
+            write_results(res, stage, f"PGT {preset.name} (step {ck['step']}) on held-out {source.name} "
+                                      f"({args.eval_split}), {views} views")
         print(_summary(res["metrics"]))
         for r in res["rows"]:
-            print(f"  {r['method']:>9} kappa={r['budget']:<5g} n={r['n_gaussians']:>8.0f} PSNR {r['psnr']:.2f} "
+            print(f"  {r['method']:>17} kappa={r['budget']:<5g} n={r['n_gaussians']:>8.0f} PSNR {r['psnr']:.2f} "
                   f"(covered {r['psnr_covered']:.2f}) SSIM {r['ssim']:.3f} render {r['render_ms']:.1f} ms")
     except ValueError as e:
         print(f"clsplat eval pgt: {e}", file=sys.stderr)

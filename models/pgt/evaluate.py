@@ -10,17 +10,28 @@ depth is compared with ground truth before (u0) and after the residual head; the
 budget κ the same number of Gaussians per view, K_v from the high-frequency weighting, is kept
 five ways (:data:`METHODS`):
 
-* ``finetuned``: EcoSplat's stage-2 heads at κ (only with a budget checkpoint),
+* ``finetuned``: EcoSplat's stage-2 heads at κ and their own selection (only with a budget checkpoint),
 * ``random``: K_v uniformly random pixels per view,
 * ``opacity``: top-K_v by the base model's opacity, no finetuning,
 * ``grid``: uniform grid thinning, one pixel per cell (:func:`~.budget.grid_mask`),
 * ``dedup``: cross-view de-duplication (pixels whose point an earlier view already has, within
   a pixel in that view, go last), then uniform (:func:`~.budget.dedup_mask`),
 
-each rendered (PSNR over all pixels and over the pixels the full model covers, alpha > 0.5;
-SSIM; median render milliseconds of the forward rasterisation). κ = 1 is the base model for
-every method. Per-view counts are checked equal across methods (a ValueError otherwise). Rows are
-means over samples.
+and, with a budget checkpoint, each naive selection applied to the *finetuned* parameters (issue
+33's controls, :data:`ON_FINETUNED`: ``random@finetuned``, ``opacity@finetuned``,
+``grid@finetuned``, ``dedup@finetuned``): the stage-2 heads at κ predict every pixel's Gaussian
+(``PGT.forward(full=True)``), then the naive rule picks which K_v to keep (random, grid and dedup
+the very pixels of their base-model row, from the same generator; opacity by the finetuned
+opacity). ``finetuned`` against ``X@finetuned`` is "which Gaussians" on the same parameters;
+``X@finetuned`` against ``X`` is "how they were retrained" on the same pixels.
+
+Each is rendered (PSNR over all pixels and over the pixels the full model covers, alpha > 0.5;
+SSIM; median render milliseconds of the forward rasterisation). κ = 1 is the base model for the
+naive rows and the finetuned parameters unpruned (the stage-2 heads at κ = 1, every Gaussian) for
+``finetuned`` and ``X@finetuned`` (whose selections keep every pixel there, so they equal it).
+Per-view counts are checked equal across methods (a ValueError otherwise). Rows are means over
+samples of ``split`` (``test``, reported once; ``val``: where the budget stage's fields are
+chosen, disjoint streets).
 """
 from __future__ import annotations
 
@@ -40,15 +51,19 @@ from clsplat.models.common.report import camera_blocks, image_scores, metrics_re
 from .budget import (cross_view_coverage, dedup_mask, grid_mask, per_view_budgets, random_mask, topk_mask,
                      view_weights)
 from .data import make_views_sample
-from .model import PGT
+from .model import PGT, learned_selection
 from .presets import PGTPreset
 from .training import render_views
 
 __all__ = ["evaluate_model", "plot_budget", "pareto_front", "write_results", "covered_mask", "baseline_mask",
-           "METHODS", "BASELINES", "COVERED_ALPHA"]
+           "METHODS", "BASELINES", "ON_FINETUNED", "ALL_METHODS", "COVERED_ALPHA"]
 
 METHODS = ("finetuned", "random", "opacity", "grid", "dedup")
 BASELINES = METHODS[1:]
+#: the naive selections applied to the finetuned parameters (issue 33's controls)
+ON_FINETUNED = tuple(f"{m}@finetuned" for m in BASELINES)
+#: every row name of budget.json, in the table's order
+ALL_METHODS = METHODS + ON_FINETUNED
 #: a target pixel is "covered" when the full model's rendered alpha exceeds this
 COVERED_ALPHA = 0.5
 
@@ -60,8 +75,9 @@ def covered_mask(alpha) -> torch.Tensor:
 
 def baseline_mask(method: str, base, budgets: torch.Tensor, Ks: torch.Tensor, cam_to_world: torch.Tensor,
                   generator: torch.Generator | None = None, coverage_tol: float = 0.05) -> torch.Tensor:
-    """bool [V, H, W]: the pixels ``method`` (one of :data:`BASELINES`) keeps of the base output
-    ``base`` (:class:`~.model.PGTOutput`), ``budgets[v]`` per view exactly."""
+    """bool [V, H, W]: the pixels ``method`` (one of :data:`BASELINES`) keeps of the output
+    ``base`` (:class:`~.model.PGTOutput`: the base model's, or the finetuned parameters'),
+    ``budgets[v]`` per view exactly."""
     V, H, W = base.opacities.shape
     if method == "random":
         return random_mask(budgets, H, W, generator)
@@ -93,27 +109,33 @@ def _check_counts(keep: torch.Tensor, budgets: torch.Tensor, method: str) -> Non
 
 def evaluate_model(model: PGT, source, preset: PGTPreset, budgets: list[float], num_scenes: int = 4,
                    seed: int = 0, repeats: int = 3, sheet: str | Path | None = None, lpips=None,
-                   step: int = 0, views: int = 2, methods: tuple[str, ...] | None = None) -> dict:
-    """Evaluate ``model`` on held-out samples 0..num_scenes-1 (split "test") with ``views``
-    source views (2: the base protocol; 3..24: the multi-view protocol).
+                   step: int = 0, views: int = 2, methods: tuple[str, ...] | None = None,
+                   split: str = "test") -> dict:
+    """Evaluate ``model`` on held-out samples 0..num_scenes-1 of ``split`` ("test", or "val":
+    the validation streets, disjoint from train and test) with ``views`` source views (2: the
+    base protocol; 3..24: the multi-view protocol).
 
-    Returns {"rows": budget rows (method, budget, views, n_gaussians, psnr, psnr_covered, ssim,
-    [lpips], render_ms), "metrics": the ``metrics.json`` dict
+    Returns {"rows": budget rows (method, selection, parameters, budget, views, n_gaussians, psnr,
+    psnr_covered, ssim, [lpips], render_ms), "metrics": the ``metrics.json`` dict
     (:mod:`clsplat.models.common.report`) of the full set: PSNR/SSIM[/LPIPS] and depth (with the
     residual head) overall and per target camera, the depth without the residual head, render and
-    prediction times}. ``methods``: a subset of :data:`METHODS` (default all; ``finetuned`` only
-    with a budget checkpoint). With ``sheet``, a contact sheet of sample 0 (full set and each
-    method at the smallest budget against the ground truth).
+    prediction times}. ``methods``: a subset of :data:`ALL_METHODS` (default all; ``finetuned``
+    and :data:`ON_FINETUNED` only with a budget checkpoint). With ``sheet``, a contact sheet of
+    sample 0 (full set and each method at the smallest budget against the ground truth).
     """
+    if split not in ("val", "test"):
+        raise ValueError(f"split: expected 'val' or 'test' (held-out streets), got {split!r}")
     model.eval()
-    methods = [m for m in (methods or METHODS) if m != "finetuned" or model.budget is not None]
-    for m in methods:
-        if m not in METHODS:
-            raise ValueError(f"methods: expected names from {METHODS}, got {m!r}")
+    for m in methods or ():
+        if m not in ALL_METHODS:
+            raise ValueError(f"methods: expected names from {ALL_METHODS}, got {m!r}")
+    methods = [m for m in (methods or ALL_METHODS)
+               if model.budget is not None or not (m == "finetuned" or m in ON_FINETUNED)]
+    uses_finetuned = any(m == "finetuned" or m in ON_FINETUNED for m in methods)
     acc: dict[tuple[str, float], list[dict]] = {}
     full, full_gt, cams, d_coarse, d_fine, pred_s, render_ms = [], [], [], [], [], [], []
     for i in range(num_scenes):
-        s = make_views_sample(source, preset, i, views, "test", None)
+        s = make_views_sample(source, preset, i, views, split, None)
         V, _, H, W = s.images.shape
         with torch.no_grad():
             t0 = time.perf_counter()
@@ -132,19 +154,22 @@ def evaluate_model(model: PGT, source, preset: PGTPreset, budgets: list[float], 
             sheet_rows = [rgb[0]]
             for kappa in budgets:
                 K = per_view_budgets(kappa, weights, H, W)
+                # the finetuned parameters at κ, every pixel's Gaussian (κ = 1: the stage-2 heads unpruned)
+                ft = model(s.images, s.Ks, s.cam_to_world, kappa=kappa, full=True) if uses_finetuned else None
                 for m in methods:
-                    if kappa == 1.0:
+                    name, _, on = m.partition("@")
+                    if kappa == 1.0 and m in BASELINES:
                         g, r, t = base.gaussians(), rgb, ms
                     else:
                         if m == "finetuned":
-                            out = model(s.images, s.Ks, s.cam_to_world, kappa=kappa)
-                            _check_counts(out.keep, K, m)
-                            g = out.gaussians()
+                            keep = None if kappa == 1.0 else learned_selection(ft.importance, K, preset.selection)
                         else:
                             gen = torch.Generator().manual_seed(seed * 1_000_003 + i * 1009 + int(kappa * 1e6))
-                            keep = baseline_mask(m, base, K, s.Ks, s.cam_to_world, gen, preset.coverage_tol)
+                            keep = baseline_mask(name, ft if on else base, K, s.Ks, s.cam_to_world, gen,
+                                                 preset.coverage_tol)
+                        if keep is not None:
                             _check_counts(keep, K, m)
-                            g = base.gaussians(keep)
+                        g = (ft if on or m == "finetuned" else base).gaussians(keep)
                         r, _, t = _timed_render(g, s, preset, repeats)
                     row = {"n_gaussians": len(g), "psnr": float(psnr(r, s.target_images).mean()),
                            "psnr_covered": float(psnr(r, s.target_images, covered).nanmean()),
@@ -161,7 +186,9 @@ def evaluate_model(model: PGT, source, preset: PGTPreset, budgets: list[float], 
                 make_contact_sheet(rows, s.target_images[:1].permute(0, 2, 3, 1).expand_as(rows), sheet, names=names,
                                    title=f"PGT {preset.name}: {s.name}")
     keys = ("n_gaussians", "psnr", "psnr_covered", "ssim", "render_ms") + (("lpips",) if lpips is not None else ())
-    rows = [{"method": m, "budget": k, "views": views, **{key: float(np.mean([r[key] for r in v])) for key in keys}}
+    rows = [{"method": m, "selection": "learned" if m == "finetuned" else m.partition("@")[0],
+             "parameters": "finetuned" if m == "finetuned" or m in ON_FINETUNED else "base",
+             "budget": k, "views": views, **{key: float(np.mean([r[key] for r in v])) for key in keys}}
             for (m, k), v in acc.items()]
 
     def mean_depth(ds: list[dict]) -> dict:
@@ -170,7 +197,7 @@ def evaluate_model(model: PGT, source, preset: PGTPreset, budgets: list[float], 
 
     all_, per_camera = camera_blocks(image_scores(torch.cat(full), torch.cat(full_gt), lpips), cams)
     all_.update(mean_depth(d_fine))
-    protocol = {"data": source.name, "split": "test", "scenes": num_scenes, "images": len(cams),
+    protocol = {"data": source.name, "split": split, "scenes": num_scenes, "images": len(cams),
                 "cameras": list(dict.fromkeys(cams)),
                 "views": (f"{preset.num_views if views == 2 else views} source views "
                           f"({preset.views if views == 2 else 'multi-view: rig cameras x instants'})"),
@@ -197,16 +224,21 @@ def pareto_front(points: list[tuple[float, float]]) -> list[tuple[float, float]]
 
 
 def plot_budget(rows: list[dict], png: str | Path, title: str = "PGT budget curve") -> Path:
-    """PSNR against Gaussian count and against render time, per method, with the Pareto front."""
+    """PSNR against Gaussian count and against render time, per method, with the Pareto front; a
+    naive selection on the finetuned parameters (``X@finetuned``) in its base row's colour and
+    marker, dotted."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), dpi=110)
     for ax, xkey, xlabel in ((axes[0], "n_gaussians", "Gaussians kept"), (axes[1], "render_ms", "render time (ms)")):
-        for m, style in zip(METHODS, ("o-", "s--", "^:", "d-.", "v--")):
+        for m in ALL_METHODS:
+            j = METHODS.index(m.partition("@")[0])
+            style = "os^dv"[j] + (":" if m in ON_FINETUNED else ("-", "--", ":", "-.", "--")[j])
             rs = sorted((r for r in rows if r["method"] == m), key=lambda r: r[xkey])
             if rs:
-                ax.plot([r[xkey] for r in rs], [r["psnr"] for r in rs], style, label=m)
+                ax.plot([r[xkey] for r in rs], [r["psnr"] for r in rs], style, label=m, color=f"C{j}",
+                        alpha=0.6 if m in ON_FINETUNED else 1.0)
                 for r in rs:
                     ax.annotate(f"{r['budget']:g}", (r[xkey], r["psnr"]), fontsize=6, alpha=0.6)
         front = pareto_front([(r[xkey], r["psnr"]) for r in rows])

@@ -12,7 +12,9 @@ give the parameters and K_v pixels per view are kept (K_v from the views' high-f
 energy): the top-K_v by their opacity (EcoSplat, ``selection="topk"``) or, with
 ``selection="stratified"``, spread in proportion to the score (:func:`~.budget.stratified_mask`);
 the score is the opacity, or the importance head's when the preset has one. κ = 1 (or None)
-never runs the copies: it is the base model, bitwise. With ``kappa_decoder`` > 0 the copied heads
+never runs the copies: it is the base model, bitwise; ``full=True`` runs the copies at κ (1
+included) and keeps every Gaussian: the finetuned parameters unpruned (issue 33's controls select
+from them). With ``kappa_decoder`` > 0 the copied heads
 read features from κ-conditioned copies of the decoder's last stages (:class:`~.budget.KappaDecoder`);
 the depth is still the base decoder's.
 """
@@ -34,7 +36,7 @@ from .heads import Decoder, DepthResidualHead, GaussianHeads, activate
 from .matching import make_matcher, u_to_depth
 from .presets import PGTPreset
 
-__all__ = ["PGT", "PGTOutput", "check_views", "count_parameters"]
+__all__ = ["PGT", "PGTOutput", "check_views", "count_parameters", "learned_selection"]
 
 _MEAN, _STD = 0.45, 0.225  # input normalisation (monodepth2's)
 
@@ -50,7 +52,7 @@ class PGTOutput:
     budgets: long [V] per-view counts (None without a budget); kappa: the budget used;
     footprint: [V, H, W] one pixel's width at the Gaussian's depth (depth / fx, metres);
     fill_window, scale_cap, fill_cap_px: see :meth:`gaussians`; importance: [V, H, W] the
-    selection score in [0, 1] (None at κ = 1); coverage: long [V, H, W] views seeing each pixel's
+    selection score in [0, 1] (None from the base heads); coverage: long [V, H, W] views seeing each pixel's
     point (None unless the budget path computed it); fill_log: [V, H, W, 3] per-axis log-multipliers
     of the fill widening from the budget heads (None: 0).
     """
@@ -89,6 +91,8 @@ class PGTOutput:
         budget heads', ``learned_fill``) the added variance is multiplied by exp(2·fill_log) per axis.
         """
         keep = self.keep if keep is None else keep
+        if keep is not None and bool(keep.all()):   # nothing pruned: nothing to stand for, nothing widens
+            keep = None
         scales = self.scales
         if keep is not None and self.fill_window > 0 and self.footprint is not None:
             g2 = fill_gain(keep, self.fill_window) ** 2
@@ -107,6 +111,13 @@ def _cap(scale_cap: float, fill_cap_px: float, footprint: Tensor) -> Tensor:
     ``fill_cap_px`` pixel footprints where that is larger (0: the metric cap alone)."""
     cap = torch.full_like(footprint, scale_cap)
     return torch.maximum(cap, fill_cap_px * footprint) if fill_cap_px > 0 else cap
+
+
+def learned_selection(importance: Tensor, budgets: Tensor, selection: str) -> Tensor:
+    """bool [V, H, W]: the budget stage's own choice of ``budgets[v]`` pixels per view from the
+    score ``importance`` [V, H, W]: top-K (``selection="topk"``, EcoSplat) or spread in proportion
+    to it (``"stratified"``)."""
+    return topk_mask(importance, budgets) if selection == "topk" else stratified_mask(importance, budgets)
 
 
 def check_views(images: Tensor, Ks: Tensor, cam_to_world: Tensor) -> None:
@@ -162,7 +173,8 @@ class PGT(nn.Module):
             prm.requires_grad_(name.startswith("budget."))
         return self
 
-    def forward(self, images: Tensor, Ks: Tensor, cam_to_world: Tensor, kappa: float | None = None) -> PGTOutput:
+    def forward(self, images: Tensor, Ks: Tensor, cam_to_world: Tensor, kappa: float | None = None,
+                full: bool = False) -> PGTOutput:
         """Predict one Gaussian per source pixel.
 
         Args:
@@ -170,14 +182,19 @@ class PGT(nn.Module):
             Ks: [V, 3, 3] intrinsics.
             cam_to_world: [V, 4, 4] camera-to-world poses (OpenCV cameras).
             kappa: budget ratio in (0, 1]; None or 1 = every Gaussian, from the base heads.
+            full: with the budget stage, its copied heads at ``kappa`` (None: 1) and every Gaussian
+                kept (``keep`` None; ``budgets`` and ``importance`` still those of κ, so a caller
+                can apply another selection to the same finetuned parameters).
         Returns:
             :class:`PGTOutput`.
         """
         check_views(images, Ks, cam_to_world)
         kappa = 1.0 if kappa is None else check_kappa(kappa)
-        if kappa < 1.0 and self.budget is None:
-            raise ValueError(f"kappa: {kappa} < 1 needs the budget stage (train --stage budget, or "
+        if (kappa < 1.0 or full) and self.budget is None:
+            what = "full=True" if full else f"kappa: {kappa} < 1"
+            raise ValueError(f"{what} needs the budget stage (train --stage budget, or "
                              "enable_budget()); prune the base output with budget.topk_mask for baselines")
+        finetuned = kappa < 1.0 or full
         p = self.preset
         V, _, H, W = images.shape
         f2, f4, f8 = self.encoder((images - _MEAN) / _STD)
@@ -193,7 +210,7 @@ class PGT(nn.Module):
         depth = u_to_depth(u, p.min_depth, p.max_depth)
         keep = budgets = importance = coverage = fill_log = None
         fx = Ks[:, 0, 0]
-        if kappa < 1.0:
+        if finetuned:
             share = None
             if p.coverage_input or (p.target == "density" and p.w_redundancy):
                 coverage = cross_view_coverage(depth, Ks, cam_to_world, p.coverage_tol)[0]
@@ -208,11 +225,11 @@ class PGT(nn.Module):
             raw = self.heads(feat)
             cap = p.scale_cap
         g = activate(raw, depth, images, fx, cap, p.sh_degree if p.colour == "sh" else 0)
-        if kappa < 1.0:
+        if finetuned:
             budgets = per_view_budgets(kappa, view_weights(images, p.hf_temperature), H, W)
             importance = g["opacities"] if raw.importance is None else torch.sigmoid(raw.importance[:, 0])
-            keep = (topk_mask(importance, budgets) if p.selection == "topk"
-                    else stratified_mask(importance, budgets))
+            if not full:
+                keep = learned_selection(importance, budgets, p.selection)
             if raw.fill is not None:  # bounded: at most e^1.5 = 4.5x wider or narrower per axis
                 fill_log = 1.5 * torch.tanh(raw.fill.permute(0, 2, 3, 1))
         means = unproject(depth, Ks, cam_to_world)
