@@ -42,6 +42,17 @@ def test_a_cached_street_equals_the_generated_one(tmp_path):
     assert again.metadata["config"] == CFG
 
 
+def test_a_cached_varied_street_equals_the_generated_one(tmp_path):
+    cfg = dataclasses.replace(CFG, world="varied", seed=8)
+    cache = sc.SyntheticCache(tmp_path)
+    assert sc.config_key(cfg) != sc.config_key(dataclasses.replace(cfg, world="straight"))
+    cache.sequence(cfg)
+    got = cache.get(cfg)
+    fresh = generate_sequence(cfg)
+    _same(got, fresh)
+    assert got.metadata["world"] == fresh.metadata["world"] and got.metadata["world"].world == "varied"
+
+
 def test_the_key_separates_configs_and_generator_versions(tmp_path, monkeypatch):
     keys = {sc.config_key(CFG), sc.config_key(dataclasses.replace(CFG, seed=4)),
             sc.config_key(dataclasses.replace(CFG, supersample=2)), sc.config_key(dataclasses.replace(CFG, dt=0.2)),

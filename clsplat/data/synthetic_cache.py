@@ -14,8 +14,9 @@ cache never runs code) named by a key that hashes
 Files are written atomically (:mod:`clsplat.io.atomic`), so an interrupted fill leaves only whole
 streets, and :func:`fill` skips streets already present: re-running the same ``clsplat data synth``
 command resumes it. A cached sequence equals the generated one in every array (images, depths,
-semantics, instances, poses, LiDAR, boxes); its ``metadata`` holds the config and the cache file,
-not the live ``StreetScene`` (which cannot be stored as data).
+semantics, instances, poses, LiDAR, boxes); its ``metadata`` holds the config, the street's
+``WorldParams`` (key ``"world"``, drawn again from the config) and the cache file, not the live
+``StreetScene`` (which cannot be stored as data).
 
     clsplat data synth --count 600 --out streets --height 64 --width 112 --num-frames 3 --no-lidar
 """
@@ -31,7 +32,7 @@ import numpy as np
 
 from ..argparser import ArgumentParser
 from .scene import Box3D, Camera, DrivingSequence, Frame, LidarPoints
-from .synthetic import SyntheticConfig, generate_sequence
+from .synthetic import SyntheticConfig, config_world, generate_sequence
 
 __all__ = ["CACHE_FORMAT", "SyntheticCache", "generator_fingerprint", "config_key", "fill", "main"]
 
@@ -164,6 +165,7 @@ class SyntheticCache:
                 or meta.get("config") != _config_dict(cfg)):
             return None
         seq.metadata["config"] = cfg
+        seq.metadata["world"] = config_world(cfg)
         return seq
 
     def put(self, cfg: SyntheticConfig, seq: DrivingSequence) -> Path:
@@ -235,6 +237,8 @@ def main(argv: list[str]) -> int:
     p.add_argument("--supersample", type=int, default=d.supersample, help="rays per pixel side")
     p.add_argument("--cameras", nargs="+", default=None, help=f"camera names (default: all of {list(CAMERA_NAMES)})")
     p.add_argument("--no-lidar", action="store_true", help="no LiDAR sweeps (the image models do not need them)")
+    p.add_argument("--world", choices=("classic", "varied", "straight"), default=d.world,
+                   help="which street world (clsplat.data.synthetic.world; default: %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no per-street line")
     if argv[:1] != ["synth"]:
         print("usage: clsplat data synth --count N --out DIR [options]   (clsplat data synth --help)",
@@ -251,7 +255,7 @@ def main(argv: list[str]) -> int:
             if bad:
                 raise ValueError(f"--cameras: unknown camera names {bad}; known: {list(CAMERA_NAMES)}")
         base = SyntheticConfig(height=a.height, width=a.width, num_frames=a.num_frames, dt=a.dt,
-                               supersample=a.supersample, lidar=not a.no_lidar,
+                               supersample=a.supersample, lidar=not a.no_lidar, world=a.world,
                                cameras=tuple(a.cameras) if a.cameras else None)
         base.validate()
         cache = SyntheticCache(a.out)

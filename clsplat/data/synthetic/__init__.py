@@ -87,6 +87,7 @@ __all__ = [
     "make_rig",
     "render_view",
     "generate_sequence",
+    "config_world",
     "ego_pose",
     "RIG_YAWS_DEG",
     "CAMERA_HEIGHT",
@@ -96,6 +97,15 @@ __all__ = [
     "SEM",
     "SEMANTIC_CLASSES",
 ]
+
+
+def config_world(cfg: SyntheticConfig) -> WorldParams:
+    """The :class:`WorldParams` of the street ``cfg`` generates (classic: its constants with the
+    config's speed, lane change and counts; varied / straight: drawn from ``cfg.seed``)."""
+    if cfg.world == "classic":
+        return classic_world(cfg.seed, cfg.speed, cfg.lane_change, cfg.lane_change_duration, cfg.num_parked,
+                             cfg.num_moving)
+    return draw_world(cfg.seed, cfg.world)
 
 
 def generate_sequence(config: SyntheticConfig | None = None, **overrides) -> DrivingSequence:
@@ -120,14 +130,12 @@ def generate_sequence(config: SyntheticConfig | None = None, **overrides) -> Dri
         cfg = SyntheticConfig(**{**cfg.__dict__, **overrides})
     cfg.validate()
     duration = cfg.t0 + cfg.dt * (cfg.num_frames - 1)
+    world = config_world(cfg)
     if cfg.world == "classic":
-        world = classic_world(cfg.seed, cfg.speed, cfg.lane_change, cfg.lane_change_duration, cfg.num_parked,
-                              cfg.num_moving)
         scene = StreetScene(cfg.seed, (-80.0, cfg.speed * duration + 160.0), cfg.num_parked, cfg.num_moving,
                             cfg.poles, cfg.trees, cfg.blink_period, cfg.speed, cfg.signals, cfg.shadow,
                             cfg.fine_texture)
     else:
-        world = draw_world(cfg.seed, cfg.world)
         s_range = (world.ego_distance(min(cfg.t0, 0.0)) - 80.0, world.ego_distance(duration) + 160.0)
         scene = StreetScene(cfg.seed, s_range, world.num_parked, world.num_moving, cfg.poles, cfg.trees,
                             cfg.blink_period, world.v0, cfg.signals, cfg.shadow, cfg.fine_texture, world=world,
