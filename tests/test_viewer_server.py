@@ -56,6 +56,10 @@ def test_chromium_shows_the_scene_and_the_server_render_follows_the_camera(two_c
         _wait(lambda: len(viewer.clients()) > 0, 120, "the browser to connect")
         cid = next(iter(viewer.clients()))
         _wait(lambda: cid in viewer.last, 120, "the first exact render")
+        # drawn from the start view, the pose the browser reports, not from viser's placeholder camera
+        start, first = viewer.server.initial_camera, viewer.last[cid]
+        np.testing.assert_allclose(np.linalg.inv(first["viewmat"])[:3, 3], start.position, atol=1e-6)
+        np.testing.assert_allclose(first["viewmat"], viewer.client_camera(viewer.clients()[cid]).viewmat, atol=1e-6)
         time.sleep(3)  # let WebGL draw the splats
         shots: list = []
 
@@ -87,6 +91,77 @@ def test_chromium_shows_the_scene_and_the_server_render_follows_the_camera(two_c
     finally:
         browser.close()
         viewer.stop()
+
+
+class _SocketClient:
+    """A browser's side of viser's websocket, without the browser: it reports camera poses (the
+    ``ViewerCameraMessage`` viser's web client sends, msgpack-encoded) and reads nothing back."""
+
+    def __init__(self, url: str) -> None:
+        import viser
+        from websockets.sync.client import connect
+
+        self.ws = connect(url.replace("http://", "ws://"), subprotocols=[f"viser-v{viser.__version__}"],
+                          max_size=None)
+
+    def report(self, eye, target, fov: float) -> None:
+        import msgspec
+        import viser.transforms as vtf
+        from viser import _messages
+
+        c2w = np.linalg.inv(look_at_viewmat(eye, target))
+        m = _messages.ViewerCameraMessage(tuple(vtf.SO3.from_matrix(c2w[:3, :3]).wxyz), tuple(map(float, eye)),
+                                          float(fov), 0.01, 1000.0, 480, 640, tuple(map(float, target)), (0.0, 0.0, 1.0))
+        self.ws.send(msgspec.msgpack.encode(m.as_serializable_dict()))
+
+    def close(self) -> None:
+        self.ws.close()
+
+
+def test_the_first_exact_render_waits_for_the_start_view(two_colour_ply):
+    """A browser reports viser's placeholder camera first and the start view once it has applied
+    it: the first exact render is drawn from the start view, the pose the browser then reports
+    (viewmat equal to 1e-9), not from the placeholder, however long the start view takes. A
+    client whose camera never reaches the start view (a URL's initialCameraPosition) is rendered
+    after ``start_wait_s``; without the wait (start_wait_s=0) the placeholder is what is drawn."""
+    ply, cam = two_colour_ply
+    scene = scene_from_ply(ply)
+    scene.cameras = [cam]
+    placeholder = ([3.0, 3.0, 0.2], [0.0, 0.0, 0.2], 75 * np.pi / 180)
+    for wait in (10.0, 0.0):
+        v = Viewer(scene, port=0, render_width=64, rest_s=0.2, start_wait_s=wait)
+        start = v.server.initial_camera
+        client = _SocketClient(v.url)
+        try:
+            client.report(*placeholder)
+            _wait(lambda: len(v.clients()) == 1, 60, "the client to connect")
+            cid = next(iter(v.clients()))
+            time.sleep(1.5)                       # the placeholder has rested 7x rest_s
+            if wait == 0.0:
+                _wait(lambda: cid in v.last, 60, "the first exact render")
+                np.testing.assert_allclose(np.linalg.inv(v.last[cid]["viewmat"])[:3, 3], placeholder[0], atol=1e-9)
+                continue
+            assert v.renders == 0 and cid not in v.last
+            client.report(start.position, start.look_at, start.fov)
+            _wait(lambda: cid in v.last, 60, "the first exact render")
+            time.sleep(0.5)
+            assert v.renders == 1
+            first = v.last[cid]["viewmat"]
+            np.testing.assert_allclose(first, v.client_camera(v.clients()[cid]).viewmat, atol=1e-9)
+            np.testing.assert_allclose(first, look_at_viewmat(start.position, start.look_at), atol=1e-9)
+            # a second client that never shows the start view is rendered once the wait is over
+            v.start_wait_s = 1.0
+            other = _SocketClient(v.url)
+            try:
+                other.report(*placeholder)
+                _wait(lambda: len(v.last) == 2, 60, "the second client's exact render")
+                oid = next(c for c in v.last if c != cid)
+                np.testing.assert_allclose(np.linalg.inv(v.last[oid]["viewmat"])[:3, 3], placeholder[0], atol=1e-9)
+            finally:
+                other.close()
+        finally:
+            client.close()
+            v.stop()
 
 
 def test_viewer_without_a_browser(two_colour_ply):

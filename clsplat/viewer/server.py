@@ -4,7 +4,9 @@ Two renderers side by side: the browser draws the Gaussians with viser's WebGL s
 DC colour only, one global depth sort per frame); the server renders the current camera exactly
 with :func:`clsplat.rasterization` (:func:`~.render.render_view`) on the chosen OpenCL device,
 on demand ("Render now") and whenever the camera has rested for ``rest_s`` seconds, and shows
-it in the side panel (or, toggled, as the view's background) with its render time.
+it in the side panel (or, toggled, as the view's background) with its render time. A browser
+that has just connected reports viser's placeholder camera first and the start view only once it
+has applied it: its first exact render waits for the start view (at most ``start_wait_s``).
 
 Driving extras, where the scene has them: recorded cameras as frusta with their images (click
 "go to camera"), the ego trajectory, LiDAR points (toggle), tracked boxes, a time slider that
@@ -76,11 +78,14 @@ class Viewer:
         render_thread: run the exact renders on a thread of the viewer's own; False: the caller
             calls :meth:`render_due` (a training loop, so that one thread uses the OpenCL device).
         up: the world's up axis as viser names it ("+z" for driving scenes, "-y" for COLMAP ones).
+        start_wait_s: how long a new client's first exact render waits for the browser to report
+            the start view (a URL's ``initialCameraPosition`` replaces it, and then it never comes).
     """
 
     def __init__(self, scene: ViewScene, host: str = "127.0.0.1", port: int = 8080, device=None,
                  render_width: int = 480, rest_s: float = 0.4, up: str = "+z", auto_render: bool = True,
-                 background: tuple[float, float, float] = (1.0, 1.0, 1.0), render_thread: bool = True) -> None:
+                 background: tuple[float, float, float] = (1.0, 1.0, 1.0), render_thread: bool = True,
+                 start_wait_s: float = 10.0) -> None:
         check_port_free(host, port)
         import viser  # the view extra; a ModuleNotFoundError is named by the CLI
 
@@ -94,12 +99,15 @@ class Viewer:
         self.device = device
         self.render_width = render_width
         self.rest_s = rest_s
+        self.start_wait_s = start_wait_s
         self.auto_render = auto_render
         self.renders = 0                       # exact renders done (all clients)
         self.last: dict[int, dict[str, Any]] = {}  # client id -> last exact render (image, seconds, viewmat)
         self._lock = threading.Lock()
         self._render_lock = threading.Lock()   # OpenCL work from one thread at a time
         self._moved: dict[int, float] = {}     # client id -> time of the last camera message not yet rendered
+        # client id -> (connect time, start position [3], start look-at [3]) until its camera shows the start view
+        self._starting: dict[int, tuple[float, np.ndarray, np.ndarray]] = {}
         self._clients: dict[int, dict[str, Any]] = {}
         self._stop = threading.Event()
         with contextlib.redirect_stdout(io.StringIO()):  # viser's own banner: the CLI prints the address
@@ -192,6 +200,7 @@ class Viewer:
             client.camera.fov = camera.fov_y
         with self._lock:
             self._moved[client.client_id] = time.time()
+            self._starting.pop(client.client_id, None)   # the server placed it: nothing to wait for
 
     def wait(self) -> None:
         """Serve until Ctrl-C (KeyboardInterrupt) or :meth:`stop`."""
@@ -388,9 +397,12 @@ class Viewer:
                 go = g.add_button("Go to camera")
                 # the views of the scene now (the far side of a car at the slider's time)
                 go.on_click(lambda _: self.set_client_camera(client, self.views().get(dd.value, views[dd.value])))
+        start = self.server.initial_camera
         with self._lock:
             self._clients[client.client_id] = {"image": image, "text": text, "background": bg}
             self._moved[client.client_id] = time.time()  # its first camera message may have come already
+            self._starting[client.client_id] = (time.time(), np.array(start.position, dtype=np.float64),
+                                                np.array(start.look_at, dtype=np.float64))
         client.camera.on_update(lambda cam: self._camera_moved(client.client_id))
 
     def views(self) -> dict[str, ViewCamera]:
@@ -420,6 +432,26 @@ class Viewer:
     def _request_render(self, client_id: int) -> None:
         with self._lock:
             self._moved[client_id] = 0.0   # due at once, rendered by whoever renders (one thread)
+            self._starting.pop(client_id, None)   # asked for: the camera as it is
+
+    def _waits_for_start_view(self, client_id: int, camera) -> bool:
+        """True while a new client's camera is not yet at the start view (viser's placeholder
+        camera comes first) and ``start_wait_s`` has not passed since it connected."""
+        with self._lock:
+            s = self._starting.get(client_id)
+        if s is None:
+            return False
+        t0, pos, look = s
+        tol = 1e-3 * max(float(np.linalg.norm(look - pos)), 1e-6)
+        at_start = (float(np.linalg.norm(np.asarray(camera.position) - pos)) <= tol
+                    and float(np.linalg.norm(np.asarray(camera.look_at) - look)) <= tol)
+        if at_start and time.time() - camera.update_timestamp < self.rest_s:
+            return True      # just arrived: its own camera callback makes it due once it has rested
+        if at_start or time.time() - t0 >= self.start_wait_s:
+            with self._lock:
+                self._starting.pop(client_id, None)
+            return False
+        return True
 
     def _camera_moved(self, client_id: int) -> None:
         with self._lock:
@@ -429,6 +461,7 @@ class Viewer:
         with self._lock:
             self._clients.pop(client_id, None)
             self._moved.pop(client_id, None)
+            self._starting.pop(client_id, None)
             self.last.pop(client_id, None)
 
     def render_due(self) -> int:
@@ -443,8 +476,9 @@ class Viewer:
         done = 0
         for cid in due:
             try:
-                if self.server.get_clients()[cid].camera.update_timestamp == 0.0:
-                    self._camera_moved(cid)   # no camera message from the browser yet
+                camera = self.server.get_clients()[cid].camera
+                if camera.update_timestamp == 0.0 or self._waits_for_start_view(cid, camera):
+                    self._camera_moved(cid)   # no camera message from the browser yet, or not the start view
                     continue
                 self.render_client(cid)
                 done += 1
