@@ -111,7 +111,8 @@ class _SocketClient:
 
         c2w = np.linalg.inv(look_at_viewmat(eye, target))
         m = _messages.ViewerCameraMessage(tuple(vtf.SO3.from_matrix(c2w[:3, :3]).wxyz), tuple(map(float, eye)),
-                                          float(fov), 0.01, 1000.0, 480, 640, tuple(map(float, target)), (0.0, 0.0, 1.0))
+                                          float(fov), 0.01, 1000.0, 480, 640, tuple(map(float, target)),
+                                          (0.0, 0.0, 1.0))
         self.ws.send(msgspec.msgpack.encode(m.as_serializable_dict()))
 
     def close(self) -> None:
