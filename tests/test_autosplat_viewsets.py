@@ -193,6 +193,59 @@ def test_eval_autosplat_scores_every_view_set(tiny_run, tmp_path):
         evaluate(["--checkpoint", str(run / "checkpoint.pt"), "--out", str(ev), "--views", "sideways"])
 
 
+def _geometry_only_run(seq, cameras, train_frames):
+    """What :func:`unseen_pixels` reads of a trainer: the data (no model)."""
+    from types import SimpleNamespace
+    c = seq.cameras[0]
+    return SimpleNamespace(data=SimpleNamespace(seq=seq, cameras=list(cameras), height=c.height, width=c.width,
+                                                train_frames=list(train_frames)))
+
+
+def test_unseen_pixels_from_the_generator_geometry():
+    """Issue 33: a training camera's own view has no unseen pixel; a moving vehicle's pixels at a
+    held-out frame are seen (its points move with its box to the training frames); the road behind
+    the car, seen only by the back camera, is unseen when only the front camera trains."""
+    from clsplat.models.autosplat.viewsets import _generator_views, _rig, unseen_pixels
+    seq = generate_sequence(height=44, width=80, num_frames=4, dt=0.2, lidar=False)
+    moving = sorted(seq.metadata["scene"].moving_ids)
+    tr = _geometry_only_run(seq, ["CAM_FRONT", "CAM_FRONT_LEFT"], [0, 1, 3])
+    own = _rig(seq, 1, tr.data.cameras)
+    un, solid = unseen_pixels(tr, 1, own, _generator_views(tr, 1, own))
+    assert solid.sum() > 1000 and un.sum() == 0                     # seen by themselves
+    held = _rig(seq, 2, tr.data.cameras)
+    views = _generator_views(tr, 2, held)
+    un, solid = unseen_pixels(tr, 2, held, views)
+    veh = np.stack([np.isin(v.instance, moving) for v in views])
+    assert veh.sum() > 50 and un[veh].mean() < 0.05                  # moving vehicles, moved with their boxes
+    assert un[solid].mean() < 0.05 and not solid[np.stack([~np.isfinite(v.depth) for v in views])].any()
+    back = _rig(seq, 0, ["CAM_BACK"])
+    gt = [seq.metadata["scene"].render(seq.camera("CAM_BACK").K, back[0], 80, 44, seq.frames[0].timestamp)]
+    un, solid = unseen_pixels(_geometry_only_run(seq, ["CAM_BACK"], [0, 1, 3]), 0, back, gt)
+    assert solid.sum() > 1000 and un.sum() == 0                        # the back camera saw itself
+    front_only = _geometry_only_run(seq, ["CAM_FRONT"], [0, 1, 3])
+    un, solid = unseen_pixels(front_only, 0, back, gt, cameras=["CAM_BACK"])
+    assert un[solid].mean() > 0.8                                      # the road behind: never in front of the car
+
+
+def test_view_sets_report_their_unseen_share(tiny_run, tmp_path):
+    """Each generated view set's block carries ``unseen_share`` (overall and per view, shares in
+    [0, 1] of the counted pixels), and the sets of novel views their PSNR on those pixels."""
+    out = tmp_path / "ev"
+    assert evaluate(["--checkpoint", str(tiny_run / "checkpoint.pt"), "--views", "far-side", "lane-change",
+                     "appearance", "--out", str(out)]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    blocks = [m["far_side"], m["appearance"], *m["lane_change"].values()]
+    for b in blocks:
+        u = b["unseen_share"]
+        assert 0 <= u["overall"] <= 1 and u["per_view"]
+        assert all(0 <= v["share"] <= 1 and 0 <= v["unseen"] <= v["pixels"] for v in u["per_view"])
+        assert math.isclose(u["overall"], sum(v["unseen"] for v in u["per_view"]) / sum(v["pixels"] for v in u["per_view"]))
+    assert {v["camera"] for v in m["lane_change"]["3m"]["unseen_share"]["per_view"]} == {"CAM_FRONT", "CAM_FRONT_LEFT"}
+    assert all(v["pixels"] >= 16 and "track" in v for v in m["far_side"]["unseen_share"]["per_view"])
+    # the street's ego changes lanes: a 3 m shift stays on surfaces the rig saw (issue 33's point)
+    assert m["lane_change"]["3m"]["unseen_share"]["overall"] < 0.3
+
+
 def test_eval_autosplat_scale_for_a_checkpoint_outside_its_run(tmp_path):
     """A checkpoint taken during training (no metrics.json beside it to record the run's scale) is
     scored at ``--scale``; without it at the preset's scale, which here is not the run's."""

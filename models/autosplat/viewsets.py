@@ -16,6 +16,12 @@ against the generator's exact renders (``seq.metadata["scene"]``):
   per-frame corrections of the decomposed tracks against the injected box errors (correlation of
   the needed and learnt world x/y corrections, centre error before and after, in metres).
 
+Each generated set's block carries ``unseen_share`` (issue 33: novel, or interpolated?): the
+share of its counted pixels (non-sky; for ``far-side`` the vehicle's pixels) whose surface point
+no training camera saw, from the generator's geometry (:func:`unseen_pixels`), as
+``{"overall", "per_view": [{"frame", "camera"[, "track"], "pixels", "unseen", "share"}]}``; the
+novel sets also score those pixels alone (``psnr_unseen``, ``far_side.psnr_objects_unseen``).
+
 Without the generator (real data), ``lane-change`` only draws its sheets and the other sets are
 not defined (ValueError naming ``--views``).
 """
@@ -32,13 +38,16 @@ from ..common.metrics import psnr as psnr_metric, ssim as ssim_metric
 from .data import ROAD_SEMANTIC
 from .init import moving_track_ids
 
-__all__ = ["VIEW_SETS", "LATERAL_SHIFTS_M", "MIN_OBJECT_PIXELS", "check_views", "far_side", "lane_change",
-           "appearance", "pose_corrections", "render_views"]
+__all__ = ["VIEW_SETS", "LATERAL_SHIFTS_M", "MIN_OBJECT_PIXELS", "SEEN_REL_TOL", "check_views", "far_side",
+           "lane_change", "appearance", "pose_corrections", "render_views", "unseen_pixels"]
 
 VIEW_SETS: tuple[str, ...] = ("recorded", "far-side", "lane-change", "appearance")
 LATERAL_SHIFTS_M: tuple[float, ...] = (1.0, 2.0, 3.0)
 #: a mirrored view counts for a vehicle when the vehicle covers at least this many pixels of it
 MIN_OBJECT_PIXELS = 16
+#: a training camera sees a point when the point's depth is within this share of the range of
+#: that camera's own depths over the 3 x 3 pixels it lands in (:func:`unseen_pixels`)
+SEEN_REL_TOL = 0.02
 
 
 def check_views(views, seq) -> tuple[str, ...]:
@@ -99,6 +108,104 @@ def _rig(seq, frame: int, cameras: list[str]) -> np.ndarray:
     return np.stack([seq.cam_to_world(frame, c) for c in cameras])
 
 
+def _training_views(trainer) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]:
+    """Every training camera as (frame, K [3, 3], world-to-camera [4, 4], z-depth [H, W]): the
+    generator's depth (the frame's own when it is at the run's size, else rendered; inf = sky).
+    Cached on the trainer."""
+    cache = getattr(trainer, "_unseen_training_views", None)
+    if cache is None:
+        d = trainer.data
+        cache = []
+        for j in d.train_frames:
+            c2w = _rig(d.seq, j, d.cameras)
+            own = [d.seq.frames[j].depths.get(c) for c in d.cameras]
+            if any(x is None or x.shape != (d.height, d.width) for x in own):
+                own = [v.depth for v in _generator_views(trainer, j, c2w)]
+            for k, c in enumerate(d.cameras):
+                cache.append((j, np.asarray(d.seq.camera(c).K, dtype=np.float64), np.linalg.inv(c2w[k]),
+                              np.asarray(own[k], dtype=np.float64)))
+        trainer._unseen_training_views = cache
+    return cache
+
+
+def unseen_pixels(trainer, frame: int, cam_to_world: np.ndarray, views,
+                  cameras: list[str] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Which pixels of the generator views ``views`` (of ``cam_to_world [C, 4, 4]`` at ``frame``'s
+    time, with the intrinsics of ``cameras``, default the run's) show a surface point that no training camera saw, from the generator's geometry:
+    ``(unseen, solid)``, bool ``[C, H, W]`` each; ``solid``: not sky (sky has no point and is
+    never counted). A pixel's point (its z-depth along its ray) on a vehicle with a box at both
+    times moves with the box to each training frame; a training camera sees it when it projects
+    inside the image, in front, and its depth lies within :data:`SEEN_REL_TOL` of the range of
+    that camera's own depths at the 2 x 2 pixel centres around the point's image position (the
+    depths a surface through them interpolates between: a road at a grazing angle, whose depth
+    changes by metres across a pixel, counts as seen; an occluded point, behind all four, does not)."""
+    d = trainer.data
+    seq = d.seq
+    train = _training_views(trainer)
+    C, H, W = len(views), d.height, d.width
+    unseen = np.zeros((C, H, W), dtype=bool)
+    solid = np.zeros((C, H, W), dtype=bool)
+    for k, (cam, v) in enumerate(zip(cameras or d.cameras, views)):
+        ok = np.isfinite(v.depth)
+        solid[k] = ok
+        vs, us = np.nonzero(ok)
+        if not len(vs):
+            continue
+        K = np.asarray(seq.camera(cam).K, dtype=np.float64)
+        z = v.depth[ok].astype(np.float64)
+        pc = np.stack([(us + 0.5 - K[0, 2]) / K[0, 0] * z, (vs + 0.5 - K[1, 2]) / K[1, 1] * z, z], 1)
+        T = cam_to_world[k]
+        pw = pc @ T[:3, :3].T + T[:3, 3]
+        inst = v.instance[ok]
+        local = {}   # instance -> (its points' indices, the points in its box frame)
+        for t in np.unique(inst):
+            box = _exact_box(seq, frame, int(t)) if t != 0 else None
+            if box is not None:
+                idx = np.nonzero(inst == t)[0]
+                B = np.linalg.inv(box.box_to_world)
+                local[int(t)] = (idx, pw[idx] @ B[:3, :3].T + B[:3, 3])
+        seen = np.zeros(len(z), dtype=bool)
+        for tf, Kt, w2c, dt in train:
+            P = pw.copy()
+            here = np.ones(len(z), dtype=bool)
+            for t, (idx, pl) in local.items():
+                bt = _exact_box(seq, tf, t)
+                if bt is None:
+                    here[idx] = False
+                    continue
+                Bt = bt.box_to_world
+                P[idx] = pl @ Bt[:3, :3].T + Bt[:3, 3]
+            todo = np.nonzero(here & ~seen)[0]
+            if not len(todo):
+                continue
+            q = P[todo] @ w2c[:3, :3].T + w2c[:3, 3]
+            zt = q[:, 2]
+            front = zt > 1e-3
+            zs = np.where(front, zt, 1.0)
+            x = Kt[0, 0] * q[:, 0] / zs + Kt[0, 2]
+            y = Kt[1, 1] * q[:, 1] / zs + Kt[1, 2]
+            inside = front & (x >= 0) & (x < W) & (y >= 0) & (y < H)
+            x0 = np.clip(np.floor(x - 0.5).astype(np.int64), 0, W - 1)   # the 2 x 2 pixel centres around
+            y0 = np.clip(np.floor(y - 0.5).astype(np.int64), 0, H - 1)
+            x1, y1 = np.minimum(x0 + 1, W - 1), np.minimum(y0 + 1, H - 1)
+            four = np.stack([dt[y0, x0], dt[y0, x1], dt[y1, x0], dt[y1, x1]])
+            lo, hi = four.min(0), four.max(0)
+            vis = inside & (zt >= lo * (1 - SEEN_REL_TOL)) & (zt <= hi * (1 + SEEN_REL_TOL))
+            seen[todo[vis]] = True
+            if seen.all():
+                break
+        u = np.zeros(ok.shape, dtype=bool)
+        u[ok] = ~seen
+        unseen[k] = u
+    return unseen, solid
+
+
+def _share_block(per_view: list[dict]) -> dict:
+    """``{"overall": unseen / counted pixels over every view (None without any), "per_view": ...}``."""
+    n = sum(v["pixels"] for v in per_view)
+    return {"overall": sum(v["unseen"] for v in per_view) / n if n else None, "per_view": per_view}
+
+
 @torch.no_grad()
 def far_side(trainer, sheet: Path | None = None) -> dict:
     """The ``far_side`` section: mirrored rigs of every frame and moving vehicle (see the module)."""
@@ -109,6 +216,8 @@ def far_side(trainer, sheet: Path | None = None) -> dict:
     far, near = torch.zeros(2, dtype=torch.float64), torch.zeros(2, dtype=torch.float64)
     per_track = {t: torch.zeros(2, dtype=torch.float64) for t in moving}
     views, best = 0, (0, None)
+    far_unseen = torch.zeros(2, dtype=torch.float64)
+    shares: list[dict] = []
     frames = list(range(len(d.seq.frames)))
     for i in frames:
         inst_rec = torch.from_numpy(np.stack([d.seq.frames[i].instances[c] for c in d.cameras]))
@@ -126,6 +235,11 @@ def far_side(trainer, sheet: Path | None = None) -> dict:
             r = render_views(trainer, i, c2w)
             g = torch.from_numpy(np.stack([v.rgb for v in gt]))
             e = _sq_err(r[keep], g[keep], mask[keep])
+            un = torch.from_numpy(unseen_pixels(trainer, i, c2w, gt)[0]) & mask
+            far_unseen += _sq_err(r[keep], g[keep], un[keep])
+            shares += [{"frame": i, "track": t, "camera": c, "pixels": int(mask[k].sum()), "unseen": int(un[k].sum()),
+                        "share": float(un[k].sum() / mask[k].sum())}
+                       for k, c in enumerate(d.cameras) if bool(keep[k])]
             far += e
             per_track[t] += e
             views += int(keep.sum())
@@ -140,6 +254,7 @@ def far_side(trainer, sheet: Path | None = None) -> dict:
         make_contact_sheet(r, g, sheet, names=d.cameras,
                            title=f"rig mirrored across vehicle {t}, frame {i}: render | generator ground truth | error")
     return {"psnr_objects": _pooled_psnr(far), "psnr_objects_recorded": _pooled_psnr(near),
+            "psnr_objects_unseen": _pooled_psnr(far_unseen), "unseen_share": _share_block(shares),
             "per_track": {str(t): _pooled_psnr(a) for t, a in per_track.items()},
             "pixels": int(far[1] // 3), "views": views, "frames": frames, "tracks": moving}
 
@@ -160,6 +275,8 @@ def lane_change(trainer, show: int, sheets: Path | None = None) -> dict:
         ps, ss = [], []
         obj, road = torch.zeros(2, dtype=torch.float64), torch.zeros(2, dtype=torch.float64)
         dep_abs, dep_rel, dep_n = 0.0, 0.0, 0
+        unseen_acc = torch.zeros(2, dtype=torch.float64)
+        shares: list[dict] = []
         for frame in (frames if scene is not None else [show]):
             c2w = shift_sideways(_rig(d.seq, frame, d.cameras), d.seq.frames[frame].ego_to_world, shift)
             r, depth = render_views(trainer, frame, c2w, depth=True)
@@ -181,6 +298,10 @@ def lane_change(trainer, show: int, sheets: Path | None = None) -> dict:
                 dep_abs += float(np.abs(pd - gd).sum())
                 dep_rel += float((np.abs(pd - gd) / gd).sum())
                 dep_n += int(rm.sum())
+                un, solid = unseen_pixels(trainer, frame, c2w, views)
+                unseen_acc += _sq_err(r, g, torch.from_numpy(un))
+                shares += [{"frame": frame, "camera": c, "pixels": int(solid[k].sum()), "unseen": int(un[k].sum()),
+                            "share": float(un[k].sum() / max(int(solid[k].sum()), 1))} for k, c in enumerate(d.cameras)]
                 title = f"rig shifted {shift:g} m left, frame {frame}: render | generator ground truth | error"
             if frame == show and sheets is not None:
                 make_contact_sheet(r.numpy(), gt, sheets / f"lateral_shift_{shift:g}m.png", names=d.cameras,
@@ -189,7 +310,8 @@ def lane_change(trainer, show: int, sheets: Path | None = None) -> dict:
             "psnr": float(torch.cat(ps).mean()), "ssim": float(torch.cat(ss).mean()),
             "psnr_objects": _pooled_psnr(obj), "psnr_road": _pooled_psnr(road),
             "road_depth_mae_m": dep_abs / dep_n if dep_n else None,
-            "road_depth_abs_rel": dep_rel / dep_n if dep_n else None, "frames": frames}
+            "road_depth_abs_rel": dep_rel / dep_n if dep_n else None, "frames": frames,
+            "psnr_unseen": _pooled_psnr(unseen_acc), "unseen_share": _share_block(shares)}
     return res
 
 
@@ -200,13 +322,18 @@ def appearance(trainer) -> dict:
     frames = d.test_frames or d.train_frames
     acc, obj = torch.zeros(2, dtype=torch.float64), torch.zeros(2, dtype=torch.float64)
     moving = sorted(moving_track_ids(d.seq, trainer.preset.dynamic_threshold))
+    shares: list[dict] = []
     for i in frames:
-        views = _generator_views(trainer, i, _rig(d.seq, i, d.cameras))
+        c2w = _rig(d.seq, i, d.cameras)
+        views = _generator_views(trainer, i, c2w)
+        un, solid = unseen_pixels(trainer, i, c2w, views)
+        shares += [{"frame": i, "camera": c, "pixels": int(solid[k].sum()), "unseen": int(un[k].sum()),
+                    "share": float(un[k].sum() / max(int(solid[k].sum()), 1))} for k, c in enumerate(d.cameras)]
         r = trainer.render_frame(i)
         acc += _sq_err(r, d.images[i], torch.from_numpy(np.stack([v.changing for v in views])))
         obj += _sq_err(r, d.images[i], torch.from_numpy(np.stack([np.isin(v.instance, moving) for v in views])))
     return {"psnr_changing_pixels": _pooled_psnr(acc), "changing_pixels": int(acc[1] // 3),
-            "psnr_objects": _pooled_psnr(obj), "frames": frames}
+            "psnr_objects": _pooled_psnr(obj), "frames": frames, "unseen_share": _share_block(shares)}
 
 
 def _yaw(R: np.ndarray) -> float:
