@@ -214,7 +214,7 @@ class StreetScene:
                 s0 = rng.uniform(-30.0, 60.0)
                 size = (rng.uniform(4.2, 4.8), rng.uniform(1.8, 2.0), rng.uniform(1.45, 1.6))
                 vs = s0 + speed * ts * math.cos(heading)
-                clear = all(np.all((np.abs(vs - ts_s) > (size[0] + L2) / 2 + 1.5)
+                clear = all(np.all((np.abs(vs - ts_s) > (size[0] + L2) / 2 + 3.0)
                                    | (np.abs(lane - ts_l) > (size[1] + W2) / 2 + 0.4))
                             for ts_s, ts_l, L2, W2 in tracks)
                 if clear:
@@ -276,10 +276,18 @@ class StreetScene:
         return out
 
     def primitives(self, t: float) -> list[_Box]:
-        """All box primitives at time ``t``."""
+        """All box primitives at time ``t`` (a varied world keeps the last instant's list: the
+        six cameras of a frame share it, and its vehicles' surface poses cost more to make)."""
+        if self.varied:
+            cached = getattr(self, "_prims_at", None)
+            if cached is not None and cached[0] == t:
+                return list(cached[1])
         prims = list(self.static)
         for v in self.vehicles:
             prims.extend(self.vehicle_parts(v, t))
+        if self.varied:
+            self._prims_at = (t, prims)
+            return list(prims)
         return prims
 
     def boxes(self, t: float) -> list[Box3D]:
