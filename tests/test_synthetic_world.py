@@ -231,3 +231,19 @@ def test_views_work_on_a_varied_street(sloped):
     M = mirror_across_box(T, B)
     assert np.allclose(M[:3, :3] @ M[:3, :3].T, np.eye(3), atol=1e-9) and np.linalg.det(M[:3, :3]) > 0
     scene.render(K, M, 72, 40, f.timestamp)
+
+
+def test_the_ego_points_where_it_drives():
+    """The ego's x axis is its 3-D direction of travel (curves, lane changes, slopes)."""
+    checked = 0
+    for seed in range(40):
+        w = draw_world(seed, "varied")
+        for t in (0.0, 0.1, 0.7):
+            if w.road_speed(t) < 1.0:
+                continue
+            e = 1e-4
+            v = w.ego_pose(t + e)[:3, 3] - w.ego_pose(t - e)[:3, 3]
+            assert np.allclose(w.ego_pose(t)[:3, 0], v / np.linalg.norm(v), atol=1e-6), (seed, t)
+            assert abs(np.linalg.norm(v) / (2 * e) - w.ego_speed(t)) < 1e-4 * w.ego_speed(t)
+            checked += 1
+    assert checked > 50

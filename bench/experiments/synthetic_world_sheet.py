@@ -58,7 +58,7 @@ def bev(ax, w, seq) -> None:
     xs = np.linspace(cx - half, cx + half, 181)
     ys = np.linspace(cy - half, cy + half, 181)
     X, Y = np.meshgrid(xs, ys)
-    s, l = w.to_street(X.ravel(), Y.ravel())
+    s, l = w.to_street(X.ravel(), Y.ravel(), seq.metadata["scene"].s_mid)
     alb, _ = _ground_albedo(s, l, w.seed, 0.0, w.road_half, w.lane_width, w.sidewalk_out)
     ax.imshow(alb.reshape(X.shape + (3,)), origin="lower", extent=(xs[0], xs[-1], ys[0], ys[-1]))
     scene = seq.metadata["scene"]

@@ -5,7 +5,16 @@ with an **independent analytic ray caster** written in numpy (vectorised ray-pla
 ray-oriented-box intersection; nothing here uses Gaussian splatting), so its output can be
 used to test a splatting engine.
 
-Scene content (world frame, metres, z up, road along +x; see :mod:`clsplat.data.scene`):
+``SyntheticConfig.world`` picks the street's world (:mod:`~clsplat.data.synthetic.world`):
+``"classic"`` (the default, described below, bit for bit as it always was), ``"varied"`` (per
+street and seeded: the ego's speed profile from standing to 15 m/s, a straight or curved road,
+a lane change or none, road width, setback and building heights, parked and moving vehicles,
+the sun, gradient, vertical curvature and crossfall on a height field; the content below laid
+out along the curved centre line and standing on that ground) or ``"straight"`` (drawn like
+varied, but a straight road, no lane change, constant speed and traffic on the ego's left only).
+
+Scene content of the classic world (world frame, metres, z up, road along +x; see
+:mod:`clsplat.data.scene`):
 
 * ground plane ``z = 0``: road ``|y| <= 7`` (asphalt texture, dashed centre line at ``y = 0``,
   solid lines at ``|y| = 3.5`` separating the parking lanes, solid edge lines), sidewalks
@@ -46,6 +55,9 @@ The package, by concern:
   façades, vehicles, canopies);
 * :mod:`~clsplat.data.synthetic.street` -- :class:`StreetScene`: the layout and the analytic ray
   caster (trace, shade, render, LiDAR);
+* :mod:`~clsplat.data.synthetic.world` -- :class:`WorldParams` and :func:`draw_world`: what
+  varies per street, the road's street coordinates, the ground's height field and its exact ray
+  intersection, the ego's speed and pose as functions of time;
 * :mod:`~clsplat.data.synthetic.rig` -- the camera rig, the ego trajectory, :func:`render_view`;
 * :mod:`~clsplat.data.synthetic.views` -- novel viewpoints with exact ground truth (the rig
   mirrored across a vehicle, moved sideways) and correlated tracker noise on the boxes;

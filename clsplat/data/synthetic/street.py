@@ -14,7 +14,7 @@ from ..scene import Box3D, LidarPoints, invert_transform, make_transform, rotmat
 from .config import (_AMBIENT, _SUN, BRAKE_PERIOD, FOOTBRIDGE_HALF, FOOTBRIDGE_X, FOOTBRIDGE_Z, LIDAR_MOUNT,
                      ROAD_HALF, SEM, SIDEWALK_OUT, RenderOutput, VehicleSpec, _Box)
 from .textures import _box_albedo, _ground_albedo, _signal_lamps, _sky
-from .world import S_MID, WorldParams
+from .world import WorldParams
 
 class StreetScene:
     """A procedural street; deterministic from ``seed``.
@@ -134,9 +134,10 @@ class StreetScene:
         """Lay the street of a varied world out along its centre line (see the class docstring)."""
         k = w.curvature
         smin, smax = float(s_range[0]), float(s_range[1])
-        if k != 0.0:
+        self.s_mid = 0.5 * (smin + smax)
+        if k != 0.0:                                      # the layout fits in the circle, 40 m to spare
             half = math.pi / abs(k) - 20.0
-            smin, smax = max(smin, S_MID - half), min(smax, S_MID + half)
+            smin, smax = max(smin, self.s_mid - half), min(smax, self.s_mid + half)
         self.s_range = (smin, smax)
 
         def ground_at(s: float, l: float) -> float:
@@ -398,7 +399,7 @@ class StreetScene:
             p = origin + sf[gi, None] * d[gi]
             if self.varied:
                 w = self.world
-                ss, ll = w.to_street(p[:, 0], p[:, 1])
+                ss, ll = w.to_street(p[:, 0], p[:, 1], self.s_mid)
                 a, sm = _ground_albedo(ss, ll, self.seed, self.fine_texture, w.road_half, w.lane_width, w.sidewalk_out)
                 sun_z = np.clip(w.normal(p[:, 0], p[:, 1]) @ self.sun, 0.0, None)
             else:

@@ -21,8 +21,9 @@ Street coordinates: ``s`` along the centre line (m, 0 = the ego at ``t = 0``), `
 (m, left positive).  The centre line starts at the world origin heading +x; with curvature
 ``kappa != 0`` it is a circular arc of radius ``R = 1/kappa`` (left turn for ``kappa > 0``)
 about ``(0, R)``; :meth:`WorldParams.to_street` maps world ``(x, y)`` back by polar coordinates
-about that centre, ``s`` wrapped into ``[S_MID - pi|R|, S_MID + pi|R|)`` (the layout stays inside
-that window, so the cut lies half a circle away from it).
+about that centre, ``s`` wrapped into ``[s_mid - pi|R|, s_mid + pi|R|)`` about the middle of the
+scene's layout (which is kept shorter than the circle, so the cut lies in the open country half a
+circle away).
 
 Distributions of ``varied`` (per street; U = uniform, "p" = probability):
 
@@ -244,7 +245,7 @@ class WorldParams:
         return np.array([float(x), float(y), float(self.height(float(x), float(y)))])
 
     def _g(self, t: float) -> float:
-        """Antiderivative of :meth:`ego_speed` with ``_g(t_accel) = 0``."""
+        """Antiderivative of :meth:`road_speed` with ``_g(t_accel) = 0``."""
         v0 = min(max(self.v0, 0.0), V_MAX)
         tau = t - self.t_accel
         if tau <= 0 or self.accel == 0:
@@ -291,9 +292,10 @@ class WorldParams:
         r = R - np.asarray(l, dtype=np.float64)
         return r * np.sin(th), R - r * np.cos(th)
 
-    def to_street(self, x, y):
-        """Street ``(s, l)`` of world ``(x, y)`` (arrays); ``s`` wrapped into the window about
-        ``S_MID`` on a curved road."""
+    def to_street(self, x, y, s_mid: float = S_MID):
+        """Street ``(s, l)`` of world ``(x, y)`` (arrays); ``s`` wrapped into the window
+        ``[s_mid - pi|R|, s_mid + pi|R|)`` on a curved road (a scene passes the middle of its
+        layout)."""
         x = np.asarray(x, dtype=np.float64)
         y = np.asarray(y, dtype=np.float64)
         k = self.curvature
@@ -304,7 +306,7 @@ class WorldParams:
         dy = y - R
         rho = np.hypot(x, dy)
         th = np.arctan2(sg * x, -sg * dy)
-        th_mid = k * S_MID
+        th_mid = k * s_mid
         th = th_mid + np.mod(th - th_mid + math.pi, 2 * math.pi) - math.pi
         return th / k, R - sg * rho
 
@@ -360,15 +362,15 @@ class WorldParams:
 
     def surface_pose(self, s: float, l: float, yaw: float = 0.0, lift: float = 0.0) -> np.ndarray:
         """``[4, 4]`` frame standing on the ground at street ``(s, l)``: z = surface normal, x =
-        the direction at ``yaw`` from the road's tangent projected onto the surface, origin
+        the surface direction whose horizontal part points at ``yaw`` from the road's tangent, origin
         ``lift`` metres above the surface along the normal."""
         x, y = self.to_world(s, l)
         x, y = float(x), float(y)
         z = float(self.height(x, y))
         n = self.normal(x, y)
         a = self.heading(s) + yaw
-        f = np.array([math.cos(a), math.sin(a), 0.0])
-        ex = f - (f @ n) * n
+        ca, sa = math.cos(a), math.sin(a)
+        ex = np.array([ca, sa, -(n[0] * ca + n[1] * sa) / n[2]])      # in the surface, above the heading
         ex /= np.linalg.norm(ex)
         ey = np.cross(n, ex)
         return make_transform(R=np.stack([ex, ey, n], axis=1), t=np.array([x, y, z]) + lift * n)
