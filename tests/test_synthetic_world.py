@@ -247,3 +247,18 @@ def test_the_ego_points_where_it_drives():
             assert abs(np.linalg.norm(v) / (2 * e) - w.ego_speed(t)) < 1e-4 * w.ego_speed(t)
             checked += 1
     assert checked > 50
+
+
+def test_a_given_world_stands_then_pulls_away():
+    import dataclasses
+    w = dataclasses.replace(draw_world(4, "varied"), speed_kind="pulling_away", v0=0.0, accel=2.0, t_accel=2.0,
+                            lane_change=False)
+    seq = generate_sequence(height=8, width=8, num_frames=6, dt=0.5, seed=4, lidar=False, cameras=("CAM_FRONT",),
+                            world_params=w)
+    assert seq.metadata["world"] == w
+    p = np.stack([f.ego_to_world[:3, 3] for f in seq.frames])
+    step = np.linalg.norm(np.diff(p, axis=0), axis=1)
+    assert np.all(step[:4] == 0) and step[4] > 0.2                          # stands 2 s, then moves
+    assert [speed_bin(w.ego_speed(f.timestamp)) for f in seq.frames][-1] == "0.5-5"
+    with pytest.raises(ValueError, match="world_params"):
+        generate_sequence(height=8, width=8, num_frames=1, world_params=draw_world(0, "classic"))

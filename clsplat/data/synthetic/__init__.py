@@ -120,11 +120,16 @@ def config_world(cfg: SyntheticConfig) -> WorldParams:
     return draw_world(cfg.seed, cfg.world)
 
 
-def generate_sequence(config: SyntheticConfig | None = None, **overrides) -> DrivingSequence:
+def generate_sequence(config: SyntheticConfig | None = None, world_params: WorldParams | None = None,
+                      **overrides) -> DrivingSequence:
     """Generate a synthetic multi-camera sequence.
 
     Args:
         config: a :class:`SyntheticConfig` (default values if None).
+        world_params: a varied or straight :class:`WorldParams` to use instead of the one drawn
+            from the config's seed (e.g. ``dataclasses.replace(draw_world(s, "varied"),
+            speed_kind="pulling_away", v0=0.0, accel=2.0, t_accel=2.0)``: an ego that stands for
+            2 s, then pulls away); ``config.world`` is then ignored.
         **overrides: fields of :class:`SyntheticConfig` to replace, e.g. ``num_frames=2``.
     Returns:
         :class:`DrivingSequence` with images, depths, semantics, instances, boxes, and LiDAR
@@ -142,8 +147,14 @@ def generate_sequence(config: SyntheticConfig | None = None, **overrides) -> Dri
         cfg = SyntheticConfig(**{**cfg.__dict__, **overrides})
     cfg.validate()
     duration = cfg.t0 + cfg.dt * (cfg.num_frames - 1)
-    world = config_world(cfg)
-    if cfg.world == "classic":
+    if world_params is not None:
+        if not isinstance(world_params, WorldParams) or world_params.world == "classic":
+            raise ValueError("world_params must be a varied or straight WorldParams (the classic street is "
+                             f"SyntheticConfig(world='classic')), got {world_params!r}")
+        world = world_params
+    else:
+        world = config_world(cfg)
+    if world.world == "classic":
         scene = StreetScene(cfg.seed, (-80.0, cfg.speed * duration + 160.0), cfg.num_parked, cfg.num_moving,
                             cfg.poles, cfg.trees, cfg.blink_period, cfg.speed, cfg.signals, cfg.shadow,
                             cfg.fine_texture)
@@ -159,7 +170,7 @@ def generate_sequence(config: SyntheticConfig | None = None, **overrides) -> Dri
     frames = []
     for k in range(cfg.num_frames):
         t = cfg.t0 + k * cfg.dt
-        E = ego_pose(t, cfg.speed, cfg.lane_change, cfg.lane_change_duration) if cfg.world == "classic" \
+        E = ego_pose(t, cfg.speed, cfg.lane_change, cfg.lane_change_duration) if world.world == "classic" \
             else world.ego_pose(t)
         imgs, deps, sems, insts = {}, {}, {}, {}
         for c in cams:
