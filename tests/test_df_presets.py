@@ -2,6 +2,8 @@
 training recipe, and every departure of ``small`` from it is a named field."""
 import dataclasses
 
+import numpy as np
+
 import pytest
 
 from clsplat.models.common.presets import get_preset
@@ -43,3 +45,38 @@ def test_a_checkpoint_from_before_a_field_existed_reads_as_the_class_default():
     check_preset_matches(saved, old, "old.pt")
     with pytest.raises(ValueError, match="ground_prior_cap: None != 20.0"):
         check_preset_matches(saved, small, "old.pt")
+
+
+def _numbers(value):
+    """Every number inside a preset value (tuples flattened)."""
+    if isinstance(value, bool) or value is None or isinstance(value, str):
+        return []
+    if isinstance(value, (tuple, list)):
+        return [x for v in value for x in _numbers(v)]
+    return [float(value)]
+
+
+def test_no_preset_holds_the_datas_motion():
+    """Issue 32: no preset field may come from the data's ground truth. The pose network starts at
+    zero motion in every preset, and no number of a motion field (pose, translation, motion,
+    speed) equals, to 2 %, the per-frame ego motion of the classic street (8 m/s x 0.1 s) or the mean
+    per-frame motion of the varied world's training streets (what issue 17's
+    ``pose_translation_init`` held for the classic street)."""
+    from clsplat.data.synthetic import draw_world
+    from clsplat.models.common.presets import preset_names
+
+    dt = 0.1
+    classic = draw_world(0, "classic")
+    motions = [classic.ego_speed(0.0) * dt]
+    varied = [draw_world(seed, "varied") for seed in range(64)]
+    motions.append(float(np.mean([np.linalg.norm(w.ego_pose(dt)[:3, 3] - w.ego_pose(0.0)[:3, 3]) for w in varied])))
+    assert motions[0] == pytest.approx(0.8)
+    for name in preset_names("drivingforward"):
+        p = get_preset("drivingforward", name)
+        assert p.pose_translation_init is None, name
+        for field in dataclasses.fields(p):
+            if not any(w in field.name for w in ("pose", "translation", "motion", "speed")):
+                continue
+            for x in _numbers(getattr(p, field.name)):
+                for m in motions:
+                    assert not (x != 0 and abs(abs(x) - m) <= 0.02 * m), (name, field.name, x, m)

@@ -1,4 +1,4 @@
-"""models/common/data.py: --data specs, synthetic train/test streets, resampling, tensors."""
+"""models/common/data.py: --data specs, synthetic worlds and train/val/test streets, resampling, tensors."""
 from __future__ import annotations
 
 import numpy as np
@@ -6,7 +6,8 @@ import pytest
 import torch
 
 from clsplat.data import write_pandaset
-from clsplat.models.common.data import parse_data, resize_sequence, to_torch_frame
+from clsplat.models.common.data import (TEST_SEED_OFFSET, VAL_SEED_OFFSET, parse_data, resize_sequence,
+                                        to_torch_frame)
 
 
 def test_synthetic_streets_differ_by_index_and_split_and_render_only_chosen_cameras():
@@ -63,7 +64,43 @@ def test_bad_arguments(tmp_path):
     with pytest.raises(ValueError, match="num_frames"):
         src.sequence(0, num_frames=0, height=8, width=8)
     with pytest.raises(ValueError, match="split"):
-        src.sequence(0, num_frames=1, height=8, width=8, split="val")
+        src.sequence(0, num_frames=1, height=8, width=8, split="valid")
+    with pytest.raises(ValueError, match="synthetic world 'hilly'"):
+        parse_data("synthetic:hilly")
+    with pytest.raises(ValueError, match="default_world"):
+        parse_data("synthetic", default_world="moon")
+
+
+def test_train_val_and_test_streets_have_disjoint_seeds():
+    """Every preset field is chosen on validation streets and reported on test streets: the three
+    synthetic splits are disjoint seed ranges, whatever the base seed and index a run reaches."""
+    src = parse_data("synthetic:classic", seed=5)
+    kw = dict(num_frames=1, height=8, width=8, cameras=["CAM_FRONT"])
+    seeds = {split: src.sequence(3, split=split, **kw).metadata["config"].seed for split in ("train", "val", "test")}
+    assert seeds == {"train": 8, "val": VAL_SEED_OFFSET + 8, "test": TEST_SEED_OFFSET + 8}
+    assert VAL_SEED_OFFSET - TEST_SEED_OFFSET >= TEST_SEED_OFFSET   # a test index never reaches a val seed
+
+
+def test_a_plain_synthetic_is_the_familys_default_world_and_a_named_one_is_kept():
+    assert parse_data("synthetic").name == "synthetic:classic"
+    assert parse_data("synthetic", default_world="varied").name == "synthetic:varied"
+    assert parse_data("synthetic:classic", default_world="varied").name == "synthetic:classic"
+
+
+def test_real_data_splits_are_consecutive_and_disjoint(tmp_path):
+    """A recorded sequence: the first 70 % of its frames train, the next 10 % validate, the last 20 %
+    test; no window of one split holds a frame of another."""
+    seq = parse_data("synthetic").sequence(0, num_frames=20, height=12, width=20, cameras=["CAM_FRONT"])
+    write_pandaset(seq, tmp_path / "001")
+    src = parse_data(f"pandaset:{tmp_path / '001'}")
+    stamps = {}
+    for split in ("train", "val", "test"):
+        starts = src._window_starts(20, 1, split)
+        stamps[split] = {round(src.sequence(i, num_frames=1, height=12, width=20, split=split).frames[0].timestamp, 6)
+                         for i in range(len(starts))}
+    assert [len(stamps[k]) for k in ("train", "val", "test")] == [14, 2, 4]
+    assert not (stamps["train"] & stamps["val"] or stamps["val"] & stamps["test"] or stamps["train"] & stamps["test"])
+    assert max(stamps["train"]) < min(stamps["val"]) and max(stamps["val"]) < min(stamps["test"])
 
 
 def test_pandaset_pickles_are_allow_listed_unless_the_caller_trusts_them(tmp_path):

@@ -108,22 +108,28 @@ def _rig(seq, frame: int, cameras: list[str]) -> np.ndarray:
     return np.stack([seq.cam_to_world(frame, c) for c in cameras])
 
 
-def _training_views(trainer) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]:
-    """Every training camera as (frame, K [3, 3], world-to-camera [4, 4], z-depth [H, W]): the
-    generator's depth (the frame's own when it is at the run's size, else rendered; inf = sky).
-    Cached on the trainer."""
+def _label(instance: np.ndarray, semantic: np.ndarray) -> np.ndarray:
+    """int64 surface label of pixels: which object (instance id, 0 = the static world) and class."""
+    return instance.astype(np.int64) * 256 + semantic.astype(np.int64)
+
+
+def _training_views(trainer) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """Every training camera as (frame, K [3, 3], world-to-camera [4, 4], z-depth [H, W], surface
+    label [H, W] (:func:`_label`)): the generator's (the frame's own maps when they are at the
+    run's size, else rendered; inf depth = sky). Cached on the trainer."""
     cache = getattr(trainer, "_unseen_training_views", None)
     if cache is None:
         d = trainer.data
         cache = []
         for j in d.train_frames:
             c2w = _rig(d.seq, j, d.cameras)
-            own = [d.seq.frames[j].depths.get(c) for c in d.cameras]
-            if any(x is None or x.shape != (d.height, d.width) for x in own):
-                own = [v.depth for v in _generator_views(trainer, j, c2w)]
+            fr = d.seq.frames[j]
+            own = [(fr.depths.get(c), fr.instances.get(c), fr.semantics.get(c)) for c in d.cameras]
+            if any(x is None or x.shape != (d.height, d.width) for o in own for x in o):
+                own = [(v.depth, v.instance, v.semantic) for v in _generator_views(trainer, j, c2w)]
             for k, c in enumerate(d.cameras):
                 cache.append((j, np.asarray(d.seq.camera(c).K, dtype=np.float64), np.linalg.inv(c2w[k]),
-                              np.asarray(own[k], dtype=np.float64)))
+                              np.asarray(own[k][0], dtype=np.float64), _label(own[k][1], own[k][2])))
         trainer._unseen_training_views = cache
     return cache
 
@@ -136,9 +142,11 @@ def unseen_pixels(trainer, frame: int, cam_to_world: np.ndarray, views,
     never counted). A pixel's point (its z-depth along its ray) on a vehicle with a box at both
     times moves with the box to each training frame; a training camera sees it when it projects
     inside the image, in front, and its depth lies within :data:`SEEN_REL_TOL` of the range of
-    that camera's own depths at the 2 x 2 pixel centres around the point's image position (the
-    depths a surface through them interpolates between: a road at a grazing angle, whose depth
-    changes by metres across a pixel, counts as seen; an occluded point, behind all four, does not)."""
+    that camera's own depths at those of the 2 x 2 pixel centres around the point's image
+    position that show the same surface (object and class, :func:`_label`): the depths a surface
+    through them interpolates between. A road at a grazing angle, whose depth changes by metres
+    across a pixel, counts as seen; a point behind a nearer surface does not, also at that
+    surface's silhouette (the background pixels beside it are another surface)."""
     d = trainer.data
     seq = d.seq
     train = _training_views(trainer)
@@ -157,6 +165,7 @@ def unseen_pixels(trainer, frame: int, cam_to_world: np.ndarray, views,
         T = cam_to_world[k]
         pw = pc @ T[:3, :3].T + T[:3, 3]
         inst = v.instance[ok]
+        lab = _label(inst, v.semantic[ok])
         local = {}   # instance -> (its points' indices, the points in its box frame)
         for t in np.unique(inst):
             box = _exact_box(seq, frame, int(t)) if t != 0 else None
@@ -165,7 +174,7 @@ def unseen_pixels(trainer, frame: int, cam_to_world: np.ndarray, views,
                 B = np.linalg.inv(box.box_to_world)
                 local[int(t)] = (idx, pw[idx] @ B[:3, :3].T + B[:3, 3])
         seen = np.zeros(len(z), dtype=bool)
-        for tf, Kt, w2c, dt in train:
+        for tf, Kt, w2c, dt, lt in train:
             P = pw.copy()
             here = np.ones(len(z), dtype=bool)
             for t, (idx, pl) in local.items():
@@ -189,7 +198,9 @@ def unseen_pixels(trainer, frame: int, cam_to_world: np.ndarray, views,
             y0 = np.clip(np.floor(y - 0.5).astype(np.int64), 0, H - 1)
             x1, y1 = np.minimum(x0 + 1, W - 1), np.minimum(y0 + 1, H - 1)
             four = np.stack([dt[y0, x0], dt[y0, x1], dt[y1, x0], dt[y1, x1]])
-            lo, hi = four.min(0), four.max(0)
+            same = np.stack([lt[y0, x0], lt[y0, x1], lt[y1, x0], lt[y1, x1]]) == lab[todo]
+            lo = np.where(same, four, np.inf).min(0)
+            hi = np.where(same, four, -np.inf).max(0)
             vis = inside & (zt >= lo * (1 - SEEN_REL_TOL)) & (zt <= hi * (1 + SEEN_REL_TOL))
             seen[todo[vis]] = True
             if seen.all():

@@ -116,8 +116,7 @@ class DataSource:
     @property
     def name(self) -> str:
         if self.synthetic_streets:
-            base = self.kind if self.path is None else f"{self.kind}:{self.path}"
-            return base if self.path is not None else f"synthetic:{self.world}"
+            return f"synthetic:{self.world}" if self.path is None else f"{self.kind}:{self.path} ({self.world} world)"
         return f"{self.kind}:{self.path}"
 
     def __repr__(self) -> str:

@@ -226,12 +226,14 @@ def _summary(m: dict) -> str:
     keys = ("psnr", "ssim", "lpips", "abs_rel", "sq_rel", "rmse", "delta1", "scale_ratio", "oracle_psnr",
             "layout_abs_rel", "layout_delta1", "pose_t_err_m", "pose_t_err_pct_median", "constant_motion_t_err_pct_median",
             "pose_r_err_deg")
-    lines = [f"eval {m['protocol']['split']} all: " + ", ".join(f"{k} {m['all'][k]:.4g}" for k in keys if k in m["all"])]
+    lines = [f"eval {m['protocol']['split']} all: " + ", ".join(f"{k} {m['all'][k]:.4g}" for k in keys
+                                                              if m["all"].get(k) is not None)]
     for name, b in m.get("speed_bins", {}).items():
         if b.get("windows"):
             lines.append(f"  {name} m/s ({b['windows']} windows): " + ", ".join(
                 f"{k} {b[k]:.4g}" for k in ("abs_rel", "delta1", "scale_ratio", "layout_abs_rel", "pose_t_err_m",
-                                            "pose_t_err_pct_median", "constant_motion_t_err_pct_median") if k in b))
+                                            "pose_t_err_pct_median", "constant_motion_t_err_pct_median")
+                if b.get(k) is not None))
     return "\n".join(lines)
 
 

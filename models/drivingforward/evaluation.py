@@ -34,7 +34,7 @@ for every held-out window whatever its images show: ``constant_motion_t_err_m`` 
 A pose network that has not learned motion from its images scores about what this scores.
 
 Speed bins: every held-out window is put in one bin by the ego's true speed from t to t+1
-(:data:`SPEED_BINS`: ``standing`` below 0.5 m/s, ``0.5-5``, ``5-10``, ``10-15`` m/s), and
+(:data:`clsplat.data.synthetic.SPEED_BINS`: ``standing`` below 0.5 m/s, ``0.5-5``, ``5-10``, ``10-15`` m/s), and
 ``speed_bins`` in ``metrics.json`` holds, per bin, the same keys as ``all`` (pooled over that bin's
 windows only) and ``windows``, the count (a bin without windows holds only ``windows: 0``). Pose
 percentages are undefined where the true motion is below 1 mm, so the ``standing`` bin is read in
@@ -51,29 +51,19 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from clsplat.data.synthetic import SPEED_BINS, speed_bin
+
 from ..common.metrics import depth_metrics, pose_errors, psnr
 from ..common.report import camera_blocks, image_scores, mean_scores, metrics_report, write_metrics
 from .data import camera0_motion, ego_speed, gt_ego_motion, load_triplet
 
 FAMILY = "drivingforward"
 
-__all__ = ["evaluate_model", "layout_depth", "training_controls", "speed_bin", "validation_point", "OFFSETS",
-           "SPEED_BINS"]
+__all__ = ["evaluate_model", "layout_depth", "training_controls", "validation_point", "OFFSETS"]
 
 #: frame offset -> index in a triplet
 OFFSETS = {-1: 0, 0: 1, 1: 2}
-#: ego-speed bins (name, lower bound inclusive, upper bound exclusive; m/s) of the held-out windows
-SPEED_BINS: tuple[tuple[str, float, float], ...] = (
-    ("standing", 0.0, 0.5), ("0.5-5", 0.5, 5.0), ("5-10", 5.0, 10.0), ("10-15", 10.0, float("inf")))
 _POSE_KEYS = ("t_err_m", "t_err_pct", "r_err_deg", "t_pred_m", "t_true_m")
-
-
-def speed_bin(speed: float) -> str:
-    """The name of the :data:`SPEED_BINS` bin of an ego speed in m/s."""
-    for name, lo, hi in SPEED_BINS:
-        if lo <= speed < hi:
-            return name
-    raise ValueError(f"speed: expected a finite speed >= 0 m/s, got {speed!r}")
 
 
 def _oracle_render(sample: dict, inputs: Sequence[int], target: int, device=None) -> Tensor:
@@ -175,12 +165,14 @@ def layout_depth(source, preset, windows: int, cameras: Sequence[str] | None = N
 def _pose_summary(records: list[dict], prefix: str) -> dict:
     """Means (and medians of the translation errors) over windows of :func:`pose_errors` records."""
     out = {}
+    if not records:
+        return out
     for k in _POSE_KEYS:
         vals = [q[k] for q in records if q[k] is not None]
-        if vals:
-            out[f"{prefix}{k}"] = float(np.mean(vals))
-            if k in ("t_err_m", "t_err_pct"):
-                out[f"{prefix}{k}_median"] = float(np.median(vals))
+        # None where no window defines it (a percentage of a standing ego's zero motion)
+        out[f"{prefix}{k}"] = float(np.mean(vals)) if vals else None
+        if k in ("t_err_m", "t_err_pct"):
+            out[f"{prefix}{k}_median"] = float(np.median(vals)) if vals else None
     return out
 
 
@@ -309,7 +301,7 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
     if P is not None:
         for c, name in enumerate(names):
             per_camera[name].update(depth_metrics(P[:, c], D[:, c], min_depth=1e-3, max_depth=p.max_depth))
-    by_bin: dict[str, list[int]] = {name: [] for name, _, _ in SPEED_BINS}
+    by_bin: dict[str, list[int]] = {name: [] for name in SPEED_BINS}
     for j, v in enumerate(speeds):
         by_bin[speed_bin(v)].append(j)
     speed_bins = {name: block(ws) if ws else {"windows": 0} for name, ws in by_bin.items()}
@@ -325,7 +317,7 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
                 "constant_motion": (f"image-blind: camera 0's true motion t -> t+1 averaged over {layout} "
                                     "training windows, for every held-out window" if constant else "not run"),
                 "speed_bins": "held-out windows by the ego's true speed t -> t+1: " + ", ".join(
-                    f"{n} [{lo:g}, {hi:g}) m/s" for n, lo, hi in SPEED_BINS),
+                    f"{n} [{lo:g}, {hi:g}) m/s" for n, (lo, hi) in SPEED_BINS.items()),
                 "pose_source": getattr(p, "pose_source", "network"),
                 "pose": ("pose network, camera 0, t -> t+1, against the data's ego motion; mean over windows"
                          if poses else "not evaluated (pose_source 'dataset': the pose network is not trained)")}
