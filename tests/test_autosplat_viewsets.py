@@ -227,6 +227,34 @@ def test_unseen_pixels_from_the_generator_geometry():
     assert un[solid].mean() > 0.8                                      # the road behind: never in front of the car
 
 
+def test_the_far_side_of_a_vehicle_seen_from_one_side_is_unseen():
+    """A camera 5 m to a vehicle's left trains; the view mirrored across the vehicle sees its
+    right side, none of which the camera saw (the silhouette's background pixels do not count as
+    seeing it); the training camera's own view is all seen."""
+    from types import SimpleNamespace
+
+    from clsplat.models.autosplat.viewsets import training_view, unseen_pixels
+    scene = StreetScene(seed=3)
+    seq = generate_sequence(height=16, width=24, num_frames=1, cameras=("CAM_FRONT",), lidar=False, seed=3)
+    t = seq.frames[0].timestamp
+    box = next(b for b in scene.boxes(t) if b.track_id == 1)
+    W, H = 96, 64
+    K = np.array([[60.0, 0, W / 2], [0, 60.0, H / 2], [0, 0, 1.0]])
+    B = box.box_to_world
+    c2w = _look_at(B[:3, :3] @ np.array([1.0, 5.0, 0.6]) + B[:3, 3], B[:3, 3])
+    mirrored = mirror_across_box(c2w, B)
+    near, far = scene.render(K, c2w, W, H, t), scene.render(K, mirrored, W, H, t)
+    seq.frames[0].boxes = scene.boxes(t)
+    seq.cameras[0].K[:] = K   # the views' intrinsics: the sequence's one camera
+    run = SimpleNamespace(data=SimpleNamespace(seq=seq, cameras=["CAM_FRONT"], height=H, width=W, train_frames=[0]))
+    train = [training_view(0, K, c2w, near.depth, near.instance, near.semantic)]
+    un, _ = unseen_pixels(run, 0, c2w[None], [near], training=train)
+    assert un.sum() == 0
+    un, _ = unseen_pixels(run, 0, mirrored[None], [far], training=train)
+    veh = far.instance[None] == 1
+    assert veh.sum() > 200 and un[veh].mean() > 0.95, (int(veh.sum()), float(un[veh].mean()))
+
+
 def test_view_sets_report_their_unseen_share(tiny_run, tmp_path):
     """Each generated view set's block carries ``unseen_share`` (overall and per view, shares in
     [0, 1] of the counted pixels), and the sets of novel views their PSNR on those pixels."""

@@ -39,7 +39,7 @@ from .data import ROAD_SEMANTIC
 from .init import moving_track_ids
 
 __all__ = ["VIEW_SETS", "LATERAL_SHIFTS_M", "MIN_OBJECT_PIXELS", "SEEN_REL_TOL", "check_views", "far_side",
-           "lane_change", "appearance", "pose_corrections", "render_views", "unseen_pixels"]
+           "lane_change", "appearance", "pose_corrections", "render_views", "unseen_pixels", "training_view"]
 
 VIEW_SETS: tuple[str, ...] = ("recorded", "far-side", "lane-change", "appearance")
 LATERAL_SHIFTS_M: tuple[float, ...] = (1.0, 2.0, 3.0)
@@ -113,6 +113,13 @@ def _label(instance: np.ndarray, semantic: np.ndarray) -> np.ndarray:
     return instance.astype(np.int64) * 256 + semantic.astype(np.int64)
 
 
+def training_view(frame: int, K, cam_to_world, depth, instance, semantic) -> tuple:
+    """One training camera as :func:`unseen_pixels` reads it: (frame, K [3, 3], world-to-camera
+    [4, 4], z-depth [H, W] float64, surface label [H, W])."""
+    return (frame, np.asarray(K, dtype=np.float64), np.linalg.inv(np.asarray(cam_to_world, dtype=np.float64)),
+            np.asarray(depth, dtype=np.float64), _label(np.asarray(instance), np.asarray(semantic)))
+
+
 def _training_views(trainer) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
     """Every training camera as (frame, K [3, 3], world-to-camera [4, 4], z-depth [H, W], surface
     label [H, W] (:func:`_label`)): the generator's (the frame's own maps when they are at the
@@ -128,14 +135,13 @@ def _training_views(trainer) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarr
             if any(x is None or x.shape != (d.height, d.width) for o in own for x in o):
                 own = [(v.depth, v.instance, v.semantic) for v in _generator_views(trainer, j, c2w)]
             for k, c in enumerate(d.cameras):
-                cache.append((j, np.asarray(d.seq.camera(c).K, dtype=np.float64), np.linalg.inv(c2w[k]),
-                              np.asarray(own[k][0], dtype=np.float64), _label(own[k][1], own[k][2])))
+                cache.append(training_view(j, d.seq.camera(c).K, c2w[k], *own[k]))
         trainer._unseen_training_views = cache
     return cache
 
 
-def unseen_pixels(trainer, frame: int, cam_to_world: np.ndarray, views,
-                  cameras: list[str] | None = None) -> tuple[np.ndarray, np.ndarray]:
+def unseen_pixels(trainer, frame: int, cam_to_world: np.ndarray, views, cameras: list[str] | None = None,
+                  training: list[tuple] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Which pixels of the generator views ``views`` (of ``cam_to_world [C, 4, 4]`` at ``frame``'s
     time, with the intrinsics of ``cameras``, default the run's) show a surface point that no training camera saw, from the generator's geometry:
     ``(unseen, solid)``, bool ``[C, H, W]`` each; ``solid``: not sky (sky has no point and is
@@ -146,10 +152,11 @@ def unseen_pixels(trainer, frame: int, cam_to_world: np.ndarray, views,
     position that show the same surface (object and class, :func:`_label`): the depths a surface
     through them interpolates between. A road at a grazing angle, whose depth changes by metres
     across a pixel, counts as seen; a point behind a nearer surface does not, also at that
-    surface's silhouette (the background pixels beside it are another surface)."""
+    surface's silhouette (the background pixels beside it are another surface). ``training``:
+    the training cameras (:func:`training_view`; default the run's training frames and cameras)."""
     d = trainer.data
     seq = d.seq
-    train = _training_views(trainer)
+    train = _training_views(trainer) if training is None else training
     C, H, W = len(views), d.height, d.width
     unseen = np.zeros((C, H, W), dtype=bool)
     solid = np.zeros((C, H, W), dtype=bool)
