@@ -33,6 +33,7 @@ def earlier_run(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.mark.slow   # trains a tiny run
 def test_a_full_disk_is_one_line_and_the_earlier_run_stays_whole(earlier_run, tmp_path, monkeypatch, capsys):
     out = tmp_path / "run"
     shutil.copytree(earlier_run, out)
@@ -61,6 +62,7 @@ def _can_mount_tmpfs(where: Path) -> bool:
     return ok
 
 
+@pytest.mark.slow   # trains a tiny run
 def test_a_really_full_filesystem_in_a_child_process(tmp_path):
     """A 0.9 MB tmpfs: the 1.2 MB checkpoint cannot be written (needs root to mount; with only the moving
     tracks decomposed, issue 19, the checkpoint shrank from 1.7 MB)."""
@@ -123,6 +125,7 @@ def test_pickles_are_safe_by_default_and_trusted_only_on_request(tmp_path, capsy
     assert "holds a int, not a pandas DataFrame" in capsys.readouterr().err
 
 
+@pytest.mark.slow   # trains a tiny run
 def test_view_serves_the_run_and_leaves_it_unchanged(earlier_run, tmp_path, capsys):
     """``--view`` (no browser connected): the viewer's address is printed at the first step and
     the run's scene is the unwatched run's to the byte; a port in use is one line naming

@@ -142,6 +142,7 @@ def tiny_run(tmp_path_factory):
     return run
 
 
+@pytest.mark.slow   # trains a tiny run
 @pytest.mark.parametrize("views", [["far-side"], ["lane-change"], ["appearance"], ["recorded"],
                                    ["lane-change", "far-side"]], ids=lambda v: "+".join(v))
 def test_eval_autosplat_scores_each_view_set_alone(tiny_run, tmp_path, capsys, views):
@@ -170,6 +171,7 @@ def test_eval_autosplat_scores_each_view_set_alone(tiny_run, tmp_path, capsys, v
     assert ("train PSNR" in cap.out) == ("recorded" in views)
 
 
+@pytest.mark.slow   # trains a tiny run
 def test_eval_autosplat_scores_every_view_set(tiny_run, tmp_path):
     run, ev = tiny_run, tmp_path / "eval"
     assert evaluate(["--checkpoint", str(run / "checkpoint.pt"), "--views", "far-side", "lane-change", "appearance",
@@ -255,6 +257,7 @@ def test_the_far_side_of_a_vehicle_seen_from_one_side_is_unseen():
     assert veh.sum() > 200 and un[veh].mean() > 0.95, (int(veh.sum()), float(un[veh].mean()))
 
 
+@pytest.mark.slow   # trains a tiny run
 def test_view_sets_report_their_unseen_share(tiny_run, tmp_path):
     """Each generated view set's block carries ``unseen_share`` (overall and per view, shares in
     [0, 1] of the counted pixels), and the sets of novel views their PSNR on those pixels."""
@@ -274,6 +277,7 @@ def test_view_sets_report_their_unseen_share(tiny_run, tmp_path):
     assert m["lane_change"]["3m"]["unseen_share"]["overall"] < 0.3
 
 
+@pytest.mark.slow   # trains a tiny run
 def test_eval_autosplat_scale_for_a_checkpoint_outside_its_run(tmp_path):
     """A checkpoint taken during training (no metrics.json beside it to record the run's scale) is
     scored at ``--scale``; without it at the preset's scale, which here is not the run's."""
