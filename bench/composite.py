@@ -2,8 +2,8 @@
 
 ``clsplat bench composite --out DIR`` writes ``composite.{json,md}``. For scenes A and B, on one
 :class:`~clsplat.runtime.Runtime`, ``repeats + 1`` rounds; in each round every
-``RenderConfig.composite_impl`` ("baseline": ``kernels/composite_base.cl`` and
-``composite_bwd_base.cl``; "tuned": ``composite.cl`` and ``composite_bwd.cl``) runs, in an
+``RenderConfig.composite_impl`` ("baseline" and "tuned": ``kernels/composite.cl`` and
+``composite_bwd.cl`` built with ``CLS_TUNED`` 0 and 1) runs, in an
 order that alternates between rounds, once
 
 * a no-grad forward (per-stage device ms from profiling events, as in :mod:`.stages`), and

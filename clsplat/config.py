@@ -31,11 +31,11 @@ class RenderConfig:
     sort_local:   keys sorted in local memory per work-group (None: from device limits).
     sort_layout:  "serial" (a merge sort per segment and work-item; CPU default) or
                   "bitonic" (a work-group per segment in local memory; GPU default).
-    composite_impl: "tuned" (kernels/composite.cl and composite_bwd.cl: inline maths instead
-                  of the OpenCL library builtins PoCL's CPU device cannot inline, extent tests a
-                  word of samples at a time; CPU default) or "baseline" (composite_base.cl and
-                  composite_bwd_base.cl, the kernels before issue 21 item 5; GPU default).
-                  None: by device. Both give the same images and gradients.
+    composite_impl: "tuned" (kernels/composite.cl and composite_bwd.cl built with CLS_TUNED=1:
+                  inline maths instead of the OpenCL library builtins PoCL's CPU device cannot
+                  inline, extent tests a word of samples at a time; CPU default) or "baseline"
+                  (the same files with CLS_TUNED=0, the kernels before issue 21 item 5; GPU
+                  default). None: by device. Both give the same images and gradients.
     """
 
     precision: str | None = None

@@ -336,8 +336,9 @@ def composite_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: i
 
 
 def composite_tuned(rt: Runtime, cfg: RenderConfig) -> bool:
-    """Whether compositing runs the tuned kernels (``RenderConfig.composite_impl``; None: on
-    CPUs) rather than the baseline ones (``kernels/composite_base.cl``, ``composite_bwd_base.cl``)."""
+    """Whether compositing runs the tuned builds of ``kernels/composite.cl`` and
+    ``composite_bwd.cl`` (``RenderConfig.composite_impl``; None: on CPUs) rather than the
+    baseline builds (``-DCLS_TUNED=0``)."""
     return (cfg.composite_impl or ("tuned" if rt.is_cpu else "baseline")) == "tuned"
 
 
@@ -376,8 +377,8 @@ def _composite_kernel(rt: Runtime, cfg: RenderConfig, stage: str, defines: dict,
                 "CCHUNK": defines["CCHUNK"], "SAVE_LAST": False, "CLS_POCL_CPU": True}
             if not inline_exp_exact(rt, cfg, fwd):
                 defines = defines | {"CLS_INLINE_EXP": 0}
-    else:
-        stage += "_base"
+    else:  # the same kernel source, built without the CPU-specific staging (CLS_TUNED=0)
+        defines = defines | {"CLS_TUNED": 0}
     k = rt.kernel(stage, name, defines, cfg.fast_math)
     rt.check_group(k, stage, group, f" (tile_size {tile_size}, {defines['PIX']} pixel(s) per "
                    "item; use a smaller tile_size or a larger RenderConfig.pix)")

@@ -1,6 +1,4 @@
-/* composite.cl — stage 6: front-to-back alpha compositing, one work-group per tile
- * (RenderConfig.composite_impl="tuned", the CPU default; composite_base.cl is the kernel it
- * replaced, kept for the side-by-side and as the GPU default).
+/* composite.cl — stage 6: front-to-back alpha compositing, one work-group per tile.
  *
  * Each work-item owns PIX adjacent pixels of one tile row. The group walks its tile's sorted
  * segment in batches staged in local memory and stops early once every pixel is done.
@@ -11,25 +9,30 @@
  * added by the host), and with SAVE_LAST the 1-based segment position of the last sample
  * composited, which bounds the backward pass.
  *
- * What differs from composite_base.cl, with the same arithmetic per sample and so the same
+ * Two builds of one kernel (RenderConfig.composite_impl), chosen by CLS_TUNED; the per-sample
+ * arithmetic (sigma, alpha, the tests, the blend) is written once, so the two give the same
  * outputs bit for bit:
- *  - on PoCL's CPU device (CLS_POCL_CPU) the maths is inline (see common.h): there the library
- *    builtins are out-of-line calls that spill every vector register;
- *  - a batch is staged as structure-of-arrays, and an item tests the extents of CLS_WORD
- *    samples at once (vector compares into a bit mask), then visits only the samples its
- *    row segment can see, in order, instead of a hard-to-predict branch per sample, and
- *    skips the exp where sigma exceeds a safe bound on every lane (common.h: l_sm);
- *  - on PoCL's CPU device (CLS_POCL_CPU) the next batch's samples are prefetched while this
- *    one is composited.
+ *  - CLS_TUNED=0 ("baseline", the GPU default): a batch is staged as array-of-structures and
+ *    an item tests each sample's extent against its row segment before the exp;
+ *  - CLS_TUNED=1 ("tuned", the CPU default): a batch is staged as structure-of-arrays, and an
+ *    item tests the extents of CLS_WORD samples at once (vector compares into a bit mask),
+ *    then visits only the samples its row segment can see, in order, instead of a
+ *    hard-to-predict branch per sample, and skips the exp where sigma exceeds a safe bound
+ *    on every lane (common.h: l_sm); on PoCL's CPU device (CLS_POCL_CPU) the maths is inline
+ *    (see common.h: there the library builtins are out-of-line calls that spill every vector
+ *    register) and the next batch's samples are prefetched while this one is composited.
  *
  * Channels are composited CCHUNK at a time (gsplat's channel_chunk): one launch per chunk,
  * from channel ch0 on, so private and local memory stay bounded for any number of channels.
  * Every launch makes the same decisions; the first (ch0 = 0) writes T and the last index.
  *
- * Build parameters: REAL_DOUBLE, TILE, PIX, BATCH, CHANNELS,
+ * Build parameters: CLS_TUNED (default 1), REAL_DOUBLE, TILE, PIX, BATCH, CHANNELS,
  * CCHUNK, SAVE_LAST, ALPHA_MIN, ALPHA_MAX, T_MIN, CLS_POCL_CPU.
  */
 
+#ifndef CLS_TUNED
+#define CLS_TUNED 1
+#endif
 #define GROUP (TILE * TILE / PIX)
 #define ITEMS_PER_ROW (TILE / PIX)
 
@@ -49,13 +52,27 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
                    , __global int *out_last          /* [C, H, W] */
 #endif
 ) {
+#if CLS_TUNED
     /* Vector-typed, so that extent_bits may load them as vectors (alignment). */
     __local MVREAL l_xv[NPAD / CLS_MV], l_yv[NPAD / CLS_MV], l_bxv[NPAD / CLS_MV], l_byv[NPAD / CLS_MV];
     __local REAL l_ca[BATCH], l_cb[BATCH], l_cc[BATCH], l_op[BATCH], l_sm[BATCH];
-    __local REAL l_f[CCHUNK * BATCH];
-    __local int n_done;
     __local REAL *l_x = (__local REAL *)l_xv, *l_y = (__local REAL *)l_yv;
     __local REAL *l_bx = (__local REAL *)l_bxv, *l_by = (__local REAL *)l_byv;
+#define S_X(k) l_x[k]
+#define S_Y(k) l_y[k]
+#define S_CA(k) l_ca[k]
+#define S_CB(k) l_cb[k]
+#define S_CC(k) l_cc[k]
+#else
+    __local REAL l_xy[2 * BATCH], l_conic[3 * BATCH], l_op[BATCH], l_ext[2 * BATCH];
+#define S_X(k) l_xy[2 * (k)]
+#define S_Y(k) l_xy[2 * (k) + 1]
+#define S_CA(k) l_conic[3 * (k)]
+#define S_CB(k) l_conic[3 * (k) + 1]
+#define S_CC(k) l_conic[3 * (k) + 2]
+#endif
+    __local REAL l_f[CCHUNK * BATCH];
+    __local int n_done;
 
     const int tile = get_group_id(0), lid = get_local_id(0);
     const int c = tile / tiles_per_cam, t = tile - c * tiles_per_cam;
@@ -65,14 +82,18 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
     const VREAL xs = (REAL)px0 + VRAMP;
     const VREAL pxc = xs + (REAL)CLS_PIXEL_CENTRE;
     const REAL pyc = (REAL)py + (REAL)CLS_PIXEL_CENTRE;
+#if CLS_TUNED
     const REAL px_first = (REAL)px0 + (REAL)CLS_PIXEL_CENTRE;
     const REAL px_last = (REAL)(px0 + PIX - 1) + (REAL)CLS_PIXEL_CENTRE;
+#endif
     const VMASK inside = (xs < (REAL)width) && (py < height);
     VMASK done = !inside;
 
     VREAL T = (VREAL)1;
     VREAL acc[CCHUNK];
+#if CLS_TUNED
 #pragma unroll
+#endif
     for (int ch = 0; ch < CCHUNK; ++ch) acc[ch] = (VREAL)0;
     VMASK last = (VMASK)0;
 
@@ -87,6 +108,7 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
         if (n_done == GROUP) break;
 
         const int nb = min(BATCH, end - b0);
+#if CLS_TUNED
         const int n_words = (nb + CLS_WORD - 1) / CLS_WORD;
         for (int i = lid; i < n_words * CLS_WORD; i += GROUP) {
             if (i < nb) {
@@ -100,12 +122,22 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
                 l_by[i] = -1;
             }
         }
+#else
+        for (int i = lid; i < nb; i += GROUP) {
+            const uint cg = key_id(keys[b0 + i]);
+            stage_sample(i, cg, means2d, conics, opac_cg, extents, feats, l_xy, l_conic, l_op, l_ext, l_f,
+                         ch0, CCHUNK);
+        }
+#endif
         barrier(CLK_LOCAL_MEM_FENCE);
 #if CLS_PREFETCH
         for (int i = b0 + BATCH + lid; i < min(b0 + 2 * BATCH, end); i += GROUP)
             prefetch_sample(key_id(keys[i]), means2d, conics, opac_cg, extents, feats, ch0, CCHUNK);
 #endif
 
+        /* The samples k of the batch this item's row segment may see, in order (both
+         * variants open two blocks here, closed after the per-sample code). */
+#if CLS_TUNED
         for (int w0 = 0; w0 < nb; w0 += CLS_WORD) {
             if (CLS_VALL(done)) break;
             uint seen = extent_bits(w0, l_x, l_y, l_bx, l_by, px_first, px_last, pyc);
@@ -113,10 +145,23 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
                 if (CLS_VALL(done)) break;
                 const int k = w0 + CLS_CTZ(seen);
                 seen &= seen - 1;
-                const VREAL dx = l_x[k] - pxc;
-                const REAL dy = l_y[k] - pyc;
-                const VREAL sigma = (REAL)0.5 * (l_ca[k] * dx * dx + l_cc[k] * dy * dy) + l_cb[k] * dx * dy;
+#else
+        for (int k = 0; k < nb; ++k) {
+            {
+                if (CLS_VALL(done)) break;
+                /* Most samples of a tile miss a given row segment: reject them before the exp. */
+                if (outside_extent(l_xy[2 * k], l_xy[2 * k + 1], l_ext[2 * k], l_ext[2 * k + 1],
+                                   (REAL)px0 + (REAL)CLS_PIXEL_CENTRE,
+                                   (REAL)(px0 + PIX - 1) + (REAL)CLS_PIXEL_CENTRE, pyc))
+                    continue;
+#endif
+                /* ---- one sample against this item's PIX pixels ---- */
+                const VREAL dx = S_X(k) - pxc;
+                const REAL dy = S_Y(k) - pyc;
+                const VREAL sigma = (REAL)0.5 * (S_CA(k) * dx * dx + S_CC(k) * dy * dy) + S_CB(k) * dx * dy;
+#if CLS_TUNED
                 if (!CLS_VANY(sigma <= l_sm[k])) continue; /* alpha < ALPHA_MIN in every lane */
+#endif
                 const VREAL alpha = CLS_FMIN((VREAL)(REAL)ALPHA_MAX, l_op[k] * CLS_VEXP(-sigma));
                 VMASK valid = !done && sigma >= (REAL)0 && alpha >= (REAL)ALPHA_MIN;
                 if (!CLS_VANY(valid)) continue;
@@ -125,7 +170,9 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
                 done = done || stop;
                 valid = valid && !stop;
                 const VREAL w = valid ? alpha * T : (VREAL)0;
+#if CLS_TUNED
 #pragma unroll /* so the accumulators can stay in registers */
+#endif
                 for (int ch = 0; ch < CCHUNK; ++ch) acc[ch] += l_f[CCHUNK * k + ch] * w;
                 T = valid ? next_T : T;
                 last = valid ? (VMASK)(b0 - start + k + 1) : last;

@@ -1,6 +1,4 @@
-/* composite_bwd.cl — backward of compositing: per-intersection gradient slots
- * (RenderConfig.composite_impl="tuned", the CPU default; composite_bwd_base.cl is the kernel
- * it replaced, kept for the side-by-side and as the GPU default).
+/* composite_bwd.cl — backward of compositing: per-intersection gradient slots.
  *
  * One work-group per tile, the forward's pixel layout. For every sample a pixel composited,
  * with w_i = alpha_i T_i, out = sum_i f_i w_i and T_final = prod_i (1 - alpha_i):
@@ -35,31 +33,41 @@
  * private memory and the items hand them over in WAVES waves of GROUP / WAVES, so local
  * memory holds one wave; the sums, and so the results, are the same as with one wave.
  *
- * What differs from composite_bwd_base.cl, with the same arithmetic and the same order of
- * every sum, so the same slots bit for bit:
- *  - on PoCL's CPU device inline maths (CLS_POCL_CPU, see common.h), as in composite.cl;
- *  - the extent test a word of samples at a time (common.h: extent_bits), and an item visits
- *    only the samples its row segment can see and that lie before its last contributor, and
- *    skips the exp where sigma exceeds a safe bound on every lane (common.h: l_sm);
- *  - an item's partials of a batch are one contiguous block [sample][value], zeroed once per
- *    batch, so the group's sum over items reads consecutive values for consecutive items;
- *  - on PoCL's CPU device (CLS_POCL_CPU) the next batch's samples are prefetched (replay
- *    order only: with BWD_DIVIDE the batches run back to front and nothing is prefetched).
+ * Two builds of one kernel (RenderConfig.composite_impl), chosen by CLS_TUNED, as in
+ * composite.cl; the per-sample gradient arithmetic is written once, and every sum runs in the
+ * same order, so the two give the same slots bit for bit:
+ *  - CLS_TUNED=0 ("baseline", the GPU default): array-of-structures staging, an extent test
+ *    per sample, and partials laid out [sample][item][value];
+ *  - CLS_TUNED=1 ("tuned", the CPU default): structure-of-arrays staging and the extent test a
+ *    word of samples at a time (common.h: extent_bits); an item visits only the samples its
+ *    row segment can see and that lie before its last contributor, and skips the exp where
+ *    sigma exceeds a safe bound on every lane (common.h: l_sm); an item's partials of a batch
+ *    are one contiguous block [sample][value], zeroed once per batch, so the group's sum over
+ *    items reads CLS_MV consecutive values at once; on PoCL's CPU device (CLS_POCL_CPU) inline
+ *    maths (see common.h) and the next batch's samples prefetched (replay order only: with
+ *    BWD_DIVIDE the batches run back to front and nothing is prefetched).
  *
  * Slot layout (SLOT_G values): [geometry: v_xy(2) v_conic(3) v_opacity(1) (|v_xy|(2))]
  * [colour: v_feat(CHANNELS)], the colour block starting at column SLOT_COLOR0.
  *
- * Build parameters: REAL_DOUBLE, TILE, PIX, BATCH, CHANNELS, CCHUNK, GEOM_GRAD, COLOR_GRAD,
- * ABSGRAD, BWD_DIVIDE, SLOT_G, SLOT_COLOR0, WAVES, ALPHA_MIN, ALPHA_MAX, CLS_POCL_CPU.
+ * Build parameters: CLS_TUNED (default 1), REAL_DOUBLE, TILE, PIX, BATCH, CHANNELS, CCHUNK,
+ * GEOM_GRAD, COLOR_GRAD, ABSGRAD, BWD_DIVIDE, SLOT_G, SLOT_COLOR0, WAVES, ALPHA_MIN, ALPHA_MAX,
+ * CLS_POCL_CPU.
  */
+
+#ifndef CLS_TUNED
+#define CLS_TUNED 1
+#endif
 
 #define GROUP (TILE * TILE / PIX)
 #define ITEMS_PER_ROW (TILE / PIX)
 #define G_GEOM (GEOM_GRAD ? (ABSGRAD ? 8 : 6) : 0)
 #define PG (G_GEOM + (COLOR_GRAD ? CCHUNK : 0)) /* partials per item and sample, this launch */
+#if CLS_TUNED
 /* Partials per item and batch, padded to whole vectors so the group sum can read CLS_MV
  * consecutive values (of consecutive samples and values) as one vector. */
 #define PB ((BATCH * PG + CLS_MV - 1) / CLS_MV * CLS_MV)
+#endif
 #define WIDE (CHANNELS > CCHUNK)
 #define WAVE (GROUP / WAVES)
 
@@ -82,20 +90,45 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
                    __global const REAL *v_T,         /* [C, H, W] */
                    __global REAL *slots)             /* [M, SLOT_G] */
 {
+#if CLS_TUNED
     __local MVREAL l_xv[NPAD / CLS_MV], l_yv[NPAD / CLS_MV], l_bxv[NPAD / CLS_MV], l_byv[NPAD / CLS_MV];
     __local REAL l_ca[BATCH], l_cb[BATCH], l_cc[BATCH], l_op[BATCH], l_sm[BATCH];
+#else
+    __local REAL l_xy[2 * BATCH], l_conic[3 * BATCH], l_op[BATCH], l_ext[2 * BATCH];
+#endif
     __local REAL l_f[(WIDE ? 1 : CCHUNK) * BATCH];
     __local int l_slot[BATCH];
     __local uint l_cg[BATCH];
+#if CLS_TUNED
     __local MVREAL partv[WAVE * PB / CLS_MV]; /* [item of the wave][sample][value] */
 #if WAVES > 1
     __local MVREAL l_accv[PB / CLS_MV];
     REAL my_p[PB];
 #endif
+#else
+    __local REAL part[BATCH * WAVE * PG]; /* [sample][item of the wave][value] */
+#if WAVES > 1
+    __local REAL l_acc[BATCH * PG];
+    REAL my_p[BATCH * PG];
+#endif
+#endif
     __local int l_max_last;
+#if CLS_TUNED
     __local REAL *l_x = (__local REAL *)l_xv, *l_y = (__local REAL *)l_yv;
     __local REAL *l_bx = (__local REAL *)l_bxv, *l_by = (__local REAL *)l_byv;
     __local REAL *part = (__local REAL *)partv;
+#define S_X(k) l_x[k]
+#define S_Y(k) l_y[k]
+#define S_CA(k) l_ca[k]
+#define S_CB(k) l_cb[k]
+#define S_CC(k) l_cc[k]
+#else
+#define S_X(k) l_xy[2 * (k)]
+#define S_Y(k) l_xy[2 * (k) + 1]
+#define S_CA(k) l_conic[3 * (k)]
+#define S_CB(k) l_conic[3 * (k) + 1]
+#define S_CC(k) l_conic[3 * (k) + 2]
+#endif
 
     const int tile = get_group_id(0), lid = get_local_id(0);
     const int c = tile / tiles_per_cam, t = tile - c * tiles_per_cam;
@@ -143,8 +176,10 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
     }
     const VREAL pxc = (REAL)px0 + VRAMP + (REAL)CLS_PIXEL_CENTRE;
     const REAL pyc = (REAL)py + (REAL)CLS_PIXEL_CENTRE;
+#if CLS_TUNED
     const REAL px_first = (REAL)px0 + (REAL)CLS_PIXEL_CENTRE;
     const REAL px_last = (REAL)(px0 + PIX - 1) + (REAL)CLS_PIXEL_CENTRE;
+#endif
 
     if (lid == 0) l_max_last = 0;
     barrier(CLK_LOCAL_MEM_FENCE);
@@ -166,8 +201,11 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
         const int b0 = bi * BATCH;
 #endif
         const int nb = min(BATCH, n_used - b0);
+#if CLS_TUNED
         const int n_words = (nb + CLS_WORD - 1) / CLS_WORD;
+#endif
         barrier(CLK_LOCAL_MEM_FENCE);
+#if CLS_TUNED
         for (int i = lid; i < n_words * CLS_WORD; i += GROUP) {
             if (i < nb) {
                 const uint cg = key_id(keys[start + b0 + i]);
@@ -185,6 +223,17 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
                 l_by[i] = -1;
             }
         }
+#else
+        for (int i = lid; i < nb; i += GROUP) {
+            const uint cg = key_id(keys[start + b0 + i]);
+            stage_sample(i, cg, means2d, conics, opac_cg, extents, feats, l_xy, l_conic, l_op,
+                         l_ext, l_f, 0, (GEOM_GRAD && !WIDE) ? CCHUNK : 0);
+            l_cg[i] = cg;
+            /* The slot of (pair, tile), as above. */
+            const int4 r = vload4(cg, rects);
+            l_slot[i] = isect_offsets[cg] + (ty - r.y) * (r.z - r.x) + (tx - r.x);
+        }
+#endif
         barrier(CLK_LOCAL_MEM_FENCE);
 
 #if CLS_PREFETCH && !BWD_DIVIDE
@@ -192,6 +241,10 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
             prefetch_sample(key_id(keys[i]), means2d, conics, opac_cg, extents, feats, 0,
                             (GEOM_GRAD && !WIDE) ? CCHUNK : 0);
 #endif
+        /* The samples k of the batch this item's row segment may see, in the walk's order,
+         * and ``my``, the item's PG partials of sample k (both variants open two blocks
+         * here, closed after the per-sample code). */
+#if CLS_TUNED
 #if WAVES == 1
         __local REAL *mine = part + lid * PB;
 #else
@@ -222,12 +275,34 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
 #else
                 REAL *my = mine + k * PG;
 #endif
+#else
+        for (int kk = 0; kk < nb; ++kk) {
+            {
+#if BWD_DIVIDE
+                const int k = nb - 1 - kk;
+#else
+                const int k = kk;
+#endif
+#if WAVES == 1
+                __local REAL *my = part + (k * GROUP + lid) * PG;
+#else
+                REAL *my = my_p + k * PG;
+#endif
+                for (int j = 0; j < PG; ++j) my[j] = 0;
+                if (outside_extent(l_xy[2 * k], l_xy[2 * k + 1], l_ext[2 * k], l_ext[2 * k + 1],
+                                   (REAL)px0 + (REAL)CLS_PIXEL_CENTRE,
+                                   (REAL)(px0 + PIX - 1) + (REAL)CLS_PIXEL_CENTRE, pyc))
+                    continue; /* the forward skipped it too */
+#endif
+                /* ---- one sample's gradients at this item's PIX pixels ---- */
                 const REAL pos = (REAL)(b0 + k + 1);
-                const VREAL dx = l_x[k] - pxc;
-                const REAL dy = l_y[k] - pyc;
-                const REAL ca = l_ca[k], cb = l_cb[k], cc = l_cc[k];
+                const VREAL dx = S_X(k) - pxc;
+                const REAL dy = S_Y(k) - pyc;
+                const REAL ca = S_CA(k), cb = S_CB(k), cc = S_CC(k);
                 const VREAL sigma = (REAL)0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy;
+#if CLS_TUNED
                 if (!CLS_VANY(sigma <= l_sm[k])) continue; /* alpha < ALPHA_MIN in every lane */
+#endif
                 const VREAL g = CLS_VEXP(-sigma);
                 const VREAL raw = l_op[k] * g;
                 const VREAL alpha = CLS_FMIN((VREAL)(REAL)ALPHA_MAX, raw);
@@ -240,7 +315,9 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
 #endif
                 const VREAL w = valid ? alpha * T : (VREAL)0;
 #if COLOR_GRAD
+#if CLS_TUNED
 #pragma unroll /* channel loops unrolled, so vo[] and the sums stay in registers */
+#endif
                 for (int ch = 0; ch < CCHUNK; ++ch) my[G_GEOM + ch] = VSUM(w * vo[ch]);
 #endif
 #if GEOM_GRAD
@@ -258,7 +335,9 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
 #endif
                 }
 #else
+#if CLS_TUNED
 #pragma unroll
+#endif
                 for (int ch = 0; ch < CHANNELS; ++ch) A += l_f[CCHUNK * k + ch] * vo[ch];
 #endif
 #if BWD_DIVIDE
@@ -290,6 +369,7 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
             }
         }
         barrier(CLK_LOCAL_MEM_FENCE);
+#if CLS_TUNED
         /* Sum each sample's per-item partials in item order and write its slot: an item sums
          * CLS_MV consecutive partials at once, each lane in item order as one scalar would. */
 #if WAVES == 1
@@ -322,5 +402,37 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
                 slots[(size_t)l_slot[k] * SLOT_G + col] = acc_l[q];
             }
         }
+#else
+        /* Sum each sample's per-item partials in item order and write its slot. */
+#if WAVES == 1
+        for (int idx = lid; idx < nb * PG; idx += GROUP) {
+            const int k = idx / PG, j = idx - k * PG;
+            REAL acc = 0;
+            for (int w = 0; w < GROUP; ++w) acc += part[(k * GROUP + w) * PG + j];
+#else
+        for (int idx = lid; idx < nb * PG; idx += GROUP) l_acc[idx] = 0;
+        for (int wave = 0; wave < WAVES; ++wave) {
+            if (lid / WAVE == wave)
+                for (int k = 0; k < nb; ++k)
+                    for (int j = 0; j < PG; ++j)
+                        part[(k * WAVE + lid - wave * WAVE) * PG + j] = my_p[k * PG + j];
+            barrier(CLK_LOCAL_MEM_FENCE);
+            for (int idx = lid; idx < nb * PG; idx += GROUP) {
+                const int k = idx / PG, j = idx - k * PG;
+                REAL acc = l_acc[idx];
+                for (int w = 0; w < WAVE; ++w) acc += part[(k * WAVE + w) * PG + j];
+                l_acc[idx] = acc;
+            }
+            barrier(CLK_LOCAL_MEM_FENCE);
+        }
+        for (int idx = lid; idx < nb * PG; idx += GROUP) {
+            const int k = idx / PG, j = idx - k * PG;
+            const REAL acc = l_acc[idx];
+#endif
+            const int col = j < G_GEOM ? j : SLOT_COLOR0 + ch0 + (j - G_GEOM);
+            if (j >= G_GEOM && ch0 + (j - G_GEOM) >= CHANNELS) continue;
+            slots[(size_t)l_slot[k] * SLOT_G + col] = acc;
+        }
+#endif
     }
 }

@@ -1,6 +1,6 @@
-"""RenderConfig.composite_impl: the tuned compositing kernels (kernels/composite.cl,
-composite_bwd.cl) give the baseline kernels' (composite_base.cl, composite_bwd_base.cl)
-images and gradients bit for bit, in every layout and precision, on dense scenes where many
+"""RenderConfig.composite_impl: the tuned builds of the compositing kernels
+(kernels/composite.cl, composite_bwd.cl with CLS_TUNED=1) give the baseline builds'
+(CLS_TUNED=0) images and gradients bit for bit, in every layout and precision, on dense scenes where many
 samples fall outside a row segment's extent and many pixels stop early."""
 from __future__ import annotations
 
