@@ -109,6 +109,7 @@ _CHILD = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case,sizes", [
     ("pixels", r"width, height: the render's pixel buffers need about 10\.0 GiB \(1 x 268435456 pixels x "
                r"\(9 values x 4 bytes \+ 1 x 4\)\)"),
