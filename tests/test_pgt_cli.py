@@ -128,7 +128,8 @@ def test_eval_writes_the_budget_curve(runs, views):
     P = views * 32 * 48
     for r in rows:
         assert set(r) == {"method", "selection", "parameters", "budget", "views", "n_gaussians", "psnr",
-                          "psnr_covered", "ssim", "render_ms"}
+                          "psnr_covered", "ssim", "render_ms", "psnr_per_sample"}
+        assert r["psnr_per_sample"] == [r["psnr"]]   # one sample: its own PSNR is the mean
         assert r["views"] == views
         assert r["n_gaussians"] == round(r["budget"] * P)  # exact: every method, every sample
         assert r["render_ms"] > 0 and 0 < r["psnr"] < 60 and -1 <= r["ssim"] <= 1 and 0 < r["psnr_covered"] < 60

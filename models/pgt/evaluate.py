@@ -116,7 +116,8 @@ def evaluate_model(model: PGT, source, preset: PGTPreset, budgets: list[float], 
     base protocol; 3..24: the multi-view protocol).
 
     Returns {"rows": budget rows (method, selection, parameters, budget, views, n_gaussians, psnr,
-    psnr_covered, ssim, [lpips], render_ms), "metrics": the ``metrics.json`` dict
+    psnr_covered, ssim, [lpips], render_ms: means over the samples; psnr_per_sample: sample i's
+    PSNR, so that two methods compare street by street), "metrics": the ``metrics.json`` dict
     (:mod:`clsplat.models.common.report`) of the full set: PSNR/SSIM[/LPIPS] and depth (with the
     residual head) overall and per target camera, the depth without the residual head, render and
     prediction times}. ``methods``: a subset of :data:`ALL_METHODS` (default all; ``finetuned``
@@ -188,7 +189,8 @@ def evaluate_model(model: PGT, source, preset: PGTPreset, budgets: list[float], 
     keys = ("n_gaussians", "psnr", "psnr_covered", "ssim", "render_ms") + (("lpips",) if lpips is not None else ())
     rows = [{"method": m, "selection": "learned" if m == "finetuned" else m.partition("@")[0],
              "parameters": "finetuned" if m == "finetuned" or m in ON_FINETUNED else "base",
-             "budget": k, "views": views, **{key: float(np.mean([r[key] for r in v])) for key in keys}}
+             "budget": k, "views": views, **{key: float(np.mean([r[key] for r in v])) for key in keys},
+             "psnr_per_sample": [r["psnr"] for r in v]}
             for (m, k), v in acc.items()]
 
     def mean_depth(ds: list[dict]) -> dict:
