@@ -255,6 +255,8 @@ def test_the_far_side_of_a_vehicle_seen_from_one_side_is_unseen():
     un, _ = unseen_pixels(run, 0, mirrored[None], [far], training=train)
     veh = far.instance[None] == 1
     assert veh.sum() > 200 and un[veh].mean() > 0.95, (int(veh.sum()), float(un[veh].mean()))
+    only, counted = unseen_pixels(run, 0, mirrored[None], [far], training=train, only=veh)
+    assert np.array_equal(only, un & veh) and np.array_equal(counted, veh & np.isfinite(far.depth)[None])
 
 
 @pytest.mark.slow   # trains a tiny run

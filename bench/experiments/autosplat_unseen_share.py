@@ -68,7 +68,7 @@ def unseen_shares(world: str, seed: int, scale: float, cameras: list[str], frame
             mask = np.stack([g.instance == t for g in gt])
             keep = mask.reshape(len(cameras), -1).sum(1) >= MIN_OBJECT_PIXELS
             if keep.any():
-                un = unseen_pixels(run, f, c2w, gt)[0] & mask
+                un = unseen_pixels(run, f, c2w, gt, only=mask)[0]
                 u, n = u + int(un[keep].sum()), n + int(mask[keep].sum())
     out.update(far_side=u / n if n else None, far_side_pixels=n, tracks=moving)
     return out

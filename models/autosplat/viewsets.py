@@ -141,7 +141,7 @@ def _training_views(trainer) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarr
 
 
 def unseen_pixels(trainer, frame: int, cam_to_world: np.ndarray, views, cameras: list[str] | None = None,
-                  training: list[tuple] | None = None) -> tuple[np.ndarray, np.ndarray]:
+                  training: list[tuple] | None = None, only: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Which pixels of the generator views ``views`` (of ``cam_to_world [C, 4, 4]`` at ``frame``'s
     time, with the intrinsics of ``cameras``, default the run's) show a surface point that no training camera saw, from the generator's geometry:
     ``(unseen, solid)``, bool ``[C, H, W]`` each; ``solid``: not sky (sky has no point and is
@@ -153,7 +153,8 @@ def unseen_pixels(trainer, frame: int, cam_to_world: np.ndarray, views, cameras:
     through them interpolates between. A road at a grazing angle, whose depth changes by metres
     across a pixel, counts as seen; a point behind a nearer surface does not, also at that
     surface's silhouette (the background pixels beside it are another surface). ``training``:
-    the training cameras (:func:`training_view`; default the run's training frames and cameras)."""
+    the training cameras (:func:`training_view`; default the run's training frames and cameras).
+    ``only`` (bool ``[C, H, W]``): test these pixels alone (the others are neither unseen nor solid)."""
     d = trainer.data
     seq = d.seq
     train = _training_views(trainer) if training is None else training
@@ -161,7 +162,7 @@ def unseen_pixels(trainer, frame: int, cam_to_world: np.ndarray, views, cameras:
     unseen = np.zeros((C, H, W), dtype=bool)
     solid = np.zeros((C, H, W), dtype=bool)
     for k, (cam, v) in enumerate(zip(cameras or d.cameras, views)):
-        ok = np.isfinite(v.depth)
+        ok = np.isfinite(v.depth) if only is None else np.isfinite(v.depth) & only[k]
         solid[k] = ok
         vs, us = np.nonzero(ok)
         if not len(vs):
@@ -253,7 +254,7 @@ def far_side(trainer, sheet: Path | None = None) -> dict:
             r = render_views(trainer, i, c2w)
             g = torch.from_numpy(np.stack([v.rgb for v in gt]))
             e = _sq_err(r[keep], g[keep], mask[keep])
-            un = torch.from_numpy(unseen_pixels(trainer, i, c2w, gt)[0]) & mask
+            un = torch.from_numpy(unseen_pixels(trainer, i, c2w, gt, only=mask.numpy())[0])
             far_unseen += _sq_err(r[keep], g[keep], un[keep])
             shares += [{"frame": i, "track": t, "camera": c, "pixels": int(mask[k].sum()), "unseen": int(un[k].sum()),
                         "share": float(un[k].sum() / mask[k].sum())}
