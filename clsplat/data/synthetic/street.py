@@ -252,7 +252,7 @@ class StreetScene:
     def vehicle_parts(self, v: VehicleSpec, t: float) -> list[_Box]:
         """Box primitives of vehicle ``v`` at time ``t``, all inside its tracked box."""
         L, W, H = v.size
-        T = v.pose(t)
+        T = self._pose(v, t)
         phase_on = math.floor(t / (self.blink_period / 2) + 1e-9) % 2 == 0
         on = v.blink and phase_on
         brake = v.signals and ((t + v.brake_phase) % BRAKE_PERIOD) < BRAKE_PERIOD / 2
@@ -276,18 +276,34 @@ class StreetScene:
                             v.signals and phase_on))
         return out
 
+    def _pose(self, v: VehicleSpec, t: float) -> np.ndarray:
+        """``v.pose(t)``; a varied world keeps the last instant's poses (its surface poses cost
+        more to make, and the primitives and the boxes of an instant share them)."""
+        if not self.varied:
+            return v.pose(t)
+        cache = getattr(self, "_poses_at", None)
+        if cache is None or cache[0] != t:
+            cache = self._poses_at = (t, {})
+        key = (v.track_id, v.x0, v.y, v.speed, v.heading, v.size)
+        T = cache[1].get(key)
+        if T is None:
+            T = cache[1][key] = v.pose(t)
+        return T.copy()
+
     def primitives(self, t: float) -> list[_Box]:
         """All box primitives at time ``t`` (a varied world keeps the last instant's list: the
         six cameras of a frame share it, and its vehicles' surface poses cost more to make)."""
         if self.varied:
+            key = (t, len(self.static), tuple((v.track_id, v.x0, v.y, v.speed, v.heading, v.size, v.color, v.blink,
+                                               v.signals, v.brake_phase) for v in self.vehicles))
             cached = getattr(self, "_prims_at", None)
-            if cached is not None and cached[0] == t:
+            if cached is not None and cached[0] == key:
                 return list(cached[1])
         prims = list(self.static)
         for v in self.vehicles:
             prims.extend(self.vehicle_parts(v, t))
         if self.varied:
-            self._prims_at = (t, prims)
+            self._prims_at = (key, prims)
             return list(prims)
         return prims
 
@@ -295,7 +311,7 @@ class StreetScene:
         """Tracked vehicle boxes at time ``t`` (world frame)."""
         out = []
         for v in self.vehicles:
-            T = v.pose(t)
+            T = self._pose(v, t)
             out.append(Box3D(v.track_id, "car", np.array(v.size), T[:3, 3].copy(), rotmat_to_quat(T[:3, :3]),
                              uuid=f"synthetic-{self.seed}-{v.track_id}"))
         return out

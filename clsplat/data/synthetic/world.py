@@ -323,36 +323,39 @@ class WorldParams:
         L = self.profile_length
         c = self.crossfall
         k = self.curvature
-        if k == 0.0:
-            l = y
-        else:
-            R = 1.0 / k
-            sg = 1.0 if k > 0 else -1.0
-            dy = y - R
-            rho = np.maximum(np.hypot(x, dy), 1e-12)
-            l = R - sg * rho
-        h = np.zeros(np.broadcast(x, y).shape)
+        zero = np.zeros(np.broadcast(x, y).shape)
+        h = hx = hy = zero
         if A != 0.0 or B != 0.0:
-            ph = x / L
-            sn, cs = np.sin(ph), np.cos(ph)
-            h = h + (A * sn + B * (1.0 - cs))
+            ph = x * (1.0 / L)
+            sn = np.sin(ph)
+            h = A * sn
+            if B != 0.0 or grad:
+                cs = np.cos(ph)
+                if B != 0.0:
+                    h = h + B * (1.0 - cs)
+            if grad:
+                hx = (A / L) * cs + (B / L) * sn if B != 0.0 else (A / L) * cs
         if c != 0.0:
-            th = np.tanh(l / CROSSFALL_SCALE)
-            h = h + c * CROSSFALL_SCALE * th
-        if not grad:
-            return h
-        hx = np.zeros_like(h)
-        hy = np.zeros_like(h)
-        if A != 0.0 or B != 0.0:
-            hx = hx + (A * cs + B * sn) / L
-        if c != 0.0:
-            hl = c * (1.0 - th * th)
             if k == 0.0:
-                hy = hy + hl
+                th = np.tanh(y * (1.0 / CROSSFALL_SCALE))
             else:
-                hx = hx - hl * sg * x / rho
-                hy = hy - hl * sg * dy / rho
-        return h, hx, hy
+                R = 1.0 / k
+                sg = 1.0 if k > 0 else -1.0
+                dy = y - R
+                rho = np.maximum(np.sqrt(x * x + dy * dy), 1e-12)
+                th = np.tanh((R - sg * rho) * (1.0 / CROSSFALL_SCALE))
+            h = h + (c * CROSSFALL_SCALE) * th
+            if grad:
+                hl = c * (1.0 - th * th)
+                if k == 0.0:
+                    hy = hl
+                else:
+                    q = hl * (-sg) / rho
+                    hx = hx + q * x
+                    hy = q * dy
+        if not grad:
+            return h + zero if h is not zero else zero
+        return h + zero, hx + zero, hy + zero
 
     def normal(self, x, y) -> np.ndarray:
         """``[..., 3]`` unit upward surface normal at world ``(x, y)``."""
