@@ -1,4 +1,5 @@
-# Two entry points (see README.md): `make demo` runs the main job, `make test` runs the tests.
+# Two entry points (see README.md): `make demo` runs the main job, `make test` runs the tests
+# (all of them, the 15 slowest listed; `make check` is the quick tier without the `slow` marker).
 # Both create .venv on first use and install the pinned dependencies from setup.cfg and
 # constraints.txt; the stamp makes later runs skip the install until those files change.
 VENV   ?= .venv
@@ -6,7 +7,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.clsplat-installed
 OUT    ?= out
 
-.PHONY: demo test bench info wheel-smoke
+.PHONY: demo test check bench info wheel-smoke
 
 $(STAMP): setup.cfg pyproject.toml constraints.txt
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -17,7 +18,11 @@ demo: $(STAMP)
 	$(VENV)/bin/clsplat demo --out $(OUT)
 
 test: $(STAMP)
-	POCL_MAX_WORK_GROUP_SIZE=256 $(VENV)/bin/pytest -q tests
+	POCL_MAX_WORK_GROUP_SIZE=256 $(VENV)/bin/pytest -q --durations=15 tests
+
+# the edit-test loop: everything but what trains, spawns interpreters, simulates or drives a browser
+check: $(STAMP)
+	POCL_MAX_WORK_GROUP_SIZE=256 $(VENV)/bin/pytest -q -m "not slow" tests
 
 bench: $(STAMP)
 	$(VENV)/bin/clsplat bench all --out bench/out
