@@ -236,6 +236,18 @@ def test_views_work_on_a_varied_street(sloped):
     scene.render(K, M, 72, 40, f.timestamp)
 
 
+def test_tracker_noise_on_a_varied_street():
+    from clsplat.data.synthetic.views import TrackerNoise, add_tracker_noise
+
+    seq = generate_sequence(height=8, width=8, num_frames=3, seed=_sloped_curved_seed(), world="varied", lidar=False,
+                            cameras=("CAM_FRONT",))
+    exact = [[b.center.copy() for b in f.boxes] for f in seq.frames]
+    add_tracker_noise(seq, TrackerNoise(), seed=1)
+    moved = [np.linalg.norm(b.center - c) for f, cs in zip(seq.frames, exact) for b, c in zip(f.boxes, cs)]
+    assert 0 < np.median(moved) < 1.0
+    assert set(seq.metadata["exact_boxes"][0]) == {b.track_id for b in seq.frames[0].boxes}
+
+
 def test_the_ego_points_where_it_drives():
     """The ego's x axis is its 3-D direction of travel (curves, lane changes, slopes)."""
     checked = 0

@@ -13,9 +13,10 @@ Three worlds (``SyntheticConfig.world``):
   ``np.random.default_rng([seed, 7])``).
 * ``"straight"``: drawn like ``varied`` (same stream, same distributions for road width, layout,
   sun, gradient and crossfall), but the road is straight, the ego keeps the right lane (no lane
-  change) and cruises at a constant speed ``U[5, 12]`` m/s, every moving vehicle drives in the
-  left lane (either direction; its right side is never seen by the ego's cameras) and parked
-  vehicles stand on the right only.  For novel-view tests (AutoSplat, issue 33).
+  change) and cruises at a constant speed ``U[5, 12]`` m/s, ``U{1..4}`` moving vehicles all
+  drive in the left lane (either direction, so the side of each that faces away from the ego is
+  never seen by its cameras) and parked vehicles stand on the right only.  For novel-view tests
+  (AutoSplat, issue 33).
 
 Street coordinates: ``s`` along the centre line (m, 0 = the ego at ``t = 0``), ``l`` lateral
 (m, left positive).  The centre line starts at the world origin heading +x; with curvature
@@ -45,9 +46,11 @@ Distributions of ``varied`` (per street; U = uniform, "p" = probability):
 * road half-width ``U[5.5, 9]`` m, driving lanes ``U[3.0, 3.6]`` m wide on each side of the
   centre line (the rest of each half is a kerbside lane where vehicles park), sidewalk (building
   setback) ``U[2, 5]`` m, building heights ``U[h_lo, h_lo + U[6, 20]]`` with ``h_lo ~ U[4, 10]`` m;
-* parked vehicles ``U{0..12}`` (kerbside lanes), moving ``U{0..4}`` (driving lanes, either
-  direction, ``U[3, 14]`` m/s, placed so that none overlaps the ego or another over the
-  sequence);
+* parked vehicles ``U{0..12}`` (kerbside lanes, 1.15 m from the kerb, either heading), moving
+  ``U{0..4}`` (driving lanes ``+-lane_width / 2``, either direction, ``U[3, 14]`` m/s, from
+  ``s ~ U[-30, 60]`` m; a draw that comes within 3 m, bumper to bumper, of the ego or another
+  moving vehicle in ``[0, max(4 s, the sequence's end)]`` is redrawn, up to 30 times, then left
+  out);
 * sun azimuth ``U[0, 360)`` deg, elevation ``U[20, 70]`` deg;
 * ground height field ``h(x, y) = A sin(x / L) + B (1 - cos(x / L)) + c Lc tanh(l / Lc)`` with
   ``L ~ U[200, 500]`` m, ``A = g L`` (gradient ``g = 0`` with p 0.4, else ``U[-0.06, 0.06]``),
@@ -76,7 +79,8 @@ Poses: the ego and the vehicles stand on the surface: their z axis is the surfac
 footprint (pitch from the gradient, roll from the crossfall), their x axis the direction of travel
 projected onto the surface; the cameras, mounted 1.6 m above the ego origin, are 1.6 m above the
 local ground along the normal.  Buildings, poles and trees stand upright (world z), aligned with
-the road's local heading, sunk below the lowest ground point of their footprint.
+the road's local heading, sunk below the lowest ground point of their footprint (façade floors
+count from the ground at the front face).  The ego drives in the lane centres ``+-lane_width / 2``.
 """
 from __future__ import annotations
 
