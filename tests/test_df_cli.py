@@ -17,6 +17,8 @@ from clsplat.models.drivingforward.data import load_triplet
 KEYS = {"psnr", "ssim", "abs_rel", "sq_rel", "rmse", "delta1", "scale_ratio"}
 POSE_KEYS = {"pose_t_err_m", "pose_t_err_pct", "pose_r_err_deg", "pose_t_pred_m", "pose_t_true_m"}
 
+pytestmark = pytest.mark.slow   # the tests train the tiny preset (the module's runs, torchrun) or evaluate it
+
 
 def _train(out, steps, *extra):
     return train(["--preset", "tiny", "--steps", str(steps), "--out", str(out), "--no-progress",
@@ -297,7 +299,7 @@ def test_two_process_data_parallel_equals_one_process(tmp_path):
     assert la["loss"] == pytest.approx(lb["loss"], rel=1e-5) and "skipped" not in la and "skipped" not in lb
 
 
-def test_eval_on_a_pandaset_sequence_scores_depth_against_projected_lidar(runs, tmp_path):
+def test_eval_on_a_pandaset_sequence_scores_depth_against_projected_lidar(runs, tmp_path, capsys):
     """A PandaSet-format folder (clsplat's writer, from a synthetic street with simulated LiDAR) has
     no depth maps: depth is scored against the LiDAR sweep projected into each camera, and that
     projection agrees with the generator's depth maps."""
@@ -339,6 +341,9 @@ def test_eval_on_a_pandaset_sequence_scores_depth_against_projected_lidar(runs, 
     seq6 = parse_data("synthetic").sequence(1, num_frames=15, height=32, width=56, lidar=True, dt=0.1)
     write_pandaset(seq6, tmp_path / "002")
     assert _train(tmp_path / "train", 1, "--data", f"pandaset:{tmp_path / '002'}", "--eval-scenes", "1") == 0
+    # its 15 frames leave 2 for validation, fewer than a window: the run says so and goes on
+    assert "no validation curve: num_frames: the val split" in capsys.readouterr().out
+    assert not (tmp_path / "train" / "val_curve.jsonl").exists()
     m = json.loads((tmp_path / "train" / "metrics.json").read_text())
     assert KEYS <= set(m["all"]) and POSE_KEYS <= set(m["all"]) and 0.7 < m["all"]["pose_t_true_m"] < 0.9
     assert m["protocol"]["depth_gt"].startswith("projected LiDAR")

@@ -196,6 +196,19 @@ def test_pose_translation_init_starts_the_pose_network_at_that_motion(sample):
         TINY.replace(pose_translation_init=(0.0, 0.0, -9.0))
 
 
+def test_pose_zero_init_starts_at_no_motion_and_still_learns(sample):
+    """``pose_zero_init``: the untrained pose network predicts exactly the identity (no random motion
+    of a few degrees), and its output layer still gets a gradient (its inputs are not zero)."""
+    torch.manual_seed(0)
+    m = DrivingForward(TINY.replace(pose_zero_init=True, pose_scale=0.1))
+    T = m.pose_net(sample["images"][1], sample["images"][2], sample["Ks"], sample["cam_to_ego"])
+    assert torch.equal(T.detach(), torch.eye(4, dtype=T.dtype))
+    T[:3, 3].sum().backward()
+    assert float(m.pose_net.decoder.pose_2.weight.grad.abs().sum()) > 0
+    with pytest.raises(ValueError, match="pose_zero_init"):
+        TINY.replace(pose_zero_init=1)
+
+
 def test_depth_skips_feed_the_encoders_half_and_quarter_features_to_the_depth_decoder(sample):
     torch.manual_seed(0)
     m = DrivingForward(TINY.replace(depth_skips=True))

@@ -106,6 +106,8 @@ class ValCurve:
 
     def __init__(self, model, source, path, every: int, scenes: int, cameras=None, resume: bool = False) -> None:
         from pathlib import Path
+
+        from .evaluation import validation_point
         self.model, self.source, self.path = model, source, Path(path)
         self.every, self.scenes, self.cameras = every, scenes, cameras
         self.records: list[dict] = []
@@ -113,6 +115,12 @@ class ValCurve:
             from ..common.train import read_log
             self.records = read_log(self.path)
         self._trim_at: int | None = 0 if resume else None
+        try:                # a recorded sequence too short for a validation window: the run goes on without
+            validation_point(model, source, 1, cameras)
+        except ValueError as e:
+            print(f"no validation curve: {e}", flush=True)
+            self.every = 0
+            return
         if not resume:
             self._add(0)
 
@@ -127,7 +135,7 @@ class ValCurve:
         write_text_atomic(self.path, "".join(json.dumps(r, allow_nan=True) + "\n" for r in self.records))
 
     def on_step(self, step: int, rec: dict) -> None:
-        if step % self.every == 0:
+        if self.every and step % self.every == 0:
             self._add(step)
 
     def plot(self, png) -> None:

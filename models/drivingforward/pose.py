@@ -78,6 +78,9 @@ class PoseNetwork(nn.Module):
                                        preset.voxel_shape, out_channels=preset.pose_bev_channels)
         self.decoder = PoseDecoder(preset.pose_bev_channels[1], preset.pose_decoder_channels)
         he_init(self.reduce, self.fusion, self.decoder, skip=(self.decoder.pose_2,))   # see depth.he_init
+        if preset.pose_zero_init:     # no motion, exactly, until the photometric terms say otherwise
+            nn.init.zeros_(self.decoder.pose_2.weight)
+            nn.init.zeros_(self.decoder.pose_2.bias)
         if preset.pose_translation_init is not None:
             # the decoder's output is a spatial mean of a 1x1 conv, so its bias is the output's
             # offset: start at the given translation (bench/RESULTS.md, issue 17)
