@@ -22,6 +22,15 @@ Compositing work is counted four ways (see :func:`count_evaluations`):
 All use the configuration's ALPHA_MAX clamp (until issue 21 item 5 the emulation clamped
 at 0.99 whatever the configuration said; the default is 0.999).
 
+The compositor's fraction of the float32 FMA peak is counted, not assumed
+(:func:`composite_counts`): the forward runs once more through the stage drivers with the
+compositing kernel's sample counters compiled in (``CLS_COUNT``, kernels/composite.cl; the
+timed runs have none), which give per work-item the samples tested against its row
+segment's extent, past that test, past the sigma bound and past the alpha test; each class
+is charged the floating-point operations the kernel source executes for it
+(:data:`COMPOSITE_OPS`). Until issue 35 every kernel-exact evaluation was charged an
+assumed 40 flops (``FLOPS_PER_EVAL``, still reported beside as ``assumed_40``).
+
 The per-tile sort (:func:`clsplat.stages.sort_segments`, on the forward's keys shuffled inside
 each segment) is compared with numpy on the same unsorted uint64 keys, side by side in
 the same loop: ``np.argsort(keys, kind='stable')``, ``np.argsort(keys)`` and ``np.sort(keys)``.
@@ -37,19 +46,47 @@ import torch
 import clsplat
 from clsplat import stages as engine
 from clsplat.config import RenderConfig
-from clsplat.runtime import Runtime, get_runtime
+from clsplat.runtime import Runtime, get_runtime, read_back
 
 from . import backward as BW
 from . import scenes as S
 from .timing import event_ms, summarise
 
 __all__ = ["time_forward", "count_evaluations", "sort_vs_numpy", "stage_bytes", "scaling",
-           "FLOPS_PER_EVAL"]
+           "FLOPS_PER_EVAL", "COMPOSITE_OPS", "composite_counts", "composite_flops"]
 
-#: floating-point operations per compositing evaluation assumed for the FLOP fraction:
-#: conic quadratic form 8, alpha (mul, min) 2, exp counted as 15 (a vector polynomial),
-#: tests and selects 6, transmittance 2, weight 1, 3 colour channels 6.
+#: floating-point operations per compositing evaluation that were assumed for the FLOP
+#: fraction until issue 35 (reported beside the counted one as ``assumed_40``): conic
+#: quadratic form 8, alpha (mul, min) 2, exp counted as 15, tests and selects 6,
+#: transmittance 2, weight 1, 3 colour channels 6.
 FLOPS_PER_EVAL = 40
+
+#: Floating-point operations the forward compositing kernel (kernels/composite.cl) executes
+#: per work-item and sample, by how far the sample got; ``lane`` ones run on each of the
+#: item's PIX pixels, ``scalar`` ones once. A multiply-add counts 2 (as the FMA peak does),
+#: an add, multiply, compare, select (fmin, fmax, fabs, ?:) or int-float conversion 1;
+#: integer, mask and lane-reduction work 0.
+#:  - ``tested``: the extent test. Tuned build: extent_bits on vectors of samples, per sample
+#:    dy = |y - pyc| (2), dx = max(0, max(px_first - x, x - px_last)) (4), 2 compares = 8.
+#:    Baseline build: outside_extent per sample, the same 6 + ext_y < 0 + two bounds
+#:    ext * (1 + m) + m (2 each) and 2 compares = 12.
+#:  - ``extent`` (past the extent test): dx (1/lane), dy (1), sigma = 0.5 (ca dx dx + cc dy dy)
+#:    + cb dx dy: ca dx dx (2/lane), cc dy dy (2), + (1/lane), 0.5 x (1/lane), cb dx dy
+#:    (2/lane), + (1/lane): 8/lane + 3; the tuned build's sigma <= bound test 1/lane more.
+#:  - ``sigma`` (past the sigma bound: the exp runs): -sigma 1, exp 29 (common.h's cls_vexp,
+#:    SLEEF's expf_u10: scale 1, rint by add 1, convert 1, two-part reduction 4, degree-7
+#:    polynomial 6 FMAs 12, s^2 1, last FMA 2, + 1 1, two 2^k scalings 2, two range
+#:    selects 4; the baseline's library exp is the same algorithm), o x exp 1, fmin 2,
+#:    sigma >= 0 and alpha >= ALPHA_MIN 2: 35/lane.
+#:  - ``alpha`` (past the alpha test: the blend runs): 1 - alpha 1, T x 1, <= T_MIN 1,
+#:    alpha T 1, its select 1, T's select 1: 6/lane, and per channel of the launch an FMA
+#:    into the accumulator: 2/lane.
+COMPOSITE_OPS = {
+    "tested": {"tuned": 8, "baseline": 12},
+    "extent": {"lane": {"tuned": 9, "baseline": 8}, "scalar": 3},
+    "sigma": {"lane": 35},
+    "alpha": {"lane": 6, "lane_per_channel": 2},
+}
 
 STAGE_ORDER = ("project", "sh", "bin_count", "scan", "bin_scatter", "sort_local", "sort_merge", "composite")
 
@@ -186,6 +223,67 @@ def count_evaluations(st, scene: dict) -> dict:
             "kernel_alpha": int(alpha_total), "pix_per_item": pix, "intersections": int(off[-1])}
 
 
+def composite_flops(counts: dict) -> float:
+    """Floating-point operations of the forward compositing, from the kernel's sample counts
+    (:func:`composite_counts`) and :data:`COMPOSITE_OPS`; every launch blends ``cchunk``
+    channels (the last one's padding included)."""
+    impl, pix = "tuned" if counts["tuned"] else "baseline", counts["pix"]
+    ops = COMPOSITE_OPS
+    return float(counts["tested"] * ops["tested"][impl]
+                 + counts["extent"] * (ops["extent"]["lane"][impl] * pix + ops["extent"]["scalar"])
+                 + counts["sigma"] * ops["sigma"]["lane"] * pix
+                 + counts["alpha"] * (ops["alpha"]["lane"]
+                                      + ops["alpha"]["lane_per_channel"] * counts["cchunk"]) * pix)
+
+
+def composite_counts(scene: dict, cfg: RenderConfig | None = None, device=None,
+                     tile_size: int = 16) -> dict:
+    """The forward of :func:`clsplat.rasterization` (no background, its default keywords),
+    run through the stage drivers with the compositing kernel's sample counters on.
+
+    Returns the totals over work-items (and channel-chunk launches) of samples ``tested``
+    against an item's extent, past that test (``extent``), past the sigma bound (``sigma``)
+    and past the alpha test (``alpha``), each launch of a chunk of channels counting again;
+    the layout (``pix``, ``tuned``, ``launches``, ``cchunk`` channels a launch), ``flops`` (:func:`composite_flops`) and the composited ``image``
+    [C,H,W,CH] and ``T`` [C,H,W], which equal rasterization()'s bit for bit.
+    """
+    from clsplat.autograd import _centre_viewmats
+    from clsplat.validate import rescale_large_quats
+
+    cfg = cfg or RenderConfig()
+    rt = get_runtime(device)
+    x = _inputs(scene, cfg)
+    x["quats"] = rescale_large_quats(x["quats"])
+    W, H, ts = scene["width"], scene["height"], tile_size
+    arr = rt.array
+    p = engine.project(rt, cfg, arr(x["means"]), arr(x["quats"]), arr(x["scales"]), arr(x["opacities"]),
+                       arr(x["viewmats"]), arr(x["Ks"]), W, H, ts, near_plane=0.01, far_plane=1e10,
+                       eps2d=0.3, radius_clip=0.0, antialiased=False)
+    C, N = x["viewmats"].shape[0], x["means"].shape[0]
+    if scene["sh_degree"] is not None:
+        feats = engine.sh_colors(rt, cfg, arr(x["means"]), arr(_centre_viewmats(x["viewmats"])),
+                                 arr(x["colors"]), p.radii, scene["sh_degree"])
+    else:
+        c = x["colors"]
+        feats = arr((c.expand(C, N, c.shape[-1]) if c.dim() == 2 else c).contiguous())
+    offsets, keys = engine.bin_tiles(rt, cfg, p.rects, p.depths, W, H, ts)
+    engine.sort_segments(rt, cfg, keys, offsets, host_offsets=offsets.tensor)
+    CH = feats.tensor.shape[-1]
+    pix, _, chunk, _ = engine.composite_layout(rt, cfg, ts, CH)
+    group = ts * ts // pix
+    counts = rt.empty((C * (-(-W // ts)) * (-(-H // ts)) * group, 4), torch.int32)
+    out, T, _ = engine.composite(rt, cfg, p.means2d, p.conics, p.opacities, p.extents, feats,
+                                 offsets, keys, W, H, ts, save_last=False, counts=counts)
+    image, T_t, n = (t.clone() for t in read_back(out, T, counts))
+    rt.finish()
+    tot = n.to(torch.int64).sum(0).tolist()
+    res = {"tested": tot[0], "extent": tot[1], "sigma": tot[2], "alpha": tot[3], "pix": pix,
+           "tuned": engine.composite_tuned(rt, cfg), "launches": -(-CH // chunk), "cchunk": chunk,
+           "items": int(n.shape[0]), "image": image, "T": T_t}
+    res["flops"] = composite_flops(res)
+    return res
+
+
 def sort_vs_numpy(st, repeats: int = 5) -> dict:
     """The per-tile sort against numpy on the same unsorted keys, medians side by side."""
     rt, cfg, meta = st.rt, st.cfg, st.meta
@@ -298,6 +396,9 @@ def scene_report(scene: dict, repeats: int, device, limits: dict, exact_counts: 
     r = time_forward(scene, repeats, device, keep_state=True)
     st, _ = r.pop("_state"), r.pop("_rt")
     counts = count_evaluations(st, scene) if exact_counts else None
+    counted = composite_counts(scene, device=device)
+    counted.pop("image"), counted.pop("T")
+    r["composite_counts"] = counted
     comp_s = r["stages_ms"]["composite"]["median"] * 1e-3
     if counts:
         r["evaluations"] = counts
@@ -312,9 +413,11 @@ def scene_report(scene: dict, repeats: int, device, limits: dict, exact_counts: 
         t = s["median"] * 1e-3
         if t <= 0:
             continue
-        if name == "composite" and counts:
-            frac[name] = {"limit": "flops_f32", "fraction": counts["kernel"] * FLOPS_PER_EVAL / t /
-                          (limits["flops_f32_G"] * 1e9)}
+        if name == "composite":
+            peak = limits["flops_f32_G"] * 1e9
+            frac[name] = {"limit": "flops_f32 (counted)", "fraction": counted["flops"] / t / peak}
+            if counts:
+                frac[name]["assumed_40"] = counts["kernel"] * FLOPS_PER_EVAL / t / peak
         elif name in nbytes or name.startswith("sort"):
             frac[name] = {"limit": "bandwidth", "fraction": nbytes.get(name, M * 16) / t / bw}
     r["limit_fraction"] = frac
@@ -347,7 +450,8 @@ def run(out_dir, device=None, quick: bool = False, repeats: int = 5) -> dict:
         sa, sb = S.scene_a(), S.scene_b()
         sweeps = (S.sweep_n(), S.sweep_pixels())
     result = {"device": rt.name, "devices": describe_devices(), "quick": quick, "repeats": repeats,
-              "limits": limits, "flops_per_eval_assumed": FLOPS_PER_EVAL, "scenes": {},
+              "limits": limits, "flops_per_eval_assumed": FLOPS_PER_EVAL,
+              "composite_ops": COMPOSITE_OPS, "scenes": {},
               "backward": {}, "training": {}, "specialisation": {}}
     for key, sc in (("A", sa), ("B", sb)):
         result["scenes"][key] = scene_report(sc, repeats, device, limits)
@@ -389,6 +493,15 @@ def markdown(res: dict) -> str:
                  f"{w['min']:.1f}-{w['max']:.1f} | |")
         L.append("")
         L.append(f"Build + JIT on the first call (wall, first - median): {r['build_and_jit_ms']:.0f} ms.")
+        if "composite_counts" in r:
+            cc = r["composite_counts"]
+            f = r["limit_fraction"].get("composite", {})
+            L.append(f"Compositing, counted (kernels/composite.cl with CLS_COUNT, {cc['pix']} pixels per item): "
+                     f"{cc['tested']:.4g} samples tested against an item's extent, {cc['extent']:.4g} past it, "
+                     f"{cc['sigma']:.4g} past the sigma bound (exp), {cc['alpha']:.4g} past the alpha test "
+                     f"(blend): {cc['flops']:.4g} flops, **{100 * f.get('fraction', 0):.1f}%** of the float32 "
+                     f"peak" + (f" (the former assumed 40 flops per kernel-exact evaluation: "
+                                f"{100 * f['assumed_40']:.1f}%)" if "assumed_40" in f else "") + ".")
         if "evals_per_s" in r:
             e, c = r["evals_per_s"], r["evaluations"]
             L.append(f"Compositing evaluations/s (median composite time): **{e['kernel']:.3g}** kernel-exact ({c['kernel']:.4g} evals), "

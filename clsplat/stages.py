@@ -389,11 +389,17 @@ def composite(rt: Runtime, cfg: RenderConfig, means2d: DeviceArray, conics: Devi
               opacities: DeviceArray, extents: DeviceArray, feats: DeviceArray,
               offsets: DeviceArray, keys: DeviceArray,
               width: int, height: int, tile_size: int, save_last: bool,
-              events: list | None = None) -> tuple[DeviceArray, DeviceArray, DeviceArray | None]:
+              events: list | None = None, counts: DeviceArray | None = None,
+              ) -> tuple[DeviceArray, DeviceArray, DeviceArray | None]:
     """Front-to-back compositing of every tile, one launch per chunk of channels.
 
     means2d [C,N,2], conics [C,N,3], opacities [C,N], extents [C,N,2], feats [C,N,CH] ->
     (out_feats [C,H,W,CH], out_T [C,H,W], last [C,H,W] int32 or None).
+    ``counts``: zeroed int32 [C * tiles * group, 4] (group = tile_size^2 / pix, pix from
+    :func:`composite_layout`): the kernel built with its sample counters (``CLS_COUNT``,
+    kernels/composite.cl; the bench's counted flops) adds each work-item's counts of samples
+    tested, past the extent test, past the sigma bound and past the alpha test. None
+    (production): no counters are compiled in.
     """
     C = means2d.tensor.shape[0]
     CH = feats.tensor.shape[-1]
@@ -405,6 +411,12 @@ def composite(rt: Runtime, cfg: RenderConfig, means2d: DeviceArray, conics: Devi
     defines = cfg.defines(tile_size) | {"PIX": pix, "BATCH": batch, "CHANNELS": CH,
                                          "CCHUNK": chunk, "SAVE_LAST": save_last}
     group = tile_size * tile_size // pix
+    if counts is not None:
+        n_items = C * tiles_x * tiles_y * group
+        if tuple(counts.tensor.shape) != (n_items, 4) or counts.tensor.dtype != torch.int32:
+            raise ValueError(f"counts: expected int32 [{n_items}, 4], got {counts.tensor.dtype} "
+                             f"{list(counts.tensor.shape)}")
+        defines["CLS_COUNT"] = 1
     k = _composite_kernel(rt, cfg, "composite", defines, group, tile_size)
     for ch0 in range(0, CH, chunk):
         args = [np.int32(width), np.int32(height), np.int32(tiles_x), np.int32(tiles_x * tiles_y),
@@ -412,6 +424,8 @@ def composite(rt: Runtime, cfg: RenderConfig, means2d: DeviceArray, conics: Devi
                 opacities.buffer, extents.buffer, feats.buffer, out.buffer, T.buffer]
         if save_last:
             args.append(last.buffer)
+        if counts is not None:
+            args.append(counts.buffer)
         _record(events, "composite", rt.enqueue(k, C * tiles_x * tiles_y * group, group, *args))
     return out, T, last
 

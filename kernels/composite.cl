@@ -26,12 +26,27 @@
  * from channel ch0 on, so private and local memory stay bounded for any number of channels.
  * Every launch makes the same decisions; the first (ch0 = 0) writes T and the last index.
  *
+ * CLS_COUNT=1 (the bench's counted flops, clsplat.stages.composite(counts=...); off in
+ * production, where the counting compiles to nothing): each item adds, over the launches, to
+ * counts[item][0..3] the samples it tested against its row segment's extent (the tuned build:
+ * whole words of them), those past the extent test, those past the sigma bound (the baseline
+ * build has none: as many as past the extent test) and those past the alpha test (some lane
+ * valid, so the blend ran), where item = tile * GROUP + its local id.
+ *
  * Build parameters: CLS_TUNED (default 1), REAL_DOUBLE, TILE, PIX, BATCH, CHANNELS,
- * CCHUNK, SAVE_LAST, ALPHA_MIN, ALPHA_MAX, T_MIN, CLS_POCL_CPU.
+ * CCHUNK, SAVE_LAST, ALPHA_MIN, ALPHA_MAX, T_MIN, CLS_POCL_CPU, CLS_COUNT (default 0).
  */
 
 #ifndef CLS_TUNED
 #define CLS_TUNED 1
+#endif
+#ifndef CLS_COUNT
+#define CLS_COUNT 0
+#endif
+#if CLS_COUNT
+#define COUNT(j, n) (n_count[j] += (uint)(n))
+#else
+#define COUNT(j, n) ((void)0)
 #endif
 #define GROUP (TILE * TILE / PIX)
 #define ITEMS_PER_ROW (TILE / PIX)
@@ -50,6 +65,9 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
                    __global REAL *out_T              /* [C, H, W] */
 #if SAVE_LAST
                    , __global int *out_last          /* [C, H, W] */
+#endif
+#if CLS_COUNT
+                   , __global uint *counts           /* [C * tiles_per_cam * GROUP, 4] */
 #endif
 ) {
 #if CLS_TUNED
@@ -96,6 +114,9 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
 #endif
     for (int ch = 0; ch < CCHUNK; ++ch) acc[ch] = (VREAL)0;
     VMASK last = (VMASK)0;
+#if CLS_COUNT
+    uint n_count[4] = {0, 0, 0, 0}; /* tested, past the extent test, the sigma bound, the alpha test */
+#endif
 
     const int start = tile_offsets[tile], end = tile_offsets[tile + 1];
     for (int b0 = start; b0 < end; b0 += BATCH) {
@@ -140,6 +161,7 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
 #if CLS_TUNED
         for (int w0 = 0; w0 < nb; w0 += CLS_WORD) {
             if (CLS_VALL(done)) break;
+            COUNT(0, min(CLS_WORD, nb - w0));
             uint seen = extent_bits(w0, l_x, l_y, l_bx, l_by, px_first, px_last, pyc);
             while (seen != 0) {
                 if (CLS_VALL(done)) break;
@@ -149,6 +171,7 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
         for (int k = 0; k < nb; ++k) {
             {
                 if (CLS_VALL(done)) break;
+                COUNT(0, 1);
                 /* Most samples of a tile miss a given row segment: reject them before the exp. */
                 if (outside_extent(l_xy[2 * k], l_xy[2 * k + 1], l_ext[2 * k], l_ext[2 * k + 1],
                                    (REAL)px0 + (REAL)CLS_PIXEL_CENTRE,
@@ -156,15 +179,18 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
                     continue;
 #endif
                 /* ---- one sample against this item's PIX pixels ---- */
+                COUNT(1, 1);
                 const VREAL dx = S_X(k) - pxc;
                 const REAL dy = S_Y(k) - pyc;
                 const VREAL sigma = (REAL)0.5 * (S_CA(k) * dx * dx + S_CC(k) * dy * dy) + S_CB(k) * dx * dy;
 #if CLS_TUNED
                 if (!CLS_VANY(sigma <= l_sm[k])) continue; /* alpha < ALPHA_MIN in every lane */
 #endif
+                COUNT(2, 1);
                 const VREAL alpha = CLS_FMIN((VREAL)(REAL)ALPHA_MAX, l_op[k] * CLS_VEXP(-sigma));
                 VMASK valid = !done && sigma >= (REAL)0 && alpha >= (REAL)ALPHA_MIN;
                 if (!CLS_VANY(valid)) continue;
+                COUNT(3, 1);
                 const VREAL next_T = T * ((REAL)1 - alpha);
                 const VMASK stop = valid && next_T <= (REAL)T_MIN;
                 done = done || stop;
@@ -180,6 +206,9 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
         }
     }
 
+#if CLS_COUNT
+    for (int j = 0; j < 4; ++j) counts[(size_t)get_global_id(0) * 4 + j] += n_count[j];
+#endif
     REAL T_l[PIX], acc_l[PIX * CCHUNK];
     VSTORE(T, T_l);
     for (int ch = 0; ch < CCHUNK; ++ch) VSTORE(acc[ch], acc_l + PIX * ch);
