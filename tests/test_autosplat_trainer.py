@@ -48,6 +48,7 @@ def _log(folder):
 # TINY: 4 steps per stage, densification after steps 3, 7, 11, 15. Stopped after 5: mid-stage
 # (background phase 2), the resumed run crosses the densification after step 7; stopped after 7:
 # right after a densification changed the set sizes and Adam's state.
+@pytest.mark.slow   # trains the tiny preset
 @pytest.mark.parametrize("stop", [5, 7])
 def test_resume_on_the_shared_loop_is_bitwise(street, full_run, tmp_path, stop):
     full, full_log = full_run
@@ -98,6 +99,7 @@ def test_a_non_finite_step_is_skipped(street, tmp_path):
     assert all(torch.isfinite(q).all() for q in t.model.parameters())
 
 
+@pytest.mark.slow   # torchrun: two processes
 def test_torchrun_data_parallel_equals_one_process(tmp_path):
     """``torchrun --nproc_per_node 2 ... --batch-size 2``: each rank renders one of the iteration's two
     frames, gradients and densification statistics are summed over the ranks, and the run ends where
@@ -146,6 +148,7 @@ def test_sequence_without_tracks_skips_foreground_and_static_tracks_get_no_resid
     assert dyn and set(t2.model.residuals.keys()) == dyn and len(dyn) == len(t2.tracks)
 
 
+@pytest.mark.slow   # trains the tiny preset
 def test_cli_writes_the_run_folder(tmp_path):
     out = tmp_path / "run"
     rc = train(["--data", "synthetic", "--preset", "tiny", "--frames", "0:4", "--scale", "0.2",
@@ -256,6 +259,7 @@ def test_road_pixels_from_labelled_lidar_match_the_generator():
     assert (truth[road]).mean() > 0.8          # 3x3 dilation spills over the road's edges
 
 
+@pytest.mark.slow   # trains the tiny preset
 def test_phase1_budget_share_keeps_room_for_phase2(street, full_run, tmp_path):
     """``phase1_budget_share``: phase 1 (road and sky) densifies the background up to that share
     of ``max_gaussians`` only, and phase 2 grows it beyond (the small preset's road otherwise

@@ -82,6 +82,7 @@ except OSError as e:
 """
 
 
+@pytest.mark.slow   # spawns a child that fills a small filesystem
 @pytest.mark.parametrize("ext", [".png", ".exr"])
 def test_write_that_runs_out_of_space_keeps_the_previous_file(tmp_path, ext):
     """The file system refuses the write part way (a file-size limit, as a full disk would):

@@ -13,9 +13,11 @@ import os
 import subprocess
 import sys
 
+import pytest
 import torch
 
 
+@pytest.mark.slow   # spawns a foreign-device child
 def test_foreign_device_round_trip():
     env = dict(os.environ, OMP_NUM_THREADS="1")
     r = subprocess.run([sys.executable, __file__], capture_output=True, text=True, env=env, timeout=600)

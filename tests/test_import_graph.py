@@ -14,6 +14,8 @@ import sys
 import textwrap
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 #: source folder -> installed package (setup.cfg's package_dir)
 PACKAGES = {"clsplat": "clsplat", "kernels": "clsplat.kernels", "bench": "clsplat.bench",
@@ -128,6 +130,7 @@ def test_no_import_cycles():
     assert not cycles, f"modules that import each other: {cycles}"
 
 
+@pytest.mark.slow   # spawns an interpreter that imports every engine module
 def test_importing_every_engine_module_loads_no_model_or_benchmark():
     engine = sorted(m for m in _modules() if not m.startswith(UPWARD))
     code = textwrap.dedent(f"""

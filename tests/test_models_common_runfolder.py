@@ -114,6 +114,7 @@ def straight(child, tmp_path_factory) -> Path:
     return out
 
 
+@pytest.mark.slow   # kill-and-resume children
 def test_sigkill_during_a_checkpoint_write_then_resume_is_bitwise(child, straight, tmp_path):
     out = tmp_path / "run"
     assert run(child, out, 2).returncode == 0  # an earlier, finished run in the same folder
@@ -142,6 +143,7 @@ def test_sigkill_during_a_checkpoint_write_then_resume_is_bitwise(child, straigh
                                                                         "metrics.json"]
 
 
+@pytest.mark.slow   # kill-and-resume children
 def test_a_file_size_limit_stops_the_run_with_one_line_and_resume_is_bitwise(child, straight, tmp_path):
     out = tmp_path / "run"
     r = run(child, out, 6, "--fsize-at", "4")
@@ -156,6 +158,7 @@ def test_a_file_size_limit_stops_the_run_with_one_line_and_resume_is_bitwise(chi
     assert_same_run(out, straight)
 
 
+@pytest.mark.slow   # kill-and-resume children
 def test_resume_of_a_finished_run_extends_it_bitwise_and_publishes_as_a_group(child, straight, tmp_path):
     out = tmp_path / "run"
     assert run(child, out, 3).returncode == 0
@@ -164,6 +167,7 @@ def test_resume_of_a_finished_run_extends_it_bitwise_and_publishes_as_a_group(ch
     assert_same_run(out, straight)
 
 
+@pytest.mark.slow   # kill-and-resume children
 def test_a_second_run_on_the_same_folder_is_refused_naming_the_lock(child, tmp_path):
     out = tmp_path / "run"
     first = subprocess.Popen([sys.executable, str(child), str(out), "6", "--hang-at", "2"],

@@ -95,6 +95,7 @@ def test_resume_is_bitwise(toy, tmp_path):
     assert (tmp_path / "b" / "loss.png").stat().st_size > 1000
 
 
+@pytest.mark.slow   # torchrun: two processes
 def test_two_process_data_parallel_equals_one_process(toy, tmp_path):
     t, d = toy
     one, _ = t.run(tmp_path / "one", 4, batch=4)

@@ -67,6 +67,7 @@ def test_pgt_checkpoint(tmp_path):
     assert {v.split(": ")[1].split(",")[0].split("+")[0] for v in sc.variants} >= set(preset.cameras)
 
 
+@pytest.mark.slow   # trains the tiny preset
 def test_autosplat_run_folder(tmp_path):
     from clsplat.models.autosplat.cli import train
     run = tmp_path / "as"

@@ -91,6 +91,7 @@ def runs(tmp_path_factory):
     return root
 
 
+@pytest.mark.slow   # trains and evaluates every family's tiny preset
 @pytest.mark.parametrize("family", FAMILIES)
 @pytest.mark.parametrize("folder", ["{}", "{}-eval"])
 def test_metrics_json_has_one_schema(runs, family, folder):
@@ -107,6 +108,7 @@ def test_metrics_json_has_one_schema(runs, family, folder):
     assert not leftovers, f"keys outside the schema: {leftovers}"
 
 
+@pytest.mark.slow   # trains and evaluates every family's tiny preset
 def test_eval_autosplat_reproduces_the_training_evaluation(runs):
     """AutoSplat's held-out frames scored by ``train`` and again by ``eval`` on its checkpoint
     (the model rebuilt on the run's recorded data) give the same numbers."""

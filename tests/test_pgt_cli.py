@@ -9,6 +9,8 @@ import torch
 
 from clsplat.models.pgt.cli import evaluate, parse_budgets, train
 
+pytestmark = pytest.mark.slow   # every test trains the tiny preset (the module's runs) or evaluates it
+
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):

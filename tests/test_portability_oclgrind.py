@@ -31,7 +31,7 @@ import torch
 
 import clsplat
 
-pytestmark = pytest.mark.oclgrind
+pytestmark = [pytest.mark.oclgrind, pytest.mark.slow]   # each case spawns an interpreter on the simulator
 
 _ICD_LIBS = ("/usr/lib/oclgrind/liboclgrind-rt-icd.so",
              "/usr/lib/x86_64-linux-gnu/liboclgrind-rt-icd.so")

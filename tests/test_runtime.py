@@ -133,6 +133,7 @@ _PIX_SCRIPT = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow   # spawns an interpreter per layout
 @pytest.mark.parametrize("precision,pix", [("float32", 16), ("float64", 8), ("float64", 16)])
 def test_wide_pix_layouts_work_or_are_rejected(precision, pix):
     """RenderConfig accepts pix up to 16. Where the device cannot run that vector width (PoCL

@@ -7,6 +7,8 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 from clsplat.threads import OPT_OUT_ENV, THREAD_DEFAULTS, apply_thread_defaults
 
 # The documented way: import clsplat before torch. The child reports its own environment,
@@ -31,6 +33,7 @@ def _child(**env) -> dict:
     return json.loads(r.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.slow   # spawns an interpreter that imports torch
 def test_child_importing_clsplat_first_gets_the_defaults():
     got = _child()
     assert got["env"] == THREAD_DEFAULTS
@@ -38,12 +41,14 @@ def test_child_importing_clsplat_first_gets_the_defaults():
     assert got["active"] is True
 
 
+@pytest.mark.slow   # spawns an interpreter that imports torch
 def test_opt_out_leaves_the_environment_alone():
     got = _child(**{OPT_OUT_ENV: "0"})
     assert got["env"] == {k: None for k in THREAD_DEFAULTS}
     assert got["active"] is False
 
 
+@pytest.mark.slow   # spawns an interpreter that imports torch
 def test_user_values_win():
     got = _child(GOMP_SPINCOUNT="300000")  # libgomp's own default: long spins
     assert got["env"]["GOMP_SPINCOUNT"] == "300000"
@@ -51,6 +56,7 @@ def test_user_values_win():
     assert got["active"] is False  # spinning workers: the single-thread default stays
 
 
+@pytest.mark.slow   # spawns an interpreter that imports torch
 def test_a_users_wait_policy_keeps_its_spin_count():
     """libgomp lets GOMP_SPINCOUNT override OMP_WAIT_POLICY: setting it beside a user's
     policy would silently change what the user chose."""

@@ -77,6 +77,7 @@ def test_missing_view_extra_is_named(two_colour_ply, monkeypatch, capsys):
     assert "clsplat[view]" in str(e.value) and "'viser'" in str(e.value)
 
 
+@pytest.mark.slow   # spawns clsplat view
 def test_serves_and_stops_cleanly_on_ctrl_c(two_colour_ply, tmp_path):
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     p = subprocess.Popen([sys.executable, "-c", "import sys; from clsplat.cli import main; sys.exit(main())",

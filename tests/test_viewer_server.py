@@ -42,6 +42,7 @@ def _red_blue(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return (r > 150) & (g < 90) & (b < 90), (b > 150) & (r < 90) & (g < 90)
 
 
+@pytest.mark.slow   # drives a headless browser
 @pytest.mark.browser
 @needs_browser
 def test_chromium_shows_the_scene_and_the_server_render_follows_the_camera(two_colour_ply, tmp_path):
