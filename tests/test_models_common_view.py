@@ -134,6 +134,7 @@ def test_view_runs_no_code_from_data_unless_told_to_trust_it(tmp_path, capsys):
     assert "holds a int, not a pandas DataFrame" in capsys.readouterr().err
 
 
+@pytest.mark.slow   # drives a headless browser
 def test_train_view_costs_nothing_without_a_browser_and_refreshes_with_one(two_colour_ply):
     """TrainView: no browser, no refresh (the <10% overhead); a headless Chromium connected: the
     Gaussians and the loss plot are refreshed every N steps and the exact render runs in the
