@@ -121,6 +121,21 @@ def reference():
     return ref
 
 
+#: the tiny AutoSplat run several files read (tests/test_autosplat_cli.py's ARGS, without --out)
+AUTOSPLAT_TINY_RUN = ["train", "autosplat", "--preset", "tiny", "--frames", "0:4", "--scale", "0.2", "--cameras",
+                      "CAM_FRONT", "CAM_BACK", "--no-progress"]
+
+
+@pytest.fixture(scope="session")
+def autosplat_tiny_run(tmp_path_factory):
+    """The run folder of ``clsplat AUTOSPLAT_TINY_RUN``, trained once per test session for every
+    file that reads it. Read-only: a test that writes into a run copies it first."""
+    from clsplat.cli import console
+    out = tmp_path_factory.mktemp("autosplat_tiny") / "run"
+    assert console([*AUTOSPLAT_TINY_RUN, "--out", str(out)]) == 0
+    return out
+
+
 def engine_project(rt, cfg: RenderConfig, scene: dict, tile_size: int = 16, near_plane=0.01,
                    far_plane=1e10, eps2d=0.3, radius_clip=0.0, antialiased=False) -> dict:
     """Run kernels/project.cl through clsplat.stages.project; host tensors keyed like the reference."""

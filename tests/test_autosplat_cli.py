@@ -27,10 +27,9 @@ def files(folder: Path) -> dict[str, bytes]:
 
 
 @pytest.fixture(scope="module")
-def earlier_run(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("as") / "run"
-    assert main(ARGS + ["--out", str(out)]) == 0
-    return out
+def earlier_run(autosplat_tiny_run) -> Path:
+    """The run of ARGS, trained once per session (tests/conftest.py): read it, copy it to write."""
+    return autosplat_tiny_run
 
 
 @pytest.mark.slow   # trains a tiny run

@@ -149,11 +149,10 @@ def test_sequence_without_tracks_skips_foreground_and_static_tracks_get_no_resid
 
 
 @pytest.mark.slow   # trains the tiny preset
-def test_cli_writes_the_run_folder(tmp_path):
-    out = tmp_path / "run"
-    rc = train(["--data", "synthetic", "--preset", "tiny", "--frames", "0:4", "--scale", "0.2",
-                "--cameras", "CAM_FRONT", "CAM_BACK", "--no-progress", "--out", str(out)])
-    assert rc == 0
+def test_cli_writes_the_run_folder(autosplat_tiny_run):
+    """``clsplat train autosplat --preset tiny --frames 0:4 --scale 0.2 --cameras CAM_FRONT CAM_BACK``
+    (the session's run, tests/conftest.py, shared with tests/test_autosplat_cli.py)."""
+    out = autosplat_tiny_run
     for name in ("metrics.json", "scene.ply", "checkpoint.pt", "loss.png", "log.jsonl", "contact_sheet.png",
                  "lateral_shift_1m.png", "lateral_shift_2m.png", "lateral_shift_3m.png"):
         assert (out / name).is_file(), name
