@@ -25,7 +25,9 @@ def _f(v, fmt: str = ".3f") -> str:
 
 
 def rows(name: str, folder: Path) -> list[str]:
-    """Table rows of one run: ``all`` and each non-empty speed bin."""
+    """Table rows of one run: ``all`` and each non-empty speed bin (none while it has no metrics.json)."""
+    if not (folder / "metrics.json").is_file():
+        return []
     m = json.loads((folder / "metrics.json").read_text())
     out = []
     blocks = [("all", m["all"])] + [(k, b) for k, b in m.get("speed_bins", {}).items() if b.get("windows")]
@@ -54,7 +56,9 @@ def main(argv: list[str] | None = None) -> int:
     for spec in a.runs:
         name, _, folder = spec.partition("=")
         d = Path(folder)
-        print("\n".join(rows(name, d)))
+        table = rows(name, d)
+        if table:
+            print("\n".join(table))
         vc = d / "val_curve.jsonl"
         if vc.is_file():
             pts = [json.loads(x) for x in vc.read_text().splitlines()]
@@ -81,7 +85,7 @@ def plot_curves(runs: list[tuple[str, str]], png: str) -> None:
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.4), dpi=110)
     panels = (("abs_rel", "depth AbsRel"), ("scale_ratio", "scale ratio (median gt / median pred)"),
               ("pose_t_err_m", "pose translation error (m, mean)"))
-    for name, folder in runs:
+    for k, (name, folder) in enumerate(runs):
         vc = Path(folder) / "val_curve.jsonl"
         if not vc.is_file():
             continue
@@ -89,12 +93,13 @@ def plot_curves(runs: list[tuple[str, str]], png: str) -> None:
         for ax, (key, _) in zip(axes, panels):
             xy = [(r["step"], r[key]) for r in pts if isinstance(r.get(key), (int, float))]
             if xy:
-                ax.plot(*zip(*xy), marker=".", label=name)
+                ax.plot(*zip(*xy), marker=".", label=name, color=f"C{k}")   # one colour per run in every panel
     for ax, (_, title) in zip(axes, panels):
         ax.set_title(title, fontsize=9)
         ax.set_xlabel("step")
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=7)
+    handles = [plt.Line2D([], [], color=f"C{k}", marker=".", label=name) for k, (name, _) in enumerate(runs)]
+    axes[0].legend(handles=handles, fontsize=7)
     fig.tight_layout()
     fig.savefig(png)
     plt.close(fig)
