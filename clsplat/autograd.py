@@ -63,14 +63,18 @@ class ProjectFn(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, viewmats, Ks, s: Settings):
         rt, arr = s.rt, s.rt.array
-        p = stages.project(rt, s.cfg, arr(means), arr(quats), arr(scales), arr(opacities),
-                           arr(viewmats), arr(Ks), s.width, s.height, s.tile_size,
+        inputs = {n: arr(t) for n, t in zip(("means", "quats", "scales", "opacities", "viewmats", "Ks"),
+                                            (means, quats, scales, opacities, viewmats, Ks))}
+        p = stages.project(rt, s.cfg, *inputs.values(), s.width, s.height, s.tile_size,
                            near_plane=s.near_plane, far_plane=s.far_plane, eps2d=s.eps2d,
                            radius_clip=s.radius_clip, antialiased=s.antialiased, events=s.events)
         outs = read_back(p.means2d, p.conics, p.depths, p.opacities, p.radii, p.rects, p.extents)
         ctx.mark_non_differentiable(*outs[4:])
         ctx.save_for_backward(means, quats, scales, opacities, viewmats, Ks, outs[4])
         ctx.s = s
+        # The inputs' device arrays, for the backward (autograd refuses a backward after an
+        # in-place change of a saved input, so their data stay the inputs'): not made again.
+        ctx.arrays = inputs
         return tuple(outs)
 
     @staticmethod
@@ -84,9 +88,12 @@ class ProjectFn(torch.autograd.Function):
                  "v_depths": _grad_or_zeros(v_depths, (C, N), dt),
                  "v_opacities": _grad_or_zeros(v_opac, (C, N), dt)}
         rt = s.rt
-        inputs = {n: rt.array(t.detach()) for n, t in zip(
-            ("means", "quats", "scales", "opacities", "viewmats", "Ks"),
-            (means, quats, scales, opacities, viewmats, Ks))}
+        inputs = ctx.arrays
+        ctx.arrays = None  # (a second backward needs retain_graph, and finds them gone: remade)
+        if inputs is None:
+            inputs = {n: rt.array(t.detach()) for n, t in zip(
+                ("means", "quats", "scales", "opacities", "viewmats", "Ks"),
+                (means, quats, scales, opacities, viewmats, Ks))}
         out = stages.project_bwd(rt, s.cfg, inputs, rt.array(radii),
                                  {k: rt.array(v) for k, v in grads.items()}, s.width, s.height,
                                  eps2d=s.eps2d, antialiased=s.antialiased,

@@ -491,9 +491,9 @@ def read_back(*arrays: DeviceArray) -> list[torch.Tensor]:
     maps = []
     in_place = rt.computes_in_host_memory
     for a in live:
-        dst = a.tensor.numpy()
         if a.zero_copy and in_place:  # the device wrote the tensor's own memory
             continue
+        dst = a.tensor.numpy()
         if a.zero_copy:
             mapped, _ = cl.enqueue_map_buffer(rt.queue, a.buffer, cl.map_flags.READ, 0,
                                               dst.shape, dst.dtype, is_blocking=False)
