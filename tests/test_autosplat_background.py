@@ -1,6 +1,7 @@
 """AutoSplat background: the flatness term C, its fit, the masked photometric loss."""
 import math
 
+import pytest
 import torch
 
 from clsplat.models.autosplat.background import flatness, masked_photometric, reference_frames
@@ -32,6 +33,7 @@ def test_flatness_is_zero_for_flat_discs_and_modulo_pi():
     assert float(flatness(yaw, scales * torch.tensor([1, 1, 0.0]), F)) < 1e-5  # yaw is free
 
 
+@pytest.mark.slow   # fits a road patch by gradient descent (60 Adam steps)
 def test_flatness_fit_drives_tilted_road_patch_flat():
     """Fit a tilted patch to a top-down image of a flat grey road with L1 + beta C: C falls by
     more than 10x and every disc's normal ends within 2 degrees of the road normal."""

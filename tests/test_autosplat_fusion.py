@@ -2,6 +2,7 @@
 import math
 
 import numpy as np
+import pytest
 import torch
 
 from clsplat.models.autosplat.fusion import PoseCorrection, axis_angle_to_quat, place
@@ -24,6 +25,7 @@ def test_interpolated_correction_for_untrained_frames():
     assert torch.allclose(pc(0, 4), torch.full((6,), 3.0))
 
 
+@pytest.mark.slow   # fits a pose correction by gradient descent (150 Adam steps)
 def test_pose_correction_recovers_offset():
     """Object rendered at its true pose; the track is off by 0.3 m and 5 degrees of yaw. Optimising
     only the correction recovers the pose to within 3 cm and 0.5 degrees."""

@@ -117,6 +117,7 @@ def _fit_residual(dynamic: bool, steps: int = 40):
         return float(torch.stack([res(g.means / 4.0, t).abs().mean() for t in times]).mean())
 
 
+@pytest.mark.slow   # fits residual SH by gradient descent, twice
 def test_residual_sh_stays_zero_for_static_object_and_grows_for_dynamic_one():
     static = _fit_residual(False)
     dynamic = _fit_residual(True)
