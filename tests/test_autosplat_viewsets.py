@@ -272,7 +272,8 @@ def test_view_sets_report_their_unseen_share(tiny_run, tmp_path):
         u = b["unseen_share"]
         assert 0 <= u["overall"] <= 1 and u["per_view"]
         assert all(0 <= v["share"] <= 1 and 0 <= v["unseen"] <= v["pixels"] for v in u["per_view"])
-        assert math.isclose(u["overall"], sum(v["unseen"] for v in u["per_view"]) / sum(v["pixels"] for v in u["per_view"]))
+        unseen, counted = (sum(v[k] for v in u["per_view"]) for k in ("unseen", "pixels"))
+        assert math.isclose(u["overall"], unseen / counted)
     assert {v["camera"] for v in m["lane_change"]["3m"]["unseen_share"]["per_view"]} == {"CAM_FRONT", "CAM_FRONT_LEFT"}
     assert all(v["pixels"] >= 16 and "track" in v for v in m["far_side"]["unseen_share"]["per_view"])
     # the street's ego changes lanes: a 3 m shift stays on surfaces the rig saw (issue 33's point)

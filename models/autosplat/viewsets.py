@@ -143,7 +143,8 @@ def _training_views(trainer) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarr
 def unseen_pixels(trainer, frame: int, cam_to_world: np.ndarray, views, cameras: list[str] | None = None,
                   training: list[tuple] | None = None, only: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Which pixels of the generator views ``views`` (of ``cam_to_world [C, 4, 4]`` at ``frame``'s
-    time, with the intrinsics of ``cameras``, default the run's) show a surface point that no training camera saw, from the generator's geometry:
+    time, with the intrinsics of ``cameras``, default the run's) show a surface point that no
+    training camera saw, from the generator's geometry:
     ``(unseen, solid)``, bool ``[C, H, W]`` each; ``solid``: not sky (sky has no point and is
     never counted). A pixel's point (its z-depth along its ray) on a vehicle with a box at both
     times moves with the box to each training frame; a training camera sees it when it projects

@@ -14,7 +14,8 @@ multi-view protocol; 2: the base stage's two frames) writes budget.json (rows: m
 finetuned, random, opacity, grid, dedup and, with a budget checkpoint, random@finetuned,
 opacity@finetuned, grid@finetuned, dedup@finetuned (the naive selections on the finetuned
 parameters, issue 33); selection, parameters, budget, views, n_gaussians, psnr, psnr_covered,
-ssim, [lpips], render_ms: means over the samples; psnr_per_sample), budget.png (quality against Gaussian count and render time, Pareto front),
+ssim, [lpips], render_ms: means over the samples; psnr_per_sample), budget.png (quality
+against Gaussian count and render time, Pareto front),
 metrics.json (full-set quality in the shared schema of :mod:`clsplat.models.common.report`,
 depth with and without the residual head, seconds per prediction) and contact_sheet.png.
 ``--eval-split val`` scores the validation streets (disjoint seeds from train and test: where the
