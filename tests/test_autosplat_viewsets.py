@@ -124,6 +124,17 @@ def test_tracker_noise_is_correlated_and_keeps_the_exact_boxes():
     assert a.metadata["tracker_noise"]["seed"] == 1 and math.isclose(a.metadata["tracker_noise"]["rho"], 0.9)
 
 
+def test_the_straight_world_is_reachable_as_data_synthetic_straight():
+    """``--data synthetic:straight`` (issue 33): a street of the ``straight`` world, the ego in its
+    lane on a straight road, every moving vehicle to its left; ``synthetic`` stays the classic one."""
+    seq = load_sequence("synthetic:straight", ["CAM_FRONT"], (0, 3), 0.1, seed=2)
+    w = seq.metadata["world"]
+    assert w.world == "straight" and not w.lane_change and w.curvature == 0.0
+    ego_y = [f.ego_to_world[1, 3] for f in seq.frames]
+    assert max(ego_y) - min(ego_y) < 1e-9                                # no sideways motion
+    assert load_sequence("synthetic", ["CAM_FRONT"], (0, 3), 0.1).metadata["world"].world == "classic"
+
+
 #: where each ``--views`` set writes its section of metrics.json (``recorded`` also ``pose_correction``
 #: under tracker noise)
 SECTIONS = {"recorded": "train", "far-side": "far_side", "lane-change": "lane_change", "appearance": "appearance"}

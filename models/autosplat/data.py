@@ -30,8 +30,13 @@ SYNTHETIC_DT = 0.2
 #: indicators, a footbridge whose shadow they drive through, and tracked boxes with correlated
 #: tracker noise (:class:`clsplat.data.synthetic.views.TrackerNoise`'s defaults; the exact boxes
 #: kept for scoring); ``synthetic:views-exact`` is the same street with exact boxes (the far-side and
-#: appearance sets without the tracker noise that dominates the object pixels' error)
-SYNTHETIC_SPECS = ("synthetic", "synthetic:views", "synthetic:views-exact")
+#: appearance sets without the tracker noise that dominates the object pixels' error);
+#: ``synthetic:straight`` (issue 33) a street of the ``straight`` world, where the ego keeps its lane
+#: and every moving vehicle passes on its left (so a view shifted sideways, or a vehicle's far side,
+#: shows surfaces no training camera saw), and ``synthetic:varied`` one of the varied world (exact
+#: boxes in both)
+SYNTHETIC_SPECS = ("synthetic", "synthetic:views", "synthetic:views-exact", "synthetic:straight", "synthetic:varied")
+_WORLD_SPECS = {"synthetic:straight": "straight", "synthetic:varied": "varied"}
 _SYNTHETIC_FRAMES = 16
 
 
@@ -60,7 +65,8 @@ def load_sequence(spec: str, cameras: list[str] | None, frames: tuple[int, int] 
         a, b = frames or (0, _SYNTHETIC_FRAMES)
         views = spec in ("synthetic:views", "synthetic:views-exact")
         cfg = SyntheticConfig(height=max(8, round(176 * scale)), width=max(8, round(320 * scale)), num_frames=b,
-                              seed=seed, dt=SYNTHETIC_DT, signals=views, shadow=views)
+                              seed=seed, dt=SYNTHETIC_DT, signals=views, shadow=views,
+                              world=_WORLD_SPECS.get(spec, "classic"))
         seq = generate_sequence(cfg)
         if a:
             seq = DrivingSequence(seq.cameras, seq.frames[a:b], seq.name, seq.metadata)
