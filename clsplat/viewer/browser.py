@@ -36,7 +36,9 @@ class HeadlessChromium:
         s.bind(("127.0.0.1", 0))
         self.debug_port = s.getsockname()[1]
         s.close()
-        self._profile = tempfile.TemporaryDirectory(prefix="clsplat-chromium-")
+        # chromium's helper processes can still write into the profile after the main one exits:
+        # removing it must not fail the caller (seen once in a full test run: "Default" not empty)
+        self._profile = tempfile.TemporaryDirectory(prefix="clsplat-chromium-", ignore_cleanup_errors=True)
         self.proc = subprocess.Popen(
             [binary, "--headless=new", "--no-sandbox", "--use-gl=angle", "--use-angle=swiftshader",
              "--enable-unsafe-swiftshader", "--hide-scrollbars", f"--window-size={width},{height}",
