@@ -108,6 +108,7 @@ class ValCurve:
         from pathlib import Path
 
         from .evaluation import validation_point
+        self._point = validation_point
         self.model, self.source, self.path = model, source, Path(path)
         self.every, self.scenes, self.cameras = every, scenes, cameras
         self.records: list[dict] = []
@@ -127,11 +128,10 @@ class ValCurve:
     def _add(self, step: int) -> None:
         import json
         from clsplat.io.atomic import write_text_atomic
-        from .evaluation import validation_point
         if self._trim_at is not None:       # the first point of a resumed run: drop what came after its start
             self.records = [r for r in self.records if r["step"] < step]
             self._trim_at = None
-        self.records.append({"step": step, **validation_point(self.model, self.source, self.scenes, self.cameras)})
+        self.records.append({"step": step, **self._point(self.model, self.source, self.scenes, self.cameras)})
         write_text_atomic(self.path, "".join(json.dumps(r, allow_nan=True) + "\n" for r in self.records))
 
     def on_step(self, step: int, rec: dict) -> None:
