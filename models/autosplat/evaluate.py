@@ -1,7 +1,8 @@
 """Evaluation of an AutoSplat run: held-out and training frames per camera and overall (PSNR,
 SSIM, LPIPS when weights are given, PSNR over the moving objects' pixels), the novel-view sets of
 :mod:`.viewsets` that are asked for (far side of moving vehicles, lane changes, changing
-appearance, pose corrections under tracker noise), Gaussian counts per class; and a run rebuilt
+appearance, pose corrections under tracker noise), per-class and per-track object scores with the
+worst tracks' sheet (:mod:`.object_report`), Gaussian counts per class; and a run rebuilt
 from its checkpoint (``clsplat eval autosplat``, the viewer).
 """
 from __future__ import annotations
@@ -17,6 +18,7 @@ from clsplat.data.scene import DrivingSequence
 from .data import load_sequence, prepare_data
 from .init import BG_CLASSES
 from .model import Switches
+from .object_report import SHEET_NAME, object_report
 from ..common.presets import preset_from_saved
 from .trainer import Trainer, checkpoint_extra
 from .viewsets import _pooled_psnr, _sq_err, appearance, check_views, far_side, lane_change, pose_corrections
@@ -36,7 +38,9 @@ def evaluate_run(trainer: Trainer, lpips=None, views=DEFAULT_VIEWS) -> dict:
     (:data:`.viewsets.VIEW_SETS`): ``recorded``: ``train`` (the same on the training frames) and
     ``pose_correction`` (with tracker noise in the data); ``far-side``: ``far_side``;
     ``lane-change``: ``lane_change`` (keys ``1m``, ``2m``, ``3m``); ``appearance``:
-    ``appearance``; then Gaussian counts per class."""
+    ``appearance``; always ``objects`` (:mod:`.object_report`: per-class and per-track object PSNR /
+    SSIM on the scored frames, the worst tracks' sheet ``objects_worst.png``); then Gaussian counts
+    per class."""
     from clsplat.io.contact_sheet import make_contact_sheet
 
     from ..common.report import camera_blocks, image_scores
@@ -50,7 +54,7 @@ def evaluate_run(trainer: Trainer, lpips=None, views=DEFAULT_VIEWS) -> dict:
                               "lpips": "on" if lpips is not None else "off (no weights given)",
                               "views": list(views)}}
 
-    def score(frames) -> tuple[dict, dict]:
+    def score(frames) -> tuple[dict, dict, list]:
         rs, ts, obj = [], [], torch.zeros(2, dtype=torch.float64)
         for i in frames:
             rs.append(trainer.render_frame(i))
@@ -61,14 +65,19 @@ def evaluate_run(trainer: Trainer, lpips=None, views=DEFAULT_VIEWS) -> dict:
                                          [c for _ in frames for c in d.cameras])
         all_["psnr_objects"] = _pooled_psnr(obj)
         all_["images"] = len(frames) * len(d.cameras)
-        return all_, per_camera
+        return all_, per_camera, rs
 
     t0 = time.perf_counter()
     show = d.test_frames[len(d.test_frames) // 2] if d.test_frames else d.train_frames[0]
     if "recorded" in views:
-        train_all, train_cams = score(d.train_frames)
+        train_all, train_cams, _ = score(d.train_frames)
         out["train"] = {**train_all, "per_camera": train_cams}
-    out["all"], out["per_camera"] = score(d.test_frames or d.train_frames)
+    scored = d.test_frames or d.train_frames
+    out["all"], out["per_camera"], renders = score(scored)
+    # issue 36: per-class object PSNR / SSIM and the worst tracks' sheet, on the same renders
+    out["objects"] = object_report(d.seq, d.cameras, scored, renders, [d.images[i] for i in scored],
+                                   trainer.preset.dynamic_threshold, trainer.out / SHEET_NAME)
+    del renders
     if "recorded" in views:
         r = trainer.render_frame(show)
         make_contact_sheet(r.numpy(), d.images[show].numpy(), trainer.out / "contact_sheet.png", names=d.cameras,
