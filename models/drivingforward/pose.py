@@ -10,6 +10,23 @@ camera (the first camera given, CAM_FRONT on a full rig) from the earlier to the
 i.e. ``p_later = T_0 p_earlier`` in that camera's frame. :func:`carry_pose` gives every other
 camera's motion through the rig extrinsics, ``T_c = E_c^-1 E_0 T_0 E_0^-1 E_c`` (E = cam_to_ego),
 and :func:`ego_motion` the ego frame's, ``M = E_0 T_0 E_0^-1``.
+
+Issue 32 departures, each a preset field, off unless set:
+
+* ``pose_corr_radius`` > 0: a motion cue the network does not have to learn to see.
+  :func:`local_correlation` compares every pixel's 3x3 patch of the earlier image (zero-mean,
+  unit-norm, i.e. normalised cross-correlation) with the later image's patches displaced by up to
+  ``r`` pixels, at 1/``pose_corr_level`` resolution: ``(2r+1)^2`` scores per pixel, plus their
+  soft-argmax (a flow estimate, 2 channels). ``pose_corr_mode`` "bev": the cue, pooled to 1/8 and
+  taken to the fused width by a 1x1 conv, is added to the 1/8 feature before the bird's-eye fusion;
+  "camera": :class:`CameraOdometryHead` reads each camera's cue with shared weights as that
+  camera's own translation (a side camera sees forward motion as its own lateral motion, so one
+  head serves every camera), rotated into camera 0's frame and averaged over the cameras, and added
+  to the decoder's translation.
+* ``pose_translation_scale``: the translation outputs' own multiplier (the rotation keeps
+  ``pose_scale``). With Adam, a parameter moves about ``lr`` per step whatever its gradient's size,
+  so the output moves about ``lr x scale`` per unit of input: at the paper's 0.01 and 1e-4, the
+  decoder's bias moves the translation 1e-6 m per step.
 """
 from __future__ import annotations
 
@@ -21,7 +38,9 @@ from ..common.geometry import se3_exp
 from .depth import MultiLevelReduce, he_init, normalise_image
 from .fusion import VolumetricFusion, scale_intrinsics
 
-__all__ = ["PoseDecoder", "PoseNetwork", "carry_pose", "ego_motion"]
+import torch.nn.functional as F
+
+__all__ = ["PoseDecoder", "PoseNetwork", "CameraOdometryHead", "carry_pose", "ego_motion", "local_correlation"]
 
 
 def ego_motion(T0: Tensor, E0: Tensor) -> Tensor:
@@ -42,6 +61,64 @@ def carry_pose(T0: Tensor, cam_to_ego: Tensor) -> Tensor:
     """
     M = ego_motion(T0, cam_to_ego[0])
     return torch.linalg.inv(cam_to_ego) @ M @ cam_to_ego
+
+
+def _unit_patches(x: Tensor) -> Tensor:
+    """``[V, C, h, w] -> [V, 9C, h, w]``: each pixel's 3x3 patch (replicate padding), zero-mean, unit norm."""
+    V, C, h, w = x.shape
+    p = F.unfold(F.pad(x, (1, 1, 1, 1), mode="replicate"), 3).reshape(V, C * 9, h, w)
+    p = p - p.mean(dim=1, keepdim=True)
+    return p / p.norm(dim=1, keepdim=True).clamp_min(1e-3)
+
+
+def local_correlation(earlier: Tensor, later: Tensor, radius: int, level: int, temperature: float = 0.1) -> Tensor:
+    """Normalised cross-correlation of the two instants' images over a window of displacements.
+
+    Args:
+        earlier, later: ``[V, 3, H, W]`` images of the same cameras; radius: the largest
+            displacement (pixels at the cue's resolution); level: the images are averaged over
+            ``level x level`` blocks first (H and W divisible by it).
+        temperature: of the soft-argmax over the scores.
+    Returns:
+        ``[V, (2r+1)^2 + 2, H/level, W/level]``: the scores of displacements (dy, dx) in row-major
+        order from (-r, -r), in [-1, 1] (the earlier pixel's patch against the later image's patch
+        at the displaced position; outside the image: 0), then the soft-argmax displacement
+        (dx, dy) in pixels of that resolution.
+    """
+    a = F.avg_pool2d(earlier, level) if level > 1 else earlier
+    b = F.avg_pool2d(later, level) if level > 1 else later
+    pa, pb = _unit_patches(a), _unit_patches(b)
+    h, w = a.shape[-2:]
+    r = radius
+    pb = F.pad(pb, (r, r, r, r))
+    scores = [(pa * pb[..., r + dy:r + dy + h, r + dx:r + dx + w]).sum(1)
+              for dy in range(-r, r + 1) for dx in range(-r, r + 1)]
+    corr = torch.stack(scores, 1)
+    d = torch.arange(-r, r + 1, dtype=corr.dtype, device=corr.device)
+    dy, dx = torch.meshgrid(d, d, indexing="ij")
+    wts = torch.softmax(corr / temperature, dim=1)
+    flow = torch.stack([(wts * dx.reshape(1, -1, 1, 1)).sum(1), (wts * dy.reshape(1, -1, 1, 1)).sum(1)], 1)
+    return torch.cat([corr, flow], 1)
+
+
+class CameraOdometryHead(nn.Module):
+    """Each camera's correlation cue -> that camera's translation (its own frame), one set of
+    weights for every camera: ``[V, D, h, w] -> [V, 3]`` (two stride-2 3x3 convs, spatial mean,
+    linear; the linear layer starts at zero, so the head adds no motion until trained)."""
+
+    def __init__(self, in_channels: int, channels: int = 64) -> None:
+        super().__init__()
+        self.conv_0 = nn.Conv2d(in_channels, channels, 3, 2, 1)
+        self.conv_1 = nn.Conv2d(channels, channels, 3, 2, 1)
+        self.out = nn.Linear(channels, 3)
+        self.relu = nn.ReLU(inplace=True)
+        nn.init.zeros_(self.out.weight)
+        nn.init.zeros_(self.out.bias)
+
+    def forward(self, cue: Tensor) -> Tensor:
+        x = self.relu(self.conv_0(cue))
+        x = self.relu(self.conv_1(x))
+        return self.out(x.mean(dim=(2, 3)))
 
 
 class PoseDecoder(nn.Module):
@@ -77,7 +154,17 @@ class PoseNetwork(nn.Module):
         self.fusion = VolumetricFusion(preset.fusion_channels, "pose", preset.voxel_origin, preset.voxel_size,
                                        preset.voxel_shape, out_channels=preset.pose_bev_channels)
         self.decoder = PoseDecoder(preset.pose_bev_channels[1], preset.pose_decoder_channels)
-        he_init(self.reduce, self.fusion, self.decoder, skip=(self.decoder.pose_2,))   # see depth.he_init
+        self.corr_proj = self.odometry = None
+        if preset.pose_corr_radius > 0:
+            cue = (2 * preset.pose_corr_radius + 1) ** 2 + 2
+            if preset.pose_corr_mode == "bev":
+                self.corr_proj = nn.Conv2d(cue, preset.fusion_channels, 1)
+            else:
+                self.odometry = CameraOdometryHead(cue)
+        he_init(self.reduce, self.fusion, self.decoder, *(m for m in (self.corr_proj,) if m is not None),
+                skip=(self.decoder.pose_2,))   # see depth.he_init
+        if self.odometry is not None:
+            he_init(self.odometry, skip=(self.odometry.out,))
         if preset.pose_zero_init:     # no motion, exactly, until the photometric terms say otherwise
             nn.init.zeros_(self.decoder.pose_2.weight)
             nn.init.zeros_(self.decoder.pose_2.bias)
@@ -86,7 +173,13 @@ class PoseNetwork(nn.Module):
             # offset: start at the given translation (bench/RESULTS.md, issue 17)
             with torch.no_grad():
                 t = torch.tensor(preset.pose_translation_init, dtype=self.decoder.pose_2.bias.dtype)
-                self.decoder.pose_2.bias[3:] = t / preset.pose_scale
+                self.decoder.pose_2.bias[3:] = t / self.translation_scale
+
+    @property
+    def translation_scale(self) -> float:
+        """The translation outputs' multiplier: ``pose_translation_scale``, else ``pose_scale``."""
+        p = self.preset
+        return p.pose_scale if p.pose_translation_scale is None else p.pose_translation_scale
 
     def forward(self, earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_ego: Tensor) -> Tensor:
         """Motion of camera 0 between two instants.
@@ -96,10 +189,24 @@ class PoseNetwork(nn.Module):
         Returns:
             ``T0 [4, 4]`` with ``p_later = T0 p_earlier`` in camera 0's frame.
         """
+        p = self.preset
         x = normalise_image(torch.cat([earlier, later], 1))
         f = self.encoder.forward_features(x)
         feat8 = self.reduce(f[2:5])
+        cue = None
+        if p.pose_corr_radius > 0:
+            cue = local_correlation(earlier, later, p.pose_corr_radius, p.pose_corr_level)
+        if self.corr_proj is not None:
+            feat8 = feat8 + self.corr_proj(F.adaptive_avg_pool2d(cue, feat8.shape[-2:]))
         bev = self.fusion(feat8, scale_intrinsics(Ks, 1.0 / 8), cam_to_ego)
-        out = self.decoder(bev) * self.preset.pose_scale
-        m = self.preset.max_translation
-        return se3_exp(out[:3], out[3:].clamp(-m, m))
+        raw = self.decoder(bev)
+        rot = raw[:3] * p.pose_scale
+        t = raw[3:]
+        if self.odometry is not None:
+            # each camera's own translation, into camera 0's frame: t_0 = R_0^T R_c t_c
+            R = cam_to_ego[:, :3, :3].to(cue.dtype)
+            t_c = self.odometry(cue)
+            t = t + (R[0].T @ (R @ t_c.unsqueeze(-1)).squeeze(-1).T).T.mean(0)
+        t = t * self.translation_scale
+        m = p.max_translation
+        return se3_exp(rot, t.clamp(-m, m))

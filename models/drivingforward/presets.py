@@ -66,6 +66,18 @@ class DFPreset(Preset):
         pose_zero_init: the pose decoder's output conv starts at zero (weights and bias), so that the
             untrained network predicts exactly no motion, rather than a random motion of a few
             degrees (at ``pose_scale`` 0.1, 12 degrees on the validation streets). (Issue 32.)
+        pose_translation_scale: the pose network's translation outputs are multiplied by this
+            instead of ``pose_scale`` (None: ``pose_scale``, the paper). With Adam every weight moves
+            about the learning rate per step, so this sets how fast the translation can move.
+            (Issue 32.)
+        pose_corr_radius: 0 (the paper): the pose network sees the two instants only through its
+            6-channel encoder. r > 0: a normalised cross-correlation of the two instants' images at
+            1/``pose_corr_level`` resolution over displacements up to r pixels, and its soft-argmax,
+            feed the pose network (``pose_corr_mode``). (Issue 32.)
+        pose_corr_level: the resolution of that cue, 1/level (2, 4 or 8).
+        pose_corr_mode: "bev": the cue joins the 1/8 feature before the bird's-eye fusion; "camera":
+            one head with shared weights reads each camera's cue as its own translation, rotated into
+            camera 0's frame and averaged, added to the decoder's translation.
         min_depth, max_depth, focal_ref: depth = 1/(1/max + (1/min - 1/max) sigma) * fx / focal_ref.
         gs_encoder_channels, gs_decoder_channels, gs_head_channels: Gaussian network widths.
         sh_degree, sh_damping, sh_damping_decay: SH degree predicted and rendered; degree l >= 1 is
@@ -137,6 +149,10 @@ class DFPreset(Preset):
     ground_prior_cap: float | None = None
     depth_zero_init: bool = False
     pose_zero_init: bool = False
+    pose_translation_scale: float | None = None
+    pose_corr_radius: int = 0
+    pose_corr_level: int = 4
+    pose_corr_mode: str = "bev"
     min_depth: float = 1.5
     max_depth: float = 80.0
     focal_ref: float = 300.0
@@ -197,6 +213,18 @@ class DFPreset(Preset):
             raise ValueError(f"preset {self.name}: ground_prior_cap must be None or above min_depth, got {self.ground_prior_cap!r}")
         if not isinstance(self.pose_zero_init, bool):
             raise ValueError(f"preset {self.name}: pose_zero_init must be True or False, got {self.pose_zero_init!r}")
+        if self.pose_translation_scale is not None and (isinstance(self.pose_translation_scale, bool) or not (
+                isinstance(self.pose_translation_scale, (int, float)) and 0 < self.pose_translation_scale < float("inf"))):
+            raise ValueError(f"preset {self.name}: pose_translation_scale must be None or a finite number > 0, "
+                             f"got {self.pose_translation_scale!r}")
+        if isinstance(self.pose_corr_radius, bool) or not isinstance(self.pose_corr_radius, int) \
+                or not 0 <= self.pose_corr_radius <= 8:
+            raise ValueError(f"preset {self.name}: pose_corr_radius must be an int 0..8, got {self.pose_corr_radius!r}")
+        if self.pose_corr_level not in (2, 4, 8) or isinstance(self.pose_corr_level, bool) \
+                or self.height % self.pose_corr_level or self.width % self.pose_corr_level:
+            raise ValueError(f"preset {self.name}: pose_corr_level must be 2, 4 or 8, got {self.pose_corr_level!r}")
+        if self.pose_corr_mode not in ("bev", "camera"):
+            raise ValueError(f"preset {self.name}: pose_corr_mode must be 'bev' or 'camera', got {self.pose_corr_mode!r}")
         if not isinstance(self.depth_zero_init, bool):
             raise ValueError(f"preset {self.name}: depth_zero_init must be True or False, got {self.depth_zero_init!r}")
         if self.smooth_order not in (1, 2):
