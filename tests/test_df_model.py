@@ -307,3 +307,75 @@ def test_a_loss_term_of_weight_zero_is_left_out(sample, monkeypatch):
     for bad in (-0.1, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="w_spatio_temporal must be a finite number >= 0"):
             TINY.replace(w_spatio_temporal=bad)
+
+
+def test_local_correlation_finds_a_known_shift():
+    """The correlation cue (issue 32): a later image that is the earlier one moved 8 px right and
+    4 px down reads, at 1/4 resolution, as a displacement of (2, 1): the score is highest there and
+    the soft-argmax flow says so, away from the borders; the channels are (2r+1)^2 scores + 2."""
+    from clsplat.models.drivingforward.pose import local_correlation
+    g = torch.Generator().manual_seed(0)
+    earlier = torch.rand(2, 3, 32, 56, generator=g)
+    later = torch.roll(earlier, shifts=(4, 8), dims=(2, 3))
+    cue = local_correlation(earlier, later, 3, 4)
+    assert cue.shape == (2, 49 + 2, 8, 14)
+    inner = (slice(None), slice(None), slice(2, -2), slice(3, -3))
+    best = cue[:, :49][inner].argmax(dim=1)
+    assert bool((best == (1 + 3) * 7 + (2 + 3)).all())       # row-major (dy, dx) from (-3, -3)
+    flow = cue[:, 49:][inner].mean(dim=(0, 2, 3))
+    assert torch.allclose(flow, torch.tensor([2.0, 1.0]), atol=0.1)
+    assert float(cue[:, :49].abs().max()) <= 1.0 + 1e-5
+
+
+@pytest.mark.parametrize("mode", ["bev", "camera"])
+def test_pose_correlation_cue_starts_at_no_motion_and_is_trained(sample, mode):
+    """pose_corr_radius > 0: with the zero-initialised outputs the untrained network still predicts
+    exactly no motion, and the temporal loss trains the cue's own layers (in "bev" mode once the
+    decoder's output layer is no longer zero, as after a first step)."""
+    torch.manual_seed(0)
+    m = DrivingForward(TINY.replace(pose_corr_radius=2, pose_corr_mode=mode, pose_zero_init=True,
+                                    pose_translation_scale=1.0))
+    T = m.pose_net(sample["images"][1], sample["images"][2], sample["Ks"], sample["cam_to_ego"])
+    assert torch.equal(T.detach(), torch.eye(4, dtype=T.dtype))
+    if mode == "bev":
+        with torch.no_grad():
+            m.pose_net.decoder.pose_2.weight.normal_(0.0, 1e-3)
+    terms = m.training_losses(sample["images"], sample["images"], sample["Ks"], sample["cam_to_ego"])
+    terms["reproj"].backward()
+    head = m.pose_net.corr_proj if mode == "bev" else m.pose_net.odometry.out
+    assert float(head.weight.grad.abs().sum()) > 0
+    assert (m.pose_net.odometry is None) == (mode == "bev") and (m.pose_net.corr_proj is None) == (mode == "camera")
+
+
+def test_camera_odometry_head_reads_each_camera_in_its_own_frame(sample):
+    """pose_corr_mode "camera": camera c's translation t_c (its own frame) enters camera 0's as
+    R_0^T R_c t_c, averaged over the cameras. A head that says "1 m along my own optical axis" for
+    every camera gives camera 0 the mean of the rig's optical axes, seen from camera 0."""
+    torch.manual_seed(0)
+    m = DrivingForward(TINY.replace(pose_corr_radius=1, pose_corr_mode="camera", pose_zero_init=True,
+                                    pose_translation_scale=1.0))
+    V = sample["Ks"].shape[0]
+    m.pose_net.odometry.forward = lambda cue: torch.tensor([[0.0, 0.0, 1.0]]).expand(V, 3)
+    with torch.no_grad():
+        T = m.pose_net(sample["images"][1], sample["images"][2], sample["Ks"], sample["cam_to_ego"])
+    R = sample["cam_to_ego"][:, :3, :3]
+    expected = R[0].T @ R[:, :, 2].mean(0)
+    assert torch.allclose(T[:3, 3], expected, atol=1e-5)
+    assert float(expected.norm()) < 0.99                     # the rig's cameras do not all look one way
+
+
+def test_pose_translation_scale_sets_the_translations_own_multiplier(sample):
+    """pose_translation_scale: the translation outputs are multiplied by it, the rotation keeps
+    pose_scale; pose_translation_init goes through the same multiplier."""
+    torch.manual_seed(0)
+    m = DrivingForward(TINY.replace(pose_zero_init=True, pose_translation_scale=2.0))
+    with torch.no_grad():
+        m.pose_net.decoder.pose_2.bias.copy_(torch.tensor([0.0, 0.0, 0.0, 0.0, 0.0, -0.25]))
+        T = m.pose_net(sample["images"][1], sample["images"][2], sample["Ks"], sample["cam_to_ego"])
+    assert torch.allclose(T[:3, 3], torch.tensor([0.0, 0.0, -0.5])) and torch.equal(T[:3, :3], torch.eye(3))
+    m = DrivingForward(TINY.replace(pose_translation_scale=2.0, pose_translation_init=(0.0, 0.0, -0.6)))
+    assert float(m.pose_net.decoder.pose_2.bias[5]) == pytest.approx(-0.3)
+    for bad in ({"pose_translation_scale": 0.0}, {"pose_translation_scale": True}, {"pose_corr_radius": -1},
+                {"pose_corr_radius": 1.5}, {"pose_corr_level": 3}, {"pose_corr_mode": "flow"}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            TINY.replace(**bad)
