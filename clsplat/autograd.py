@@ -159,11 +159,9 @@ class RasterizeFn(torch.autograd.Function):
         want_grad = any(ctx.needs_input_grad[:4])  # False under no_grad or for constants
         per_isect = plan.intersection_bytes(feats.shape[-1], feats.element_size(), grad=want_grad,
                                             absgrad=s.absgrad)
-        offsets, keys = stages.bin_tiles(rt, cfg, a["rects"], arr(depths.detach()), s.width,
-                                         s.height, s.tile_size, events=s.events,
-                                         per_intersection=per_isect, reserve=s.pixel_reserve)
-        # bin_tiles has read the offsets back and nothing writes them after the scan
-        stages.sort_segments(rt, cfg, keys, offsets, events=s.events, host_offsets=offsets.tensor)
+        offsets, keys = stages.tile_lists(rt, cfg, a["rects"], arr(depths.detach()), s.width,
+                                          s.height, s.tile_size, events=s.events,
+                                          per_intersection=per_isect, reserve=s.pixel_reserve)
         out, T, last = stages.composite(rt, cfg, a["means2d"], a["conics"], a["opacities"],
                                         a["extents"], a["feats"], offsets, keys, s.width, s.height,
                                         s.tile_size, save_last=want_grad, events=s.events)

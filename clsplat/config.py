@@ -29,8 +29,16 @@ class RenderConfig:
     pix:          pixels per work-item in compositing (None: one 256-bit vector on CPUs,
                   i.e. 8 floats or 4 doubles; 1 on GPUs).
     sort_local:   keys sorted in local memory per work-group (None: from device limits).
-    sort_layout:  "serial" (a merge sort per segment and work-item; CPU default) or
-                  "bitonic" (a work-group per segment in local memory; GPU default).
+    sort_layout:  "serial" (CPU default) or "bitonic" (GPU default). With sort_impl "depth":
+                  the serial layout walks a few long chunks per compute unit, the GPU layout
+                  many short ones (kernels/order.cl). With "tiles": a merge sort per segment
+                  and work-item, or a work-group per segment in local memory.
+    sort_impl:    "depth" (the default: the pairs sorted once by depth, then placed into their
+                  tiles by a stable counting pass, kernels/order.cl; issue 35) or "tiles" (the
+                  baseline: keys scattered into tile segments by atomics, each segment then
+                  sorted, kernels/bin.cl + sort.cl). Both give the same tile lists, key for key.
+    sort_chunks:  work-items (chunks) of kernels/order.cl's passes (None: from the layout and
+                  the device; tests set it to exercise many chunks on tiny scenes).
     composite_impl: "tuned" (kernels/composite.cl and composite_bwd.cl built with CLS_TUNED=1:
                   inline maths instead of the OpenCL library builtins PoCL's CPU device cannot
                   inline, extent tests a word of samples at a time; CPU default) or "baseline"
@@ -47,10 +55,12 @@ class RenderConfig:
     pix: int | None = None
     sort_local: int | None = None
     sort_layout: str | None = None
+    sort_impl: str = "depth"
+    sort_chunks: int | None = None
     composite_impl: str | None = None
 
     def __post_init__(self) -> None:
-        for name in ("pix", "sort_local"):
+        for name in ("pix", "sort_local", "sort_chunks"):
             v = getattr(self, name)
             if v is not None and (isinstance(v, bool) or not isinstance(v, int)):
                 raise ValueError(f"{name}: expected an int or None, got {v!r} ({type(v).__name__})")
@@ -74,6 +84,10 @@ class RenderConfig:
             raise ValueError(f"pix: expected 1, 2, 4, 8 or 16, got {self.pix}")
         if self.sort_layout not in (None, "serial", "bitonic"):
             raise ValueError(f"sort_layout: expected 'serial' or 'bitonic', got {self.sort_layout!r}")
+        if self.sort_impl not in ("depth", "tiles"):
+            raise ValueError(f"sort_impl: expected 'depth' or 'tiles', got {self.sort_impl!r}")
+        if self.sort_chunks is not None and self.sort_chunks < 1:
+            raise ValueError(f"sort_chunks: must be >= 1, got {self.sort_chunks}")
         if self.composite_impl not in (None, "tuned", "baseline"):
             raise ValueError(f"composite_impl: expected 'tuned' or 'baseline', got {self.composite_impl!r}")
         if self.sort_local is not None and (self.sort_local < 2 or self.sort_local & (self.sort_local - 1)):

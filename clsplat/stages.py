@@ -21,7 +21,8 @@ from .config import RenderConfig
 from .plan import check_intersection_memory
 from .runtime import DeviceArray, Runtime
 
-__all__ = ["Projection", "project", "sh_colors", "bin_tiles", "sort_segments", "tile_ranges",
+__all__ = ["Projection", "project", "sh_colors", "bin_tiles", "sort_segments", "depth_tiles",
+           "tile_lists", "tile_ranges",
            "composite", "LOCAL_1D"]
 
 LOCAL_1D = 64  # work-group size of the per-Gaussian stages; any size works, 64 suits both kinds
@@ -134,6 +135,25 @@ def _scan_exclusive(rt: Runtime, src: DeviceArray, dst: DeviceArray, events) -> 
     _record(events, "scan", rt.exclusive_scan_int32()(a, b, queue=rt.queue))
 
 
+def _intersections(rt: Runtime, rects: DeviceArray, per_intersection: int,
+                   reserve: int) -> tuple[int, int]:
+    """(intersections M, pairs that touch a tile) from rects [C,N,4], after the memory checks.
+
+    The exact total from the rectangles, in int64 and before any per-tile work: an int32
+    scan would wrap silently, and counting ~1e9 intersections only to refuse them is slow.
+    """
+    r = rects.host().reshape(-1, 4).to(torch.int64)
+    w, h = r[:, 2] - r[:, 0], r[:, 3] - r[:, 1]
+    total = int((w * h).sum())
+    if total >= 2**31 - 1:
+        raise ValueError(f"means, scales: {total} (camera, Gaussian, tile) intersections exceed the "
+                         "int32 index range; render fewer cameras, fewer or smaller Gaussians per call")
+    check_intersection_memory(rt, total, per_intersection, reserve)
+    rt.check_memory(total * 8, f"means, scales: the keys of {total} (camera, Gaussian, tile) "
+                    "intersections (render fewer cameras, fewer or smaller Gaussians per call)")
+    return total, int(((w > 0) & (h > 0)).sum())
+
+
 def bin_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: DeviceArray,
               width: int, height: int, tile_size: int,
               events: list | None = None, per_intersection: int = 16,
@@ -155,16 +175,7 @@ def bin_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Device
     counts = rt.empty((C * tpc + 1,), torch.int32)
     offsets = rt.empty((C * tpc + 1,), torch.int32)
     defines = cfg.defines(tile_size)
-    # The exact total from the rectangles, in int64 and before any per-tile work: an int32
-    # scan would wrap silently, and counting ~1e9 intersections only to refuse them is slow.
-    r = rects.host().reshape(-1, 4).to(torch.int64)
-    total = int(((r[:, 2] - r[:, 0]) * (r[:, 3] - r[:, 1])).sum())
-    if total >= 2**31 - 1:
-        raise ValueError(f"means, scales: {total} (camera, Gaussian, tile) intersections exceed the "
-                         "int32 index range; render fewer cameras, fewer or smaller Gaussians per call")
-    check_intersection_memory(rt, total, per_intersection, reserve)
-    rt.check_memory(total * 8, f"means, scales: the keys of {total} (camera, Gaussian, tile) "
-                    "intersections (render fewer cameras, fewer or smaller Gaussians per call)")
+    total, _ = _intersections(rt, rects, per_intersection, reserve)
     common = (np.int32(C * N), np.int32(tiles_x), np.int32(tpc), np.int32(N), rects.buffer)
     _record(events, "bin_count", rt.launch(rt.kernel("bin", "count_tiles", defines), C * N, LOCAL_1D,
                                            *common, counts.buffer))
@@ -218,7 +229,7 @@ def sort_segments(rt: Runtime, cfg: RenderConfig, keys: DeviceArray, offsets: De
     starts, lens = starts[seg], lens[seg]
     if len(lens) == 0:
         return
-    if (cfg.sort_layout or ("serial" if rt.is_cpu else "bitonic")) == "serial":
+    if _sort_serial(rt, cfg):
         tmp = rt.empty((M,), torch.int64, zero=False)
         k = rt.kernel("sort", "sort_serial", {"SORT_LOCAL": 2})
         _record(events, "sort_serial", rt.launch(
@@ -260,6 +271,147 @@ def sort_segments(rt: Runtime, cfg: RenderConfig, keys: DeviceArray, offsets: De
             merge, total, 256 if rt.max_group >= 256 else rt.max_group, src.buffer, dst.buffer,
             np.int32(total), b_start_a.buffer, prefix_a.buffer, np.int32(len(b_len)), np.int32(w)))
         src, dst = dst, src
+
+
+#: Bits of the depth sorted per pass of kernels/order.cl's radix sort (a divisor of 32): 8
+#: keeps a chunk's 256 counters in a CPU core's first-level cache and takes 4 passes over the
+#: 32 depth bits; 11 bits would save a pass but zero, scan and scatter through 8x the counters.
+ORDER_RADIX_BITS = 8
+#: Serial layout (CPUs): chunks per compute unit, so that PoCL's threads, which take whole
+#: work-groups (one chunk each), balance chunks of uneven cost (pairs touch 1 to many tiles).
+ORDER_CHUNKS_PER_UNIT = 4
+#: Serial layout: keys per chunk at least, so that a chunk's walk outweighs the 2^RADIX_BITS
+#: counters it zeroes and the scan it adds.
+ORDER_MIN_CHUNK = 2048
+#: GPU layout: keys per work-item; the radix counters then number about as many as the keys.
+ORDER_GPU_CHUNK = 256
+
+
+def _order_chunks(rt: Runtime, cfg: RenderConfig, n: int, n_bins: int, total: int) -> int:
+    """Chunks (work-items) of a kernels/order.cl pass over ``n`` elements into ``n_bins``
+    bins with ``total`` outputs: ``cfg.sort_chunks`` if set, else by layout (a few long
+    chunks per compute unit on CPUs, :data:`ORDER_GPU_CHUNK` keys each on GPUs), never more
+    counters (bins x chunks) than outputs plus one chunk's, nor more chunks than elements."""
+    if cfg.sort_chunks is not None:
+        chunks = cfg.sort_chunks
+    elif _sort_serial(rt, cfg):
+        chunks = min(int(rt.device.max_compute_units) * ORDER_CHUNKS_PER_UNIT, -(-n // ORDER_MIN_CHUNK))
+        chunks = min(chunks, max(1, total // n_bins))
+    else:
+        chunks = min(-(-n // ORDER_GPU_CHUNK), max(1, total // n_bins))
+    chunks = max(1, min(chunks, n))
+    if n_bins * chunks >= 2**31 - 1:  # the counters are indexed in int32
+        chunks = max(1, (2**31 - 2) // n_bins)
+    return chunks
+
+
+def _sort_serial(rt: Runtime, cfg: RenderConfig) -> bool:
+    """The serial (CPU) layout of the sort stages, else the GPU one (``cfg.sort_layout``)."""
+    return (cfg.sort_layout or ("serial" if rt.is_cpu else "bitonic")) == "serial"
+
+
+def _counting_pass(rt: Runtime, cfg: RenderConfig, count: cl.Kernel, scatter: cl.Kernel,
+                   n_chunks: int, n_bins: int, n_elems: int, head: tuple, count_args: tuple,
+                   scatter_args: tuple, name: str, events, skip_trivial: bool = False,
+                   after_scan: Callable[[DeviceArray], None] | None = None) -> bool:
+    """One stable counting pass of kernels/order.cl: count (``head + count_args + (hist,)``),
+    exclusive scan, scatter (``head + scatter_args[:k] + (pos,) + scatter_args[k:]``, the
+    positions going where ``None`` stands). ``skip_trivial``: where the host scans, a pass
+    whose elements all fall in one bin changes nothing and is skipped (returns False)."""
+    local = 1 if _sort_serial(rt, cfg) else LOCAL_1D  # serial: one chunk per work-group, so
+    # PoCL spreads the chunks over its threads (it runs a work-group's items on one thread)
+    hist = rt.empty((n_bins * n_chunks,), torch.int32, zero=False)
+    _record(events, name, rt.launch(count, n_chunks, local, *head, *count_args, hist.buffer))
+    if skip_trivial and _host_scan(rt):
+        if int(hist.host().view(n_bins, n_chunks).sum(1).max()) == n_elems:
+            return False
+    pos = rt.empty((n_bins * n_chunks,), torch.int32, zero=False)
+    _scan_exclusive(rt, hist, pos, events)
+    if after_scan is not None:
+        after_scan(pos)
+    args = tuple(pos.buffer if a is None else a for a in scatter_args)
+    _record(events, name, rt.launch(scatter, n_chunks, local, *head, *args))
+    return True
+
+
+def depth_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: DeviceArray,
+                width: int, height: int, tile_size: int, events: list | None = None,
+                per_intersection: int = 16, reserve: int = 0) -> tuple[DeviceArray, DeviceArray]:
+    """Tile lists in depth order, from one depth sort of the pairs (kernels/order.cl).
+
+    rects [C,N,4] int32 and depths [C,N] from :func:`project`; ``per_intersection`` and
+    ``reserve`` as in :func:`bin_tiles`. The pairs that touch a tile are radix-sorted once by
+    the float32 bits of their depth (ties: ascending c*N+g), then every pair's key is placed
+    in each tile of its rectangle by a stable counting pass over tile ids.
+
+    Returns ``tile_offsets`` [C*T+1] int32 (read back: the tensor holds them) and ``keys``
+    [M] int64 holding ulong keys (float32 depth bits << 32 | c*N+g), each segment sorted
+    ascending: the same arrays as :func:`bin_tiles` then :func:`sort_segments`.
+    """
+    C, N = depths.tensor.shape
+    tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
+    tpc = tiles_x * tiles_y
+    n_tiles = C * tpc
+    total, n = _intersections(rt, rects, per_intersection, reserve)
+    offsets = rt.empty((n_tiles + 1,), torch.int32)
+    keys = rt.empty((total,), torch.int64, zero=False)
+    if n == 0:
+        return offsets, keys
+    defines = {"REAL_DOUBLE": cfg.precision == "float64", "RADIX_BITS": ORDER_RADIX_BITS}
+    k = lambda name: rt.kernel("order", name, defines)  # noqa: E731
+    bins = 1 << ORDER_RADIX_BITS
+    # the depth sort: pass 0 builds the keys of the pairs that touch a tile, in c*N+g order
+    ch = _order_chunks(rt, cfg, C * N, bins, n)
+    chunk = -(-(C * N) // ch)
+    src, dst = rt.empty((n,), torch.int64, zero=False), rt.empty((n,), torch.int64, zero=False)
+    head = (np.int32(C * N), np.int32(chunk), np.int32(ch))
+    _counting_pass(rt, cfg, k("depth_count_pairs"), k("depth_scatter_pairs"), ch, bins, n, head,
+                   (rects.buffer, depths.buffer), (rects.buffer, depths.buffer, None, src.buffer),
+                   "sort_depth", events)
+    ch = _order_chunks(rt, cfg, n, bins, n)
+    chunk = -(-n // ch)
+    head = (np.int32(n), np.int32(chunk), np.int32(ch))
+    for shift in range(ORDER_RADIX_BITS, 32, ORDER_RADIX_BITS):
+        if _counting_pass(rt, cfg, k("depth_count"), k("depth_scatter"), ch, bins, n,
+                          head + (np.int32(shift),), (src.buffer,), (src.buffer, None, dst.buffer),
+                          "sort_depth", events, skip_trivial=True):
+            src, dst = dst, src
+    # the tile placement: bins are the (camera, tile) segments
+    srects = rt.empty((n, 4), torch.int32, zero=False)
+    _record(events, "bin_gather", rt.launch(
+        k("gather_rects"), ch, 1 if _sort_serial(rt, cfg) else LOCAL_1D, *head, np.int32(N),
+        np.int32(tiles_y), src.buffer, rects.buffer, srects.buffer))
+    ch = _order_chunks(rt, cfg, n, n_tiles, total)
+    chunk = -(-n // ch)
+    head = (np.int32(n), np.int32(chunk), np.int32(ch), np.int32(tiles_x))
+
+    def starts(pos: DeviceArray) -> None:  # before the scatter advances the positions
+        _record(events, "bin_starts", rt.launch(
+            k("segment_starts"), n_tiles + 1, LOCAL_1D, np.int32(n_tiles), np.int32(ch),
+            np.int32(total), pos.buffer, offsets.buffer))
+
+    _counting_pass(rt, cfg, k("place_count"), k("place_scatter"), ch, n_tiles, total, head,
+                   (np.int32(n_tiles), srects.buffer),
+                   (src.buffer, srects.buffer, None, keys.buffer), "bin_place", events,
+                   after_scan=starts)
+    check_tile_offsets(offsets.host(), total)
+    return offsets, keys
+
+
+def tile_lists(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: DeviceArray,
+               width: int, height: int, tile_size: int, events: list | None = None,
+               per_intersection: int = 16, reserve: int = 0) -> tuple[DeviceArray, DeviceArray]:
+    """Every tile's list of (camera, Gaussian) keys in depth order: (offsets [C*T+1] int32,
+    read back; keys [M] int64), by ``cfg.sort_impl``: "depth" (:func:`depth_tiles`) or
+    "tiles" (the baseline, :func:`bin_tiles` then :func:`sort_segments`). Same result."""
+    if cfg.sort_impl == "depth":
+        return depth_tiles(rt, cfg, rects, depths, width, height, tile_size, events,
+                           per_intersection, reserve)
+    offsets, keys = bin_tiles(rt, cfg, rects, depths, width, height, tile_size, events,
+                              per_intersection, reserve)
+    # bin_tiles has read the offsets back and nothing writes them after the scan
+    sort_segments(rt, cfg, keys, offsets, events=events, host_offsets=offsets.tensor)
+    return offsets, keys
 
 
 def tile_ranges(offsets: DeviceArray, n_cameras: int, tiles_y: int, tiles_x: int) -> torch.Tensor:

@@ -178,8 +178,7 @@ def engine_forward(rt, cfg: RenderConfig, scene: dict, feats: torch.Tensor, tile
     W, H = scene["width"], scene["height"]
     pr = engine_project(rt, cfg, scene, tile_size, **proj_kw)
     p = pr["_proj"]
-    offsets, keys = stages.bin_tiles(rt, cfg, p.rects, p.depths, W, H, tile_size)
-    stages.sort_segments(rt, cfg, keys, offsets)
+    offsets, keys = stages.tile_lists(rt, cfg, p.rects, p.depths, W, H, tile_size)
     f = rt.array(feats.to(cfg.dtype).contiguous())
     out, T, last = stages.composite(rt, cfg, p.means2d, p.conics, p.opacities, p.extents, f, offsets, keys,
                                     W, H, tile_size, save_last)
