@@ -44,7 +44,7 @@ def test_classic_is_bitwise_unchanged():
 
 
 def test_world_is_validated():
-    with pytest.raises(ValueError, match=r"SyntheticConfig.world must be one of \['classic', 'varied', 'straight'\]"):
+    with pytest.raises(ValueError, match=r"SyntheticConfig.world must be one of \['classic', 'varied', 'straight', 'overtake', 'busy'\]"):
         SyntheticConfig(world="curvy").validate()
     with pytest.raises(ValueError, match="world must be one of"):
         draw_world(0, "curvy")

@@ -34,9 +34,16 @@ SYNTHETIC_DT = 0.2
 #: ``synthetic:straight`` (issue 33) a street of the ``straight`` world, where the ego keeps its lane
 #: and every moving vehicle passes on its left (so a view shifted sideways, or a vehicle's far side,
 #: shows surfaces no training camera saw), and ``synthetic:varied`` one of the varied world (exact
-#: boxes in both)
-SYNTHETIC_SPECS = ("synthetic", "synthetic:views", "synthetic:views-exact", "synthetic:straight", "synthetic:varied")
-_WORLD_SPECS = {"synthetic:straight": "straight", "synthetic:varied": "varied"}
+#: boxes in both); issue 36's moving-object cases: ``synthetic:overtake`` (one car overtaking close
+#: beside the ego) and ``synthetic:busy`` (20 and more movers: cars, trucks, pedestrians), exact
+#: boxes, and ``synthetic:overtake-noisy`` / ``synthetic:busy-noisy``, the same streets with the
+#: tracker noise of ``synthetic:views`` (the exact boxes kept for scoring)
+SYNTHETIC_SPECS = ("synthetic", "synthetic:views", "synthetic:views-exact", "synthetic:straight", "synthetic:varied",
+                   "synthetic:overtake", "synthetic:overtake-noisy", "synthetic:busy", "synthetic:busy-noisy")
+_WORLD_SPECS = {"synthetic:straight": "straight", "synthetic:varied": "varied", "synthetic:overtake": "overtake",
+                "synthetic:overtake-noisy": "overtake", "synthetic:busy": "busy", "synthetic:busy-noisy": "busy"}
+#: the specs whose boxes carry :class:`clsplat.data.synthetic.views.TrackerNoise`'s defaults
+_NOISY_SPECS = ("synthetic:views", "synthetic:overtake-noisy", "synthetic:busy-noisy")
 _SYNTHETIC_FRAMES = 16
 
 
@@ -70,7 +77,7 @@ def load_sequence(spec: str, cameras: list[str] | None, frames: tuple[int, int] 
         seq = generate_sequence(cfg)
         if a:
             seq = DrivingSequence(seq.cameras, seq.frames[a:b], seq.name, seq.metadata)
-        if spec == "synthetic:views":   # after the cut: the exact boxes are keyed by the run's frame indices
+        if spec in _NOISY_SPECS:   # after the cut: the exact boxes are keyed by the run's frame indices
             from clsplat.data.synthetic.views import TrackerNoise, add_tracker_noise
             add_tracker_noise(seq, TrackerNoise(), seed=seed)
     elif spec.startswith("pandaset:"):

@@ -11,7 +11,10 @@ street and seeded: the ego's speed profile from standing to 15 m/s, a straight o
 a lane change or none, road width, setback and building heights, parked and moving vehicles,
 the sun, gradient, vertical curvature and crossfall on a height field; the content below laid
 out along the curved centre line and standing on that ground) or ``"straight"`` (drawn like
-varied, but a straight road, no lane change, constant speed and traffic on the ego's left only).
+varied, but a straight road, no lane change, constant speed and traffic on the ego's left only);
+issue 36's moving-object cases are drawn like straight: ``"overtake"`` (one car overtaking close
+beside the ego) and ``"busy"`` (20 and more movers: platoons of cars and trucks in both driving
+lanes, pedestrians on both sidewalks; boxes labelled ``car``, ``truck``, ``pedestrian``).
 
 Scene content of the classic world (world frame, metres, z up, road along +x; see
 :mod:`clsplat.data.scene`):

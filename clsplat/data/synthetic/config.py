@@ -78,7 +78,10 @@ class SyntheticConfig:
             drawn per street from ``seed``; ``speed``, ``lane_change``, ``lane_change_duration``,
             ``num_parked`` and ``num_moving`` are then ignored) or ``"straight"`` (drawn like
             varied, but a straight road, no lane change, constant speed, traffic on the ego's left
-            only). See :mod:`clsplat.data.synthetic.world`.
+            only); issue 36's test cases for moving objects: ``"overtake"`` (drawn like straight,
+            one car overtaking close beside the ego) and ``"busy"`` (drawn like straight, 20 and
+            more movers: platoons of cars and trucks in both driving lanes, pedestrians on both
+            sidewalks). See :mod:`clsplat.data.synthetic.world`.
     """
 
     height: int = 176
@@ -141,8 +144,9 @@ class SyntheticConfig:
         if not (isinstance(self.fine_texture, (int, float)) and not isinstance(self.fine_texture, bool)
                 and 0.0 <= self.fine_texture <= 1.0):
             raise ValueError(f"SyntheticConfig.fine_texture must be a number in [0, 1], got {self.fine_texture!r}")
-        if self.world not in ("classic", "varied", "straight"):
-            raise ValueError(f"SyntheticConfig.world must be one of ['classic', 'varied', 'straight'], got {self.world!r}")
+        worlds = ("classic", "varied", "straight", "overtake", "busy")
+        if self.world not in worlds:
+            raise ValueError(f"SyntheticConfig.world must be one of {list(worlds)}, got {self.world!r}")
         if not (isinstance(self.lateral_shift, (int, float)) and abs(self.lateral_shift) <= 5.0):
             raise ValueError(f"SyntheticConfig.lateral_shift must be a number in [-5, 5] m, got {self.lateral_shift!r}")
 
@@ -165,6 +169,10 @@ class VehicleSpec:
     #: :class:`~clsplat.data.synthetic.world.WorldParams`, ``heading`` is relative to the road, and
     #: the vehicle stands on the ground (tilted with it); None: the classic street
     world: Any = None
+    #: what it is (issue 36's ``busy`` world): ``"car"`` (every vehicle before it), ``"truck"`` (the
+    #: car's parts at a truck's size) or ``"pedestrian"`` (legs, torso, head; semantic class
+    #: ``other``); its tracked boxes carry it as their label
+    kind: str = "car"
 
     def pose(self, t: float) -> np.ndarray:
         """``[4, 4]`` box-centre-to-world transform at time ``t``."""

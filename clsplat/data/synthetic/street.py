@@ -14,7 +14,7 @@ from ..scene import Box3D, LidarPoints, invert_transform, make_transform, rotmat
 from .config import (_AMBIENT, _SUN, BRAKE_PERIOD, FOOTBRIDGE_HALF, FOOTBRIDGE_X, FOOTBRIDGE_Z, LIDAR_MOUNT,
                      ROAD_HALF, SEM, SIDEWALK_OUT, RenderOutput, VehicleSpec, _Box)
 from .textures import _box_albedo, _ground_albedo, _signal_lamps, _sky
-from .world import WorldParams
+from .world import BUSY_LANE_VEHICLES, BUSY_PEDESTRIANS, STRAIGHT_WORLDS, WorldParams
 
 class StreetScene:
     """A procedural street; deterministic from ``seed``.
@@ -205,9 +205,17 @@ class StreetScene:
         ego_s = np.array([w.ego_distance(float(t)) for t in ts])
         ego_l = np.array([w.ego_lateral(float(s))[0] for s in ego_s])
         tracks = [(ego_s, ego_l, 4.8, 1.9)]              # the ego's own footprint over time
-        straight = w.world == "straight"
+        straight = w.world in STRAIGHT_WORLDS
         tid = 1
-        for i in range(w.num_moving):
+        if w.world in ("overtake", "busy"):    # issue 36: their movers (see the world module)
+            movers = self._overtaker(w, rng, t_range) if w.world == "overtake" else \
+                self._busy_movers(w, rng, ts, tracks)
+            for spec in movers:
+                self.vehicles.append(VehicleSpec(tid, spec["size"], tuple(rng.uniform(0.1, 0.9, 3)), spec["s0"],
+                                                 spec["l"], spec["speed"], spec["heading"], signals=bool(signals),
+                                                 brake_phase=0.5 + 0.8 * (tid - 1), world=w, kind=spec["kind"]))
+                tid += 1
+        for i in range(w.num_moving if w.world not in ("overtake", "busy") else 0):
             for _ in range(30):
                 lane = w.lane_width / 2 * (1.0 if (straight or rng.uniform() < 0.5) else -1.0)
                 heading = 0.0 if rng.uniform() < 0.5 else math.pi
@@ -249,10 +257,80 @@ class StreetScene:
         self.moving_ids = {v.track_id for v in self.vehicles if v.speed != 0}
 
     # ----------------------------------------------------------------------------------
+    @staticmethod
+    def _overtaker(w: WorldParams, rng: np.random.Generator, t_range) -> list[dict]:
+        """The ``overtake`` world's one mover: a car in the left lane pulled towards the ego,
+        faster than it by ``U[2, 4]`` m/s, level with it part way through ``t_range``."""
+        t_lo, t_hi = float(t_range[0]), float(t_range[1])
+        t_pass = t_lo + (t_hi - t_lo) * rng.uniform(0.25, 0.5)
+        speed = w.road_speed(t_pass) + rng.uniform(2.0, 4.0)
+        lane = w.lane_width / 2 - rng.uniform(0.0, 0.5)
+        size = (rng.uniform(4.2, 4.8), rng.uniform(1.8, 2.0), rng.uniform(1.45, 1.6))
+        return [{"kind": "car", "size": size, "s0": w.ego_distance(t_pass) - speed * t_pass, "l": lane,
+                 "speed": speed, "heading": 0.0}]
+
+    @staticmethod
+    def _busy_movers(w: WorldParams, rng: np.random.Generator, ts: np.ndarray, tracks: list) -> list[dict]:
+        """The ``busy`` world's movers: a platoon per driving lane (one speed each, so a lane's
+        vehicles never close up), then pedestrians on both sidewalks; each try redrawn up to 30
+        times while it comes within a margin of a footprint in ``tracks`` (the ego's and those
+        placed, appended to) over the times ``ts``."""
+        def clear(vs, l, size, gap_s, gap_l):
+            return all(np.all((np.abs(vs - ts_s) > (size[0] + L2) / 2 + gap_s)
+                              | (np.abs(l - ts_l) > (size[1] + W2) / 2 + gap_l)) for ts_s, ts_l, L2, W2 in tracks)
+
+        out = []
+        v_ego = w.road_speed(0.0)
+        lanes = [(-w.lane_width / 2, 0.0, v_ego * rng.uniform(0.85, 1.15)),
+                 (w.lane_width / 2, 0.0 if rng.uniform() < 0.5 else math.pi, rng.uniform(4.0, 12.0))]
+        for lane, heading, speed in lanes:
+            for _ in range(BUSY_LANE_VEHICLES):
+                for _ in range(30):
+                    truck = rng.uniform() < 0.15
+                    size = ((rng.uniform(7.0, 9.0), rng.uniform(2.3, 2.5), rng.uniform(2.8, 3.4)) if truck else
+                            (rng.uniform(4.2, 4.8), rng.uniform(1.8, 2.0), rng.uniform(1.45, 1.6)))
+                    s0 = rng.uniform(-30.0, 80.0)
+                    vs = s0 + speed * ts * math.cos(heading)
+                    if clear(vs, lane, size, 3.0, 0.4):
+                        tracks.append((vs, np.full(ts.size, lane), size[0], size[1]))
+                        out.append({"kind": "truck" if truck else "car", "size": size, "s0": s0, "l": lane,
+                                    "speed": speed, "heading": heading})
+                        break
+        for _ in range(BUSY_PEDESTRIANS):
+            for _ in range(30):
+                side = 1.0 if rng.uniform() < 0.5 else -1.0
+                l = side * (w.road_half + w.sidewalk * rng.uniform(0.5, 0.85))
+                heading = 0.0 if rng.uniform() < 0.5 else math.pi
+                speed = rng.uniform(0.8, 1.8)
+                size = (rng.uniform(0.45, 0.65), rng.uniform(0.5, 0.7), rng.uniform(1.6, 1.9))
+                s0 = rng.uniform(-20.0, 60.0)
+                vs = s0 + speed * ts * math.cos(heading)
+                if clear(vs, l, size, 0.5, 0.2):
+                    tracks.append((vs, np.full(ts.size, l), size[0], size[1]))
+                    out.append({"kind": "pedestrian", "size": size, "s0": s0, "l": l, "speed": speed,
+                                "heading": heading})
+                    break
+        return out
+
+    def _pedestrian_parts(self, v: VehicleSpec, T: np.ndarray) -> list[_Box]:
+        """Legs, torso and head of pedestrian ``v`` placed by ``T`` (its box), symmetric in its y."""
+        L, W, H = v.size
+        col = np.asarray(v.color, dtype=np.float64)
+        leg_h, torso_h, head_h = 0.46 * H, 0.36 * H, 0.16 * H
+        parts = [("legs", [0.0, sy * W / 4, -H / 2 + leg_h / 2], [0.3 * L, 0.18 * W, leg_h / 2], 0.35 * col)
+                 for sy in (-1, 1)]
+        parts.append(("torso", [0.0, 0.0, -H / 2 + leg_h + torso_h / 2], [0.4 * L, 0.5 * W, torso_h / 2], col))
+        parts.append(("head", [0.0, 0.0, H / 2 - head_h / 2], [0.2 * L, 0.18 * W, head_h / 2],
+                      np.array([0.78, 0.6, 0.48])))
+        return [_Box(T @ make_transform(t=c), np.asarray(half, dtype=np.float64), kind, SEM["other"], v.track_id,
+                     np.asarray(colr, dtype=np.float64), v.track_id) for kind, c, half, colr in parts]
+
     def vehicle_parts(self, v: VehicleSpec, t: float) -> list[_Box]:
         """Box primitives of vehicle ``v`` at time ``t``, all inside its tracked box."""
         L, W, H = v.size
         T = self._pose(v, t)
+        if v.kind == "pedestrian":
+            return self._pedestrian_parts(v, T)
         phase_on = math.floor(t / (self.blink_period / 2) + 1e-9) % 2 == 0
         on = v.blink and phase_on
         brake = v.signals and ((t + v.brake_phase) % BRAKE_PERIOD) < BRAKE_PERIOD / 2
@@ -312,7 +390,7 @@ class StreetScene:
         out = []
         for v in self.vehicles:
             T = self._pose(v, t)
-            out.append(Box3D(v.track_id, "car", np.array(v.size), T[:3, 3].copy(), rotmat_to_quat(T[:3, :3]),
+            out.append(Box3D(v.track_id, v.kind, np.array(v.size), T[:3, 3].copy(), rotmat_to_quat(T[:3, :3]),
                              uuid=f"synthetic-{self.seed}-{v.track_id}"))
         return out
 

@@ -17,6 +17,17 @@ Three worlds (``SyntheticConfig.world``):
   drive in the left lane (either direction, so the side of each that faces away from the ego is
   never seen by its cameras) and parked vehicles stand on the right only.  For novel-view tests
   (AutoSplat, issue 33).
+* ``"overtake"`` and ``"busy"`` (issue 36, moving objects as sharp as the street): drawn like
+  ``straight`` (the same parameters from the same stream; :class:`StreetScene` lays out their
+  movers).  ``overtake``: one car in the left lane, ``U[0, 0.5]`` m of its lane towards the ego
+  (0.6-1.7 m between their sides), ``U[2, 4]`` m/s faster than the ego, level with it at a time
+  ``U[0.25, 0.5]`` of the way through ``[0, max(4 s, the sequence's end)]``, no other mover.
+  ``busy``: :data:`BUSY_LANE_VEHICLES` tries per driving lane, each lane a platoon at one speed
+  (the ego's lane ``U[0.85, 1.15]`` times the ego's speed, the left lane ``U[4, 12]`` m/s in
+  either direction; a truck with p 0.15), from ``s ~ U[-30, 80]`` m, and :data:`BUSY_PEDESTRIANS`
+  tries of pedestrians walking ``U[0.8, 1.8]`` m/s along either sidewalk, each try redrawn up to
+  30 times while it comes too close to the ego or another mover (20 and more movers on every
+  street, tested).
 
 Street coordinates: ``s`` along the centre line (m, 0 = the ego at ``t = 0``), ``l`` lateral
 (m, left positive).  The centre line starts at the world origin heading +x; with curvature
@@ -91,10 +102,15 @@ import numpy as np
 
 from ..scene import make_transform
 
-__all__ = ["WORLDS", "SPEED_KINDS", "SPEED_BINS", "WorldParams", "draw_world", "classic_world",
+__all__ = ["WORLDS", "STRAIGHT_WORLDS", "BUSY_LANE_VEHICLES", "BUSY_PEDESTRIANS", "SPEED_KINDS", "SPEED_BINS", "WorldParams", "draw_world", "classic_world",
            "classic_ego_pose", "speed_bin"]
 
-WORLDS: tuple[str, ...] = ("classic", "varied", "straight")
+WORLDS: tuple[str, ...] = ("classic", "varied", "straight", "overtake", "busy")
+#: worlds drawn like ``straight`` (straight road, constant speed, no lane change, the ego on the right)
+STRAIGHT_WORLDS: tuple[str, ...] = ("straight", "overtake", "busy")
+#: ``busy``: placement tries of vehicles per driving lane and of pedestrians (both sidewalks)
+BUSY_LANE_VEHICLES = 10
+BUSY_PEDESTRIANS = 12
 SPEED_KINDS: tuple[str, ...] = ("standing", "pulling_away", "braking", "cruising")
 #: the ego-speed bins of issue 32 (m/s): name -> [lo, hi)
 SPEED_BINS: dict[str, tuple[float, float]] = {"standing": (0.0, 0.5), "0.5-5": (0.5, 5.0), "5-10": (5.0, 10.0),
@@ -525,7 +541,7 @@ def draw_world(seed: int, world: str = "varied") -> WorldParams:
     if world == "classic":
         return classic_world(int(seed))
     rng = np.random.default_rng([int(seed), 7])
-    straight = world == "straight"
+    straight = world in STRAIGHT_WORLDS
     # speed profile
     kind = SPEED_KINDS[int(rng.choice(4, p=_SPEED_P))]
     u_kind = rng.uniform(size=3)        # always three draws, so the rest of the stream is kind-independent
@@ -565,6 +581,10 @@ def draw_world(seed: int, world: str = "varied") -> WorldParams:
     # counts, sun, ground
     num_parked = int(rng.integers(0, 13))
     num_moving = int(rng.integers(1 if straight else 0, 5))
+    if world == "overtake":
+        num_moving = 1
+    elif world == "busy":     # the most the layout tries to place; it places as many as fit
+        num_moving = 2 * BUSY_LANE_VEHICLES + BUSY_PEDESTRIANS
     sun_az = float(rng.uniform(0.0, 360.0))
     sun_el = float(rng.uniform(20.0, 70.0))
     u_g = rng.uniform(size=7)
