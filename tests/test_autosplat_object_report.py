@@ -112,4 +112,6 @@ def test_object_report_on_the_generated_street(tmp_path):
         dark[k][inst == 1] = 0.0
     rep = object_report(seq, cams, [1, 2], dark, truths, 0.5, tmp_path / "w.png")
     assert rep["per_track"]["1"]["psnr"] < 20 and rep["per_track"]["2"]["psnr"] == math.inf
+    assert rep["static_per_class"]["car"]["tracks"] >= 1 and rep["static_per_class"]["car"]["psnr"] == math.inf
+    assert set(rep["per_track"]) == {"1", "2"}                   # the moving tracks alone
     assert rep["worst"][0] == 1 and rep["sheet"] == "w.png" and (tmp_path / "w.png").is_file()

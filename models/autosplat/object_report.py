@@ -204,8 +204,10 @@ def object_report(seq: DrivingSequence, cameras: Sequence[str], frames: Sequence
     ``truths``, ``[C, H, W, 3]`` each, cameras ``cameras``): ``per_class`` (:data:`OBJECT_CLASSES`,
     each ``{"psnr", "ssim", "pixels", "tracks"}``), ``per_track`` (track id as a string ->
     ``{"label", "class", "psnr", "ssim", "pixels", "pixels_per_view"}``), ``worst`` (the sheet's
-    track ids) and ``sheet`` (its file name, None when none was written). With ``sheet`` the
-    worst-tracks contact sheet is written there."""
+    track ids), ``sheet`` (its file name, None when none was written) and ``static_per_class``: the
+    same per-class scores over the tracks that stand still (parked vehicles: objects of the same
+    kind whose pixels the background reconstructs, the control that tells the cost of motion from
+    that of the objects' own detail). With ``sheet`` the worst-tracks contact sheet is written there."""
     moving = sorted(moving_track_ids(seq, dynamic_threshold))
     labels: dict[int, str] = {}
     for f in seq.frames:
@@ -213,6 +215,8 @@ def object_report(seq: DrivingSequence, cameras: Sequence[str], frames: Sequence
             labels.setdefault(b.track_id, b.label)
     masks = [track_masks(seq, i, cameras, moving) for i in frames]
     scores = object_scores(renders, truths, masks, labels)
+    still = sorted(set(labels) - set(moving))
+    static = object_scores(renders, truths, [track_masks(seq, i, cameras, still) for i in frames], labels)
     views = max(len(frames) * len(cameras), 1)
     rows = worst_tracks_sheet(renders, truths, masks, scores, frames, cameras, sheet) if sheet is not None else []
     per_track = {str(t): {k: v for k, v in p.items() if k != "best_view"} | {"pixels_per_view": p["pixels"] / views}
@@ -220,4 +224,5 @@ def object_report(seq: DrivingSequence, cameras: Sequence[str], frames: Sequence
     return {"protocol": "moving tracks' pixels on the held-out frames (instance masks, else box pixels); PSNR "
                         "pooled over them, SSIM the mean of the per-pixel SSIM map (11x11, reflect padding) over them",
             "frames": list(frames), "per_class": scores["per_class"], "per_track": per_track, "worst": rows,
-            "sheet": sheet.name if rows and sheet is not None else None}
+            "sheet": sheet.name if rows and sheet is not None else None,
+            "static_per_class": static["per_class"]}
