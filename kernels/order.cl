@@ -37,8 +37,11 @@ inline uint radix_digit(ulong key, int shift) {
     return (uint)(key >> (32 + shift)) & (RADIX_BINS - 1);
 }
 
-/* A pair with an empty tile rectangle (culled, or off-image) has no tile entry. */
-inline int touches_tiles(int4 r) { return r.z > r.x && r.w > r.y; }
+/* A pair with an empty tile rectangle (culled, or off-image) has no tile entry. Scalar loads:
+ * comparing two lanes of a vload4 crashes Oclgrind 21.10's uninitialised-value checker. */
+inline int touches_tiles(__global const int *rects, int cg) {
+    return rects[4 * cg + 2] > rects[4 * cg] && rects[4 * cg + 3] > rects[4 * cg + 1];
+}
 
 inline void zero_column(__global int *hist, int n_bins, int n_chunks, int c) {
     for (int b = 0; b < n_bins; ++b) hist[b * n_chunks + c] = 0;
@@ -55,7 +58,7 @@ __kernel void depth_count_pairs(const int CN, const int chunk, const int n_chunk
     zero_column(hist, RADIX_BINS, n_chunks, c);
     const int lo = c * chunk, hi = min(lo + chunk, CN);
     for (int cg = lo; cg < hi; ++cg)
-        if (touches_tiles(vload4(cg, rects)))
+        if (touches_tiles(rects, cg))
             ++hist[radix_digit(depth_key(depths[cg], (uint)cg), 0) * n_chunks + c];
 }
 
@@ -69,7 +72,7 @@ __kernel void depth_scatter_pairs(const int CN, const int chunk, const int n_chu
     if (c >= n_chunks) return;
     const int lo = c * chunk, hi = min(lo + chunk, CN);
     for (int cg = lo; cg < hi; ++cg)
-        if (touches_tiles(vload4(cg, rects))) {
+        if (touches_tiles(rects, cg)) {
             const ulong key = depth_key(depths[cg], (uint)cg);
             dst[pos[radix_digit(key, 0) * n_chunks + c]++] = key;
         }

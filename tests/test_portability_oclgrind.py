@@ -3,10 +3,12 @@
 Oclgrind (Debian ``oclgrind``) simulates a strict OpenCL 1.2 device. Each case runs in a
 subprocess whose only OpenCL platform is Oclgrind (an ICD folder holding one ``.icd`` file,
 named by ``OCL_ICD_VENDORS``), with its data-race checker on, in the CPU layout (vectors of
-pixels per work-item, serial segment sort) and in the GPU layout (one pixel per work-item,
-bitonic sort in local memory), tile 16 and 32, float32 and float64; Oclgrind's device counts
-as a CPU, so these run the tuned compositing kernels, and two more cases the baseline ones
-(``RenderConfig(composite_impl="baseline")``, the GPU default). Images and every
+pixels per work-item, the depth sort's passes in one chunk a work-group) and in the GPU layout
+(one pixel per work-item, the depth sort's passes over 3 chunks in one work-group), tile 16
+and 32, float32 and float64; Oclgrind's device counts as a CPU, so these run the tuned
+compositing kernels, and two more cases the baseline ones
+(``RenderConfig(composite_impl="baseline")``, the GPU default), two more the baseline sort
+(``sort_impl="tiles"``: serial segment sort; bitonic sort in local memory). Images and every
 gradient must match PoCL's, and no report may name a clsplat kernel (pyopencl's own scan has
 a read-write race of its own; see README). The uninitialised-memory checker runs the whole
 forward and the compositing backward on both host-memory paths, with the scan done on the
@@ -53,8 +55,12 @@ _SCRIPT = textwrap.dedent('''
     xs = [x.to(dt).requires_grad_() for x in xs]
     vm = torch.eye(4, dtype=dt)[None].requires_grad_()
     K = torch.tensor([[[36.0, 0, W / 2], [0, 36, H / 2], [0, 0, 1]]], dtype=dt)
-    if layout == "gpu":
-        cfg = clsplat.RenderConfig(pix=1, sort_layout="bitonic", sort_local=8)
+    if layout == "gpu":  # 3 chunks: the multi-chunk passes of kernels/order.cl, N being tiny
+        cfg = clsplat.RenderConfig(pix=1, sort_layout="bitonic", sort_local=8, sort_chunks=3)
+    elif layout == "gpu-tiles":
+        cfg = clsplat.RenderConfig(pix=1, sort_layout="bitonic", sort_local=8, sort_impl="tiles")
+    elif layout == "cpu-tiles":
+        cfg = clsplat.RenderConfig(sort_layout="serial", sort_impl="tiles")
     elif layout == "gpu-baseline":  # Oclgrind counts as a CPU: the tuned kernels are its default
         cfg = clsplat.RenderConfig(pix=1, sort_layout="bitonic", sort_local=8, composite_impl="baseline")
     elif layout == "cpu-baseline":
@@ -152,7 +158,8 @@ needs_oclgrind = pytest.mark.skipif(
 _CASES = [("float32", "cpu", 16), ("float64", "cpu", 16),
           ("float32", "gpu", 16), ("float32", "gpu", 32),
           ("float64", "gpu", 16), ("float64", "gpu", 32),
-          ("float32", "cpu-baseline", 16), ("float32", "gpu-baseline", 16)]
+          ("float32", "cpu-baseline", 16), ("float32", "gpu-baseline", 16),
+          ("float32", "cpu-tiles", 16), ("float32", "gpu-tiles", 16)]
 
 
 @pytest.fixture(scope="module")
