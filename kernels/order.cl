@@ -12,21 +12,25 @@
  *
  * Every pass is a stable counting sort, parallel over chunks: work-item c owns the c-th run
  * of `chunk` consecutive input elements and walks it serially, in order.
- *   count:   hist[b * n_chunks + c] = elements of chunk c that fall in bin b (each count
- *            kernel first zeroes its own column);
- *   scan:    an exclusive prefix sum of hist in that bin-major, chunk-minor order gives each
- *            (bin, chunk) its first output position (on the host or by pyopencl's scan,
+ *   count:   counter (b, c) = elements of chunk c that fall in bin b (each count kernel
+ *            first zeroes its own chunk's counters);
+ *   scan:    an exclusive prefix sum of the counters in bin-major, chunk-minor order gives
+ *            each (bin, chunk) its first output position (on the host or by pyopencl's scan,
  *            as for bin.cl);
- *   scatter: chunk c walks its elements again, in order, writing each to pos[b*n_chunks+c]++.
+ *   scatter: chunk c walks its elements again, in order, writing each to position (b, c)++.
  * Within a bin, earlier chunks come first (the scan's order) and a chunk keeps its own order:
- * stable. Each work-item writes only its own column: no atomics, deterministic anywhere.
+ * stable. Each work-item writes only its own counters: no atomics, deterministic anywhere.
+ * Counter (b, c) is stored at c * n_bins + b with HIST_CHUNK_MAJOR (CPUs, where the host
+ * scans: each chunk's counters are its own cache lines, which cores running neighbouring
+ * chunks would otherwise both write), else at b * n_chunks + c (GPUs: the work-items of a
+ * group touch neighbouring words, and the scan is pyopencl's flat one).
  *
  * Depth sort: an LSD radix sort of the 32 depth bits, RADIX_BITS a pass. Pass 0 reads the
  * pairs straight from project's outputs in ascending cg order, drops those that touch no
  * tile and builds the keys; stability keeps equal depths in ascending cg, the full key order.
  * Tile placement: the bins are the (camera, tile) segments; a pair counts into, then writes
  * to, every tile of its rectangle (gathered once into key order first). Chunk 0's scanned positions are the segments' starts.
- * Build parameters: REAL_DOUBLE, RADIX_BITS.
+ * Build parameters: REAL_DOUBLE, RADIX_BITS, HIST_CHUNK_MAJOR.
  */
 
 /* RADIX_BITS (a divisor of 32) comes from the driver, clsplat.stages.ORDER_RADIX_BITS,
@@ -43,38 +47,50 @@ inline int touches_tiles(__global const int *rects, int cg) {
     return rects[4 * cg + 2] > rects[4 * cg] && rects[4 * cg + 3] > rects[4 * cg + 1];
 }
 
-inline void zero_column(__global int *hist, int n_bins, int n_chunks, int c) {
-    for (int b = 0; b < n_bins; ++b) hist[b * n_chunks + c] = 0;
+/* Chunk c's counters: counter b of the chunk is counters(...)[b * COUNTER_STRIDE]. */
+#if HIST_CHUNK_MAJOR
+#define COUNTER_STRIDE(n_chunks) 1
+inline __global int *counters(__global int *hist, int n_bins, int c) { return hist + c * n_bins; }
+#else
+#define COUNTER_STRIDE(n_chunks) (n_chunks)
+inline __global int *counters(__global int *hist, int n_bins, int c) { return hist + c; }
+#endif
+
+inline void zero_counters(__global int *h, int n_bins, int stride) {
+    for (int b = 0; b < n_bins; ++b) h[b * stride] = 0;
 }
 
 /* Pass 0, count: digit `shift` of the depth key of every pair of chunk c that touches a tile. */
 __kernel void depth_count_pairs(const int CN, const int chunk, const int n_chunks,
                                 __global const int *rects,   /* [C, N, 4] */
                                 __global const REAL *depths, /* [C, N] */
-                                __global int *hist)          /* [RADIX_BINS, n_chunks] */
+                                __global int *hist)          /* RADIX_BINS x n_chunks counters */
 {
     const int c = get_global_id(0);
     if (c >= n_chunks) return;
-    zero_column(hist, RADIX_BINS, n_chunks, c);
+    __global int *h = counters(hist, RADIX_BINS, c);
+    const int st = COUNTER_STRIDE(n_chunks);
+    zero_counters(h, RADIX_BINS, st);
     const int lo = c * chunk, hi = min(lo + chunk, CN);
     for (int cg = lo; cg < hi; ++cg)
-        if (touches_tiles(rects, cg))
-            ++hist[radix_digit(depth_key(depths[cg], (uint)cg), 0) * n_chunks + c];
+        if (touches_tiles(rects, cg)) ++h[radix_digit(depth_key(depths[cg], (uint)cg), 0) * st];
 }
 
 /* Pass 0, scatter: the keys of those pairs, placed by their lowest depth digit. */
 __kernel void depth_scatter_pairs(const int CN, const int chunk, const int n_chunks,
                                   __global const int *rects, __global const REAL *depths,
-                                  __global int *pos,    /* [RADIX_BINS, n_chunks] scanned */
+                                  __global int *pos,    /* the scanned counters */
                                   __global ulong *dst)  /* [n visible pairs] */
 {
     const int c = get_global_id(0);
     if (c >= n_chunks) return;
+    __global int *p = counters(pos, RADIX_BINS, c);
+    const int st = COUNTER_STRIDE(n_chunks);
     const int lo = c * chunk, hi = min(lo + chunk, CN);
     for (int cg = lo; cg < hi; ++cg)
         if (touches_tiles(rects, cg)) {
             const ulong key = depth_key(depths[cg], (uint)cg);
-            dst[pos[radix_digit(key, 0) * n_chunks + c]++] = key;
+            dst[p[radix_digit(key, 0) * st]++] = key;
         }
 }
 
@@ -84,9 +100,11 @@ __kernel void depth_count(const int n, const int chunk, const int n_chunks, cons
 {
     const int c = get_global_id(0);
     if (c >= n_chunks) return;
-    zero_column(hist, RADIX_BINS, n_chunks, c);
+    __global int *h = counters(hist, RADIX_BINS, c);
+    const int st = COUNTER_STRIDE(n_chunks);
+    zero_counters(h, RADIX_BINS, st);
     const int lo = c * chunk, hi = min(lo + chunk, n);
-    for (int i = lo; i < hi; ++i) ++hist[radix_digit(src[i], shift) * n_chunks + c];
+    for (int i = lo; i < hi; ++i) ++h[radix_digit(src[i], shift) * st];
 }
 
 __kernel void depth_scatter(const int n, const int chunk, const int n_chunks, const int shift,
@@ -94,10 +112,12 @@ __kernel void depth_scatter(const int n, const int chunk, const int n_chunks, co
 {
     const int c = get_global_id(0);
     if (c >= n_chunks) return;
+    __global int *p = counters(pos, RADIX_BINS, c);
+    const int st = COUNTER_STRIDE(n_chunks);
     const int lo = c * chunk, hi = min(lo + chunk, n);
     for (int i = lo; i < hi; ++i) {
         const ulong key = src[i];
-        dst[pos[radix_digit(key, shift) * n_chunks + c]++] = key;
+        dst[p[radix_digit(key, shift) * st]++] = key;
     }
 }
 
@@ -127,43 +147,123 @@ __kernel void gather_rects(const int n, const int chunk, const int n_chunks, con
 __kernel void place_count(const int n, const int chunk, const int n_chunks, const int tiles_x,
                           const int n_tiles,
                           __global const int *srects,  /* [n, 4] from gather_rects */
-                          __global int *hist)          /* [n_tiles, n_chunks] */
+                          __global int *hist)          /* n_tiles x n_chunks counters */
 {
     const int c = get_global_id(0);
     if (c >= n_chunks) return;
-    zero_column(hist, n_tiles, n_chunks, c);
+    __global int *h = counters(hist, n_tiles, c);
+    const int st = COUNTER_STRIDE(n_chunks);
+    zero_counters(h, n_tiles, st);
     const int lo = c * chunk, hi = min(lo + chunk, n);
     for (int i = lo; i < hi; ++i) {
         const int4 r = vload4(i, srects);
         for (int ty = r.y; ty < r.w; ++ty)
-            for (int tx = r.x; tx < r.z; ++tx) ++hist[(ty * tiles_x + tx) * n_chunks + c];
+            for (int tx = r.x; tx < r.z; ++tx) ++h[(ty * tiles_x + tx) * st];
     }
 }
 
 /* Segment starts: chunk 0's scanned position of each segment; offsets[n_tiles] = total. */
 __kernel void segment_starts(const int n_tiles, const int n_chunks, const int total,
-                             __global const int *pos,  /* [n_tiles, n_chunks] scanned */
+                             __global const int *pos,  /* the scanned counters */
                              __global int *offsets)    /* [n_tiles + 1] */
 {
     const int t = get_global_id(0);
     if (t > n_tiles) return;
-    offsets[t] = t < n_tiles ? pos[t * n_chunks] : total;
+    offsets[t] = t < n_tiles ? pos[t * COUNTER_STRIDE(n_chunks)] : total; /* chunk 0's */
 }
 
 /* Tile placement, scatter: each key into every tile of its rectangle, in depth order. */
 __kernel void place_scatter(const int n, const int chunk, const int n_chunks, const int tiles_x,
+                            const int n_tiles,
                             __global const ulong *keys,  /* [n] depth-sorted */
                             __global const int *srects,  /* [n, 4] from gather_rects */
-                            __global int *pos,           /* [n_tiles, n_chunks] scanned */
+                            __global int *pos,           /* the scanned counters */
                             __global ulong *out)         /* [M] the tile lists */
 {
     const int c = get_global_id(0);
     if (c >= n_chunks) return;
+    __global int *p = counters(pos, n_tiles, c);
+    const int st = COUNTER_STRIDE(n_chunks);
     const int lo = c * chunk, hi = min(lo + chunk, n);
     for (int i = lo; i < hi; ++i) {
         const ulong key = keys[i];
         const int4 r = vload4(i, srects);
         for (int ty = r.y; ty < r.w; ++ty)
-            for (int tx = r.x; tx < r.z; ++tx) out[pos[(ty * tiles_x + tx) * n_chunks + c]++] = key;
+            for (int tx = r.x; tx < r.z; ++tx) out[p[(ty * tiles_x + tx) * st]++] = key;
+    }
+}
+
+/* The same passes in one work-item, scans included, for the serial layout's small inputs
+ * (clsplat.stages.ORDER_SMALL): one launch and no host round trip per pass, where the
+ * chunked passes' launches and waits cost more than the work (a 10k-pair render paid 2-3x
+ * the per-tile sort's time). The order is the chunked passes' with one chunk: the same lists.
+ * Counters are in cnt: RADIX_BINS during the sort, n_tiles during the placement. */
+__kernel void order_small(const int CN, const int N, const int tiles_x, const int tiles_y,
+                          const int n_tiles,
+                          __global const int *rects,   /* [C, N, 4] */
+                          __global const REAL *depths, /* [C, N] */
+                          __global ulong *a,           /* [pairs that touch a tile] scratch */
+                          __global ulong *b,           /* [the same] scratch */
+                          __global int *cnt,           /* [max(RADIX_BINS, n_tiles)] scratch */
+                          __global int *offsets,       /* [n_tiles + 1] */
+                          __global ulong *out)         /* [M] the tile lists */
+{
+    if (get_global_id(0) != 0) return; /* no barrier in this kernel */
+    for (int d = 0; d < RADIX_BINS; ++d) cnt[d] = 0;
+    for (int cg = 0; cg < CN; ++cg)
+        if (touches_tiles(rects, cg)) ++cnt[radix_digit(depth_key(depths[cg], (uint)cg), 0)];
+    int n = 0;
+    for (int d = 0; d < RADIX_BINS; ++d) {
+        const int k = cnt[d];
+        cnt[d] = n;
+        n += k;
+    }
+    for (int cg = 0; cg < CN; ++cg)
+        if (touches_tiles(rects, cg)) {
+            const ulong key = depth_key(depths[cg], (uint)cg);
+            a[cnt[radix_digit(key, 0)]++] = key;
+        }
+    __global ulong *src = a, *dst = b;
+    for (int shift = RADIX_BITS; shift < 32; shift += RADIX_BITS) {
+        for (int d = 0; d < RADIX_BINS; ++d) cnt[d] = 0;
+        for (int i = 0; i < n; ++i) ++cnt[radix_digit(src[i], shift)];
+        int run = 0, trivial = 0;
+        for (int d = 0; d < RADIX_BINS; ++d) {
+            const int k = cnt[d];
+            trivial |= k == n;
+            cnt[d] = run;
+            run += k;
+        }
+        if (trivial) continue; /* one bin holds every key: the pass would change nothing */
+        for (int i = 0; i < n; ++i) {
+            const ulong key = src[i];
+            dst[cnt[radix_digit(key, shift)]++] = key;
+        }
+        __global ulong *t = src;
+        src = dst;
+        dst = t;
+    }
+    for (int t = 0; t < n_tiles; ++t) cnt[t] = 0;
+    for (int i = 0; i < n; ++i) {
+        const int cg = (int)key_id(src[i]);
+        const int4 r = vload4(cg, rects);
+        const int base = (cg / N) * tiles_x * tiles_y;
+        for (int ty = r.y; ty < r.w; ++ty)
+            for (int tx = r.x; tx < r.z; ++tx) ++cnt[base + ty * tiles_x + tx];
+    }
+    int total = 0;
+    for (int t = 0; t < n_tiles; ++t) {
+        const int k = cnt[t];
+        offsets[t] = cnt[t] = total;
+        total += k;
+    }
+    offsets[n_tiles] = total;
+    for (int i = 0; i < n; ++i) {
+        const ulong key = src[i];
+        const int cg = (int)key_id(key);
+        const int4 r = vload4(cg, rects);
+        const int base = (cg / N) * tiles_x * tiles_y;
+        for (int ty = r.y; ty < r.w; ++ty)
+            for (int tx = r.x; tx < r.z; ++tx) out[cnt[base + ty * tiles_x + tx]++] = key;
     }
 }

@@ -70,13 +70,14 @@ def test_same_tile_lists_as_the_per_tile_sort(rt, monkeypatch, scan, layout, chu
     assert len(k) == int(((rects[..., 2] - rects[..., 0]) * (rects[..., 3] - rects[..., 1])).sum())
 
 
-@pytest.mark.parametrize("layout", ["serial", "bitonic"])
-def test_all_depths_equal_and_trivial_passes(rt, layout):
-    """One depth for every pair: each radix pass after the first is trivial (skipped where the
-    host scans); the lists are then in c*N+g order, as the baseline's."""
+@pytest.mark.parametrize("layout,chunks", [("serial", None), ("serial", 5), ("bitonic", 5)])
+def test_all_depths_equal_and_trivial_passes(rt, layout, chunks):
+    """One depth for every pair: each radix pass after the first is trivial (skipped in
+    order_small, the serial layout's default at this size, and where the host scans); the
+    lists are then in c*N+g order, as the baseline's."""
     rects, depths = random_pairs(5, 2, 3000, 9, 5, None, torch.float32)
     depths[:] = 7.25
-    cfg = RenderConfig(sort_layout=layout, sort_chunks=5)
+    cfg = RenderConfig(sort_layout=layout, sort_chunks=chunks)
     (off, keys), (off_b, keys_b) = both(rt, cfg, rects, depths, 72, 40, 8)
     assert torch.equal(off, off_b) and torch.equal(keys, keys_b)
     ids = keys & 0xFFFFFFFF
@@ -85,9 +86,10 @@ def test_all_depths_equal_and_trivial_passes(rt, layout):
 
 
 def test_default_chunks_split_a_large_pass(rt):
-    """The serial layout splits a large pass into several chunks (the multi-chunk scan is
-    what the default path runs at scale), and the lists still equal the baseline's."""
+    """Above ORDER_SMALL pairs the serial layout splits each pass into several chunks (what
+    the default path runs at scale), and the lists still equal the baseline's."""
     n = 50_000
+    assert n > stages.ORDER_SMALL
     assert stages._order_chunks(rt, RenderConfig(sort_layout="serial"), n, 256, n) > 1
     rects, depths = random_pairs(11, 1, n, 40, 22, 50, torch.float32)
     (off, keys), (off_b, keys_b) = both(rt, RenderConfig(sort_layout="serial"), rects, depths, 640, 352, 16)
