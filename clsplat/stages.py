@@ -288,9 +288,10 @@ ORDER_MIN_CHUNK = 2048
 #: GPU layout: keys per work-item; the radix counters then number about as many as the keys.
 ORDER_GPU_CHUNK = 256
 #: Serial layout: up to this many pairs that touch a tile, the whole stage runs in one
-#: work-item (kernels/order.cl's order_small): one launch and one wait instead of a launch
-#: pair and a host scan per pass. Measured on the 2-core VM (process CPU time of the stage):
-#: at 10k pairs the chunked passes cost 3.1 ms against the per-tile sort's 1.8 ms.
+#: work-item (kernels/order.cl's order_small): one launch instead of three per pass (count,
+#: scan, scatter) and the placement's. Measured on the loaded 2-core VM (/tmp-style A/B, 9
+#: rounds): at 10k pairs 0.8 ms (CPU and wall) against the chunked passes' 2.7 ms CPU, 6.7 ms
+#: wall and the per-tile sort's 1.8 ms; at 30k 2.0 against 3.2 ms CPU; at 100k about even.
 ORDER_SMALL = 1 << 15
 
 
@@ -317,44 +318,32 @@ def _sort_serial(rt: Runtime, cfg: RenderConfig) -> bool:
     return (cfg.sort_layout or ("serial" if rt.is_cpu else "bitonic")) == "serial"
 
 
-def _counting_pass(rt: Runtime, cfg: RenderConfig, count: cl.Kernel, scatter: cl.Kernel,
-                   n_chunks: int, n_bins: int, n_elems: int, head: tuple, count_args: tuple,
-                   scatter_args: tuple, name: str, events, chunk_major: bool,
-                   skip_trivial: bool = False,
-                   after_scan: Callable[[DeviceArray], None] | None = None) -> bool:
-    """One stable counting pass of kernels/order.cl: count (``head + count_args + (hist,)``),
-    exclusive scan in (bin, chunk) order, scatter (``head + scatter_args`` with the scanned
-    positions where ``None`` stands). ``chunk_major``: the counters are stored chunk-major
-    (HIST_CHUNK_MAJOR; the host scans them through a transpose). ``skip_trivial``: where the
-    host scans, a pass whose elements all fall in one bin changes nothing and is skipped
-    (returns False)."""
+def _counting_pass(rt: Runtime, cfg: RenderConfig, k: Callable[[str], cl.Kernel], count: str,
+                   scatter: str, n_chunks: int, n_bins: int, head: tuple, count_args: tuple,
+                   scatter_args: tuple, name: str, events, own_scan: bool,
+                   after_scan: Callable[[DeviceArray], None] | None = None) -> None:
+    """One stable counting pass of kernels/order.cl, all on the device: count (``head +
+    count_args + (hist,)``), exclusive scan in (bin, chunk) order (``own_scan``: the kernel
+    scan_counters, else pyopencl's), scatter (``head + scatter_args`` with the scanned
+    positions where ``None`` stands)."""
     local = 1 if _sort_serial(rt, cfg) else LOCAL_1D  # serial: one chunk per work-group, so
     # PoCL spreads the chunks over its threads (it runs a work-group's items on one thread)
     hist = rt.empty((n_bins * n_chunks,), torch.int32, zero=False)
-    _record(events, name, rt.launch(count, n_chunks, local, *head, *count_args, hist.buffer))
     pos = rt.empty((n_bins * n_chunks,), torch.int32, zero=False)
-    if chunk_major:  # only where the host scans (see depth_tiles)
-        h = hist.host().view(n_chunks, n_bins)
-        if skip_trivial and int(h.sum(0).max()) == n_elems:
-            return False
-        t = h.t().reshape(-1).to(torch.int64)  # bin-major, chunk-minor: the scan's order
-        ex = (torch.cumsum(t, 0) - t).to(torch.int32).view(n_bins, n_chunks).t()
-        rt.launches += 1  # writes pos (see Runtime.launches)
-        if pos.zero_copy and rt.computes_in_host_memory:
-            pos.tensor.view(n_chunks, n_bins).copy_(ex)
-            pos.synced_at = rt.launches
-        else:
-            cl.enqueue_copy(rt.queue, pos.buffer, ex.contiguous().numpy(), is_blocking=True)
+    _record(events, name, rt.launch(k(count), n_chunks, local, *head, *count_args, hist.buffer))
+    if own_scan:
+        _record(events, name, rt.launch(k("scan_counters"), 1, 1, np.int32(n_bins),
+                                        np.int32(n_chunks), hist.buffer, pos.buffer))
     else:
-        if skip_trivial and _host_scan(rt):
-            if int(hist.host().view(n_bins, n_chunks).sum(1).max()) == n_elems:
-                return False
-        _scan_exclusive(rt, hist, pos, events)
+        a = cl_array.Array(rt.queue, (n_bins * n_chunks,), np.int32, data=hist.buffer)
+        b = cl_array.Array(rt.queue, (n_bins * n_chunks,), np.int32, data=pos.buffer)
+        rt.hold(hist.buffer, pos.buffer)
+        rt.launches += 1  # writes pos (see Runtime.launches)
+        _record(events, "scan", rt.exclusive_scan_int32()(a, b, queue=rt.queue))
     if after_scan is not None:
         after_scan(pos)
     args = tuple(pos.buffer if a is None else a for a in scatter_args)
-    _record(events, name, rt.launch(scatter, n_chunks, local, *head, *args))
-    return True
+    _record(events, name, rt.launch(k(scatter), n_chunks, local, *head, *args))
 
 
 def depth_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: DeviceArray,
@@ -380,12 +369,16 @@ def depth_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Devi
     keys = rt.empty((total,), torch.int64, zero=False)
     if n == 0:
         return offsets, keys
-    chunk_major = _sort_serial(rt, cfg) and _host_scan(rt)
+    # The serial layout's few chunks are scanned by one work-item, chunk-major; the GPU
+    # layout's many by pyopencl's scan, bin-major (by scan_counters too where that scan cannot
+    # run: CLSPLAT_HOST_SCAN=1, see _host_scan). No pass waits for the host.
+    serial = _sort_serial(rt, cfg)
+    own_scan = serial or _host_scan(rt)
     defines = {"REAL_DOUBLE": cfg.precision == "float64", "RADIX_BITS": ORDER_RADIX_BITS,
-               "HIST_CHUNK_MAJOR": chunk_major}
+               "HIST_CHUNK_MAJOR": serial}
     k = lambda name: rt.kernel("order", name, defines)  # noqa: E731
     bins = 1 << ORDER_RADIX_BITS
-    if cfg.sort_chunks is None and _sort_serial(rt, cfg) and n <= ORDER_SMALL:
+    if cfg.sort_chunks is None and serial and n <= ORDER_SMALL:
         scratch = [rt.empty((n,), torch.int64, zero=False) for _ in range(2)]
         cnt = rt.empty((max(bins, n_tiles),), torch.int32, zero=False)
         _record(events, "sort_small", rt.launch(
@@ -399,21 +392,20 @@ def depth_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Devi
     chunk = -(-(C * N) // ch)
     src, dst = rt.empty((n,), torch.int64, zero=False), rt.empty((n,), torch.int64, zero=False)
     head = (np.int32(C * N), np.int32(chunk), np.int32(ch))
-    _counting_pass(rt, cfg, k("depth_count_pairs"), k("depth_scatter_pairs"), ch, bins, n, head,
+    _counting_pass(rt, cfg, k, "depth_count_pairs", "depth_scatter_pairs", ch, bins, head,
                    (rects.buffer, depths.buffer), (rects.buffer, depths.buffer, None, src.buffer),
-                   "sort_depth", events, chunk_major)
+                   "sort_depth", events, own_scan)
     ch = _order_chunks(rt, cfg, n, bins, n)
     chunk = -(-n // ch)
     head = (np.int32(n), np.int32(chunk), np.int32(ch))
     for shift in range(ORDER_RADIX_BITS, 32, ORDER_RADIX_BITS):
-        if _counting_pass(rt, cfg, k("depth_count"), k("depth_scatter"), ch, bins, n,
-                          head + (np.int32(shift),), (src.buffer,), (src.buffer, None, dst.buffer),
-                          "sort_depth", events, chunk_major, skip_trivial=True):
-            src, dst = dst, src
+        _counting_pass(rt, cfg, k, "depth_count", "depth_scatter", ch, bins, head + (np.int32(shift),),
+                       (src.buffer,), (src.buffer, None, dst.buffer), "sort_depth", events, own_scan)
+        src, dst = dst, src
     # the tile placement: bins are the (camera, tile) segments
     srects = rt.empty((n, 4), torch.int32, zero=False)
     _record(events, "bin_gather", rt.launch(
-        k("gather_rects"), ch, 1 if _sort_serial(rt, cfg) else LOCAL_1D, *head, np.int32(N),
+        k("gather_rects"), ch, 1 if serial else LOCAL_1D, *head, np.int32(N),
         np.int32(tiles_y), src.buffer, rects.buffer, srects.buffer))
     ch = _order_chunks(rt, cfg, n, n_tiles, total)
     chunk = -(-n // ch)
@@ -424,10 +416,10 @@ def depth_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Devi
             k("segment_starts"), n_tiles + 1, LOCAL_1D, np.int32(n_tiles), np.int32(ch),
             np.int32(total), pos.buffer, offsets.buffer))
 
-    _counting_pass(rt, cfg, k("place_count"), k("place_scatter"), ch, n_tiles, total, head,
+    _counting_pass(rt, cfg, k, "place_count", "place_scatter", ch, n_tiles, head,
                    (np.int32(n_tiles), srects.buffer),
                    (np.int32(n_tiles), src.buffer, srects.buffer, None, keys.buffer), "bin_place",
-                   events, chunk_major, after_scan=starts)
+                   events, own_scan, after_scan=starts)
     check_tile_offsets(offsets.host(), total)
     return offsets, keys
 

@@ -15,15 +15,15 @@
  *   count:   counter (b, c) = elements of chunk c that fall in bin b (each count kernel
  *            first zeroes its own chunk's counters);
  *   scan:    an exclusive prefix sum of the counters in bin-major, chunk-minor order gives
- *            each (bin, chunk) its first output position (on the host or by pyopencl's scan,
- *            as for bin.cl);
+ *            each (bin, chunk) its first output position (scan_counters, or pyopencl's scan
+ *            in the GPU layout);
  *   scatter: chunk c walks its elements again, in order, writing each to position (b, c)++.
  * Within a bin, earlier chunks come first (the scan's order) and a chunk keeps its own order:
  * stable. Each work-item writes only its own counters: no atomics, deterministic anywhere.
- * Counter (b, c) is stored at c * n_bins + b with HIST_CHUNK_MAJOR (CPUs, where the host
- * scans: each chunk's counters are its own cache lines, which cores running neighbouring
- * chunks would otherwise both write), else at b * n_chunks + c (GPUs: the work-items of a
- * group touch neighbouring words, and the scan is pyopencl's flat one).
+ * Counter (b, c) is stored at c * n_bins + b with HIST_CHUNK_MAJOR (the serial layout: each
+ * chunk's counters are its own cache lines, which cores running neighbouring chunks would
+ * otherwise both write), else at b * n_chunks + c (GPUs: the work-items of a group touch
+ * neighbouring words, and pyopencl's flat scan reads them in order).
  *
  * Depth sort: an LSD radix sort of the 32 depth bits, RADIX_BITS a pass. Pass 0 reads the
  * pairs straight from project's outputs in ascending cg order, drops those that touch no
@@ -47,14 +47,17 @@ inline int touches_tiles(__global const int *rects, int cg) {
     return rects[4 * cg + 2] > rects[4 * cg] && rects[4 * cg + 3] > rects[4 * cg + 1];
 }
 
-/* Chunk c's counters: counter b of the chunk is counters(...)[b * COUNTER_STRIDE]. */
+/* Where counter (b, c) lives; chunk c's counter b is counters(hist, n_bins, c)[b * stride]. */
 #if HIST_CHUNK_MAJOR
+#define COUNTER(b, c, n_bins, n_chunks) ((c) * (n_bins) + (b))
 #define COUNTER_STRIDE(n_chunks) 1
-inline __global int *counters(__global int *hist, int n_bins, int c) { return hist + c * n_bins; }
 #else
+#define COUNTER(b, c, n_bins, n_chunks) ((b) * (n_chunks) + (c))
 #define COUNTER_STRIDE(n_chunks) (n_chunks)
-inline __global int *counters(__global int *hist, int n_bins, int c) { return hist + c; }
 #endif
+inline __global int *counters(__global int *hist, int n_bins, int n_chunks, int c) {
+    return hist + COUNTER(0, c, n_bins, n_chunks);
+}
 
 inline void zero_counters(__global int *h, int n_bins, int stride) {
     for (int b = 0; b < n_bins; ++b) h[b * stride] = 0;
@@ -68,7 +71,7 @@ __kernel void depth_count_pairs(const int CN, const int chunk, const int n_chunk
 {
     const int c = get_global_id(0);
     if (c >= n_chunks) return;
-    __global int *h = counters(hist, RADIX_BINS, c);
+    __global int *h = counters(hist, RADIX_BINS, n_chunks, c);
     const int st = COUNTER_STRIDE(n_chunks);
     zero_counters(h, RADIX_BINS, st);
     const int lo = c * chunk, hi = min(lo + chunk, CN);
@@ -84,7 +87,7 @@ __kernel void depth_scatter_pairs(const int CN, const int chunk, const int n_chu
 {
     const int c = get_global_id(0);
     if (c >= n_chunks) return;
-    __global int *p = counters(pos, RADIX_BINS, c);
+    __global int *p = counters(pos, RADIX_BINS, n_chunks, c);
     const int st = COUNTER_STRIDE(n_chunks);
     const int lo = c * chunk, hi = min(lo + chunk, CN);
     for (int cg = lo; cg < hi; ++cg)
@@ -100,7 +103,7 @@ __kernel void depth_count(const int n, const int chunk, const int n_chunks, cons
 {
     const int c = get_global_id(0);
     if (c >= n_chunks) return;
-    __global int *h = counters(hist, RADIX_BINS, c);
+    __global int *h = counters(hist, RADIX_BINS, n_chunks, c);
     const int st = COUNTER_STRIDE(n_chunks);
     zero_counters(h, RADIX_BINS, st);
     const int lo = c * chunk, hi = min(lo + chunk, n);
@@ -112,7 +115,7 @@ __kernel void depth_scatter(const int n, const int chunk, const int n_chunks, co
 {
     const int c = get_global_id(0);
     if (c >= n_chunks) return;
-    __global int *p = counters(pos, RADIX_BINS, c);
+    __global int *p = counters(pos, RADIX_BINS, n_chunks, c);
     const int st = COUNTER_STRIDE(n_chunks);
     const int lo = c * chunk, hi = min(lo + chunk, n);
     for (int i = lo; i < hi; ++i) {
@@ -151,7 +154,7 @@ __kernel void place_count(const int n, const int chunk, const int n_chunks, cons
 {
     const int c = get_global_id(0);
     if (c >= n_chunks) return;
-    __global int *h = counters(hist, n_tiles, c);
+    __global int *h = counters(hist, n_tiles, n_chunks, c);
     const int st = COUNTER_STRIDE(n_chunks);
     zero_counters(h, n_tiles, st);
     const int lo = c * chunk, hi = min(lo + chunk, n);
@@ -162,6 +165,23 @@ __kernel void place_count(const int n, const int chunk, const int n_chunks, cons
     }
 }
 
+/* The exclusive prefix sum of the counters in (bin, chunk) order, in one work-item: the serial
+ * layout's few chunks make a few thousand counters (and where pyopencl's scan cannot run, e.g.
+ * under Oclgrind's uninitialised-value checker, the GPU layout's too). Run on the device, it
+ * spares the host a wait for the count kernel: under load each wait cost milliseconds. */
+__kernel void scan_counters(const int n_bins, const int n_chunks,
+                            __global const int *hist, __global int *pos)
+{
+    if (get_global_id(0) != 0) return; /* no barrier in this kernel */
+    int run = 0;
+    for (int b = 0; b < n_bins; ++b)
+        for (int c = 0; c < n_chunks; ++c) {
+            const int i = COUNTER(b, c, n_bins, n_chunks);
+            pos[i] = run;
+            run += hist[i];
+        }
+}
+
 /* Segment starts: chunk 0's scanned position of each segment; offsets[n_tiles] = total. */
 __kernel void segment_starts(const int n_tiles, const int n_chunks, const int total,
                              __global const int *pos,  /* the scanned counters */
@@ -169,7 +189,7 @@ __kernel void segment_starts(const int n_tiles, const int n_chunks, const int to
 {
     const int t = get_global_id(0);
     if (t > n_tiles) return;
-    offsets[t] = t < n_tiles ? pos[t * COUNTER_STRIDE(n_chunks)] : total; /* chunk 0's */
+    offsets[t] = t < n_tiles ? pos[COUNTER(t, 0, n_tiles, n_chunks)] : total; /* chunk 0's */
 }
 
 /* Tile placement, scatter: each key into every tile of its rectangle, in depth order. */
@@ -182,7 +202,7 @@ __kernel void place_scatter(const int n, const int chunk, const int n_chunks, co
 {
     const int c = get_global_id(0);
     if (c >= n_chunks) return;
-    __global int *p = counters(pos, n_tiles, c);
+    __global int *p = counters(pos, n_tiles, n_chunks, c);
     const int st = COUNTER_STRIDE(n_chunks);
     const int lo = c * chunk, hi = min(lo + chunk, n);
     for (int i = lo; i < hi; ++i) {

@@ -72,9 +72,9 @@ def test_same_tile_lists_as_the_per_tile_sort(rt, monkeypatch, scan, layout, chu
 
 @pytest.mark.parametrize("layout,chunks", [("serial", None), ("serial", 5), ("bitonic", 5)])
 def test_all_depths_equal_and_trivial_passes(rt, layout, chunks):
-    """One depth for every pair: each radix pass after the first is trivial (skipped in
-    order_small, the serial layout's default at this size, and where the host scans); the
-    lists are then in c*N+g order, as the baseline's."""
+    """One depth for every pair: each radix pass after the first is trivial (order_small, the
+    serial layout's default at this size, skips them); the lists are then in c*N+g order, as
+    the baseline's."""
     rects, depths = random_pairs(5, 2, 3000, 9, 5, None, torch.float32)
     depths[:] = 7.25
     cfg = RenderConfig(sort_layout=layout, sort_chunks=chunks)

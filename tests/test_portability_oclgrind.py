@@ -3,12 +3,13 @@
 Oclgrind (Debian ``oclgrind``) simulates a strict OpenCL 1.2 device. Each case runs in a
 subprocess whose only OpenCL platform is Oclgrind (an ICD folder holding one ``.icd`` file,
 named by ``OCL_ICD_VENDORS``), with its data-race checker on, in the CPU layout (vectors of
-pixels per work-item, the depth sort's passes in one chunk a work-group) and in the GPU layout
-(one pixel per work-item, the depth sort's passes over 3 chunks in one work-group), tile 16
-and 32, float32 and float64; Oclgrind's device counts as a CPU, so these run the tuned
-compositing kernels, and two more cases the baseline ones
-(``RenderConfig(composite_impl="baseline")``, the GPU default), two more the baseline sort
-(``sort_impl="tiles"``: serial segment sort; bitonic sort in local memory). Images and every
+pixels per work-item; kernels/order.cl's passes over 3 chunks, one a work-group, counters
+chunk-major) and in the GPU layout (one pixel per work-item; the passes over 3 chunks in one
+work-group, counters bin-major), tile 16 and 32, float32 and float64; Oclgrind's device counts
+as a CPU, so these run the tuned compositing kernels, and two more cases the baseline ones
+(``RenderConfig(composite_impl="baseline")``, the GPU default; the CPU one with the default
+chunks, i.e. order_small at this size), two more the baseline sort (``sort_impl="tiles"``:
+serial segment sort; bitonic sort in local memory). Images and every
 gradient must match PoCL's, and no report may name a clsplat kernel (pyopencl's own scan has
 a read-write race of its own; see README). The uninitialised-memory checker runs the whole
 forward and the compositing backward on both host-memory paths, with the scan done on the
@@ -65,8 +66,8 @@ _SCRIPT = textwrap.dedent('''
         cfg = clsplat.RenderConfig(pix=1, sort_layout="bitonic", sort_local=8, composite_impl="baseline")
     elif layout == "cpu-baseline":
         cfg = clsplat.RenderConfig(sort_layout="serial", composite_impl="baseline")
-    elif layout == "cpu":
-        cfg = clsplat.RenderConfig(sort_layout="serial")
+    elif layout == "cpu":  # 3 chunks: the chunked passes (the baseline case runs order_small)
+        cfg = clsplat.RenderConfig(sort_layout="serial", sort_chunks=3)
     else:
         cfg = clsplat.RenderConfig()
     if mode == "uninit":  # the checker crashes on reduce_slots: sum the slots in torch
@@ -180,9 +181,7 @@ def pocl_results(tmp_path_factory):
 @needs_oclgrind
 @pytest.mark.parametrize("precision,layout,tile", _CASES)
 def test_oclgrind_matches_pocl_with_race_checker(tmp_path, pocl_results, precision, layout, tile):
-    # the CPU layout scans on the host, as on PoCL's CPU device: the depth sort's counters are
-    # then chunk-major (kernels/order.cl), the layout the race checker must see there
-    env = _oclgrind_env(tmp_path, OCLGRIND_DATA_RACES="1", **({"CLSPLAT_HOST_SCAN": "1"} if layout == "cpu" else {}))
+    env = _oclgrind_env(tmp_path, OCLGRIND_DATA_RACES="1")
     got, log = _run(tmp_path, env, precision, layout, str(tile), "full")
     bad = _reported_kernels(log) - _PYOPENCL_SCAN
     assert not bad, f"Oclgrind reports errors in clsplat kernels {sorted(bad)}:\n{log[-4000:]}"

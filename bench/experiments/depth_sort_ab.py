@@ -1,7 +1,7 @@
 """Depth sort once (``RenderConfig.sort_impl="depth"``) against the per-tile sort ("tiles"),
 interleaved in one process: the sort stage's table of bench/notes/engine_render_plan.md §5.
 
-    python bench/experiments/depth_sort_ab.py [--ns 10000,100000,1000000] [--rounds 7]
+    python bench/experiments/depth_sort_ab.py [--ns 10000,100000,300000,1000000] [--rounds 7]
 
 For each N, one scene of :func:`clsplat.bench.scenes.sweep_n` (one 640x352 camera, Gaussians
 of scene A's sizes) is projected once; then ``--rounds`` rounds each call
@@ -9,11 +9,13 @@ of scene A's sizes) is projected once; then ``--rounds`` rounds each call
 after one warm-up call of each. Per call: the device milliseconds of each stage from the
 profiling events (the "sort" stage: every event whose name starts with ``sort``, i.e.
 ``sort_serial`` / ``sort_local`` / ``sort_merge`` against ``sort_depth``; "bin": ``bin_*``)
-and the wall time of the whole call with the queue drained before and after (it includes the
-host's scans and waits, which no event holds). The two implementations' tile lists must be
-equal, key for key (checked on every call). Prints one JSON line per N with the medians, the
-depth / tiles ratios of the medians, the median of the per-round ratios, then the log-log
-slopes of each median against N (over all N, and between the two largest).
+("stage": both), the wall time of the whole call with the queue drained before and after
+(it includes the host's scans and waits, which no event holds) and the process's CPU time
+over the call (all threads, PoCL's included: the work done, which waiting for a core on a
+loaded machine does not stretch). The two implementations' tile lists must be equal, key for
+key (checked on every call). Prints one JSON line per N with the medians, the depth / tiles
+ratios of the medians and the median of the per-round ratios, then the log-log slopes of
+each median against N (a fit over every N >= 100000, and over all N).
 """
 from __future__ import annotations
 
@@ -34,27 +36,29 @@ from clsplat.runtime import get_runtime
 __all__ = ["main"]
 
 IMPLS = ("tiles", "depth")
+KEYS = ("sort", "bin", "stage", "wall", "cpu")
 
 
 def _one_call(rt, cfg, p, scene) -> tuple[dict, torch.Tensor, torch.Tensor]:
     """Wall ms, device ms per stage group, and the tile lists of one :func:`tile_lists` call."""
     events: list = []
     rt.finish()
-    t0 = time.perf_counter()
+    c0, t0 = time.process_time(), time.perf_counter()
     off, keys = stages.tile_lists(rt, cfg, p.rects, p.depths, scene["width"], scene["height"], 16,
                                   events=events)
     rt.finish()
-    wall = (time.perf_counter() - t0) * 1e3
-    t = {"wall": wall, "sort": 0.0, "bin": 0.0}
+    wall, cpu = (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
+    t = {"wall": wall, "cpu": cpu, "sort": 0.0, "bin": 0.0}
     for name, ev in events:
         t["sort" if name.startswith("sort") else "bin"] += event_ms(ev)
+    t["stage"] = t["sort"] + t["bin"]
     return t, off.host().clone(), keys.host().clone()
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python bench/experiments/depth_sort_ab.py",
                                  description=__doc__.split("\n")[0])
-    ap.add_argument("--ns", default="10000,100000,1000000")
+    ap.add_argument("--ns", default="10000,100000,300000,1000000")
     ap.add_argument("--rounds", type=int, default=7)
     a = ap.parse_args(argv)
     ns = [int(x) for x in a.ns.split(",")]
@@ -82,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
             if not (torch.equal(got["tiles"][0], got["depth"][0]) and torch.equal(got["tiles"][1], got["depth"][1])):
                 raise SystemExit(f"N={sc['means'].shape[0]}: the tile lists differ between the implementations")
         row = {"n": int(sc["means"].shape[0]), "intersections": int(got["depth"][1].numel()), "rounds": a.rounds}
-        for key in ("sort", "bin", "wall"):
+        for key in KEYS:
             med = {impl: statistics.median(t[key] for t in times[impl]) for impl in IMPLS}
             row[key] = {"tiles_ms": round(med["tiles"], 3), "depth_ms": round(med["depth"], 3),
                         "ratio": round(med["depth"] / med["tiles"], 4),
@@ -93,11 +97,13 @@ def main(argv: list[str] | None = None) -> int:
     if len(rows) > 1:
         x = np.log10([r["n"] for r in rows])
         slopes = {}
-        for key in ("sort", "bin", "wall"):
+        big = np.array([r["n"] >= 100_000 for r in rows])
+        for key in KEYS:
             for impl in IMPLS:
                 y = np.log10([max(r[key][f"{impl}_ms"], 1e-6) for r in rows])
                 slopes[f"{key}_{impl}_all"] = round(float(np.polyfit(x, y, 1)[0]), 3)
-                slopes[f"{key}_{impl}_last2"] = round(float((y[-1] - y[-2]) / (x[-1] - x[-2])), 3)
+                if big.sum() > 1:
+                    slopes[f"{key}_{impl}_from_100k"] = round(float(np.polyfit(x[big], y[big], 1)[0]), 3)
         print(json.dumps({"loglog_slope": slopes}), flush=True)
     return 0
 
