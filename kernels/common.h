@@ -494,4 +494,28 @@ inline REAL3 camera_centre(__global const REAL *vm) {
                     vm[2] * t.x + vm[6] * t.y + vm[10] * t.z);
 }
 
+/* ---- the compositors' batch staging (composite.cl, composite_bwd.cl) ------------------ */
+/* CLS_TUNED (RenderConfig.composite_impl): 1, the default and the CPU build, stages a batch of
+ * Gaussians in local memory as structure-of-arrays, one array per field, so that the extent
+ * tests load whole vectors; 0 (the baseline, the GPU default) as array-of-structures (x, y
+ * pairs and conic triples). S_X .. S_CC read sample k of the staged batch in either layout, so
+ * the compositing loops, forward and backward, are written once for both; each kernel declares
+ * the arrays the macros name. */
+#ifndef CLS_TUNED
+#define CLS_TUNED 1
+#endif
+#if CLS_TUNED
+#define S_X(k) l_x[k]
+#define S_Y(k) l_y[k]
+#define S_CA(k) l_ca[k]
+#define S_CB(k) l_cb[k]
+#define S_CC(k) l_cc[k]
+#else
+#define S_X(k) l_xy[2 * (k)]
+#define S_Y(k) l_xy[2 * (k) + 1]
+#define S_CA(k) l_conic[3 * (k)]
+#define S_CB(k) l_conic[3 * (k) + 1]
+#define S_CC(k) l_conic[3 * (k) + 2]
+#endif
+
 #endif /* CLSPLAT_COMMON_H */

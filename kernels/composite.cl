@@ -37,9 +37,6 @@
  * CCHUNK, SAVE_LAST, ALPHA_MIN, ALPHA_MAX, T_MIN, CLS_POCL_CPU, CLS_COUNT (default 0).
  */
 
-#ifndef CLS_TUNED
-#define CLS_TUNED 1
-#endif
 #ifndef CLS_COUNT
 #define CLS_COUNT 0
 #endif
@@ -76,18 +73,8 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
     __local REAL l_ca[BATCH], l_cb[BATCH], l_cc[BATCH], l_op[BATCH], l_sm[BATCH];
     __local REAL *l_x = (__local REAL *)l_xv, *l_y = (__local REAL *)l_yv;
     __local REAL *l_bx = (__local REAL *)l_bxv, *l_by = (__local REAL *)l_byv;
-#define S_X(k) l_x[k]
-#define S_Y(k) l_y[k]
-#define S_CA(k) l_ca[k]
-#define S_CB(k) l_cb[k]
-#define S_CC(k) l_cc[k]
 #else
     __local REAL l_xy[2 * BATCH], l_conic[3 * BATCH], l_op[BATCH], l_ext[2 * BATCH];
-#define S_X(k) l_xy[2 * (k)]
-#define S_Y(k) l_xy[2 * (k) + 1]
-#define S_CA(k) l_conic[3 * (k)]
-#define S_CB(k) l_conic[3 * (k) + 1]
-#define S_CC(k) l_conic[3 * (k) + 2]
 #endif
     __local REAL l_f[CCHUNK * BATCH];
     __local int n_done;

@@ -55,9 +55,6 @@
  * CLS_POCL_CPU.
  */
 
-#ifndef CLS_TUNED
-#define CLS_TUNED 1
-#endif
 
 #define GROUP (TILE * TILE / PIX)
 #define ITEMS_PER_ROW (TILE / PIX)
@@ -117,17 +114,6 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
     __local REAL *l_x = (__local REAL *)l_xv, *l_y = (__local REAL *)l_yv;
     __local REAL *l_bx = (__local REAL *)l_bxv, *l_by = (__local REAL *)l_byv;
     __local REAL *part = (__local REAL *)partv;
-#define S_X(k) l_x[k]
-#define S_Y(k) l_y[k]
-#define S_CA(k) l_ca[k]
-#define S_CB(k) l_cb[k]
-#define S_CC(k) l_cc[k]
-#else
-#define S_X(k) l_xy[2 * (k)]
-#define S_Y(k) l_xy[2 * (k) + 1]
-#define S_CA(k) l_conic[3 * (k)]
-#define S_CB(k) l_conic[3 * (k) + 1]
-#define S_CC(k) l_conic[3 * (k) + 2]
 #endif
 
     const int tile = get_group_id(0), lid = get_local_id(0);

@@ -168,7 +168,7 @@ def test_cli_writes_the_run_folder(autosplat_tiny_run):
     assert set(m["seconds_per_stage"]) >= {"load", "init", "bg_phase1", "bg_phase2", "foreground", "fusion"}
 
 
-def test_bad_input_is_named(street, tmp_path):
+def test_bad_input_is_named(street, tmp_path, capsys):
     with pytest.raises(ValueError, match="cameras: 'CAM_NOPE' is not in the data"):
         prepare_data(street, ["CAM_NOPE"], 4)
     with pytest.raises(ValueError, match="--frames"):
@@ -190,14 +190,15 @@ def test_bad_input_is_named(street, tmp_path):
                                                  boxes=[b, dup])] + street.frames[1:])
     with pytest.raises(ValueError, match="track id"):
         Trainer(prepare_data(bad, CAMS, 4), TINY, Switches(), tmp_path, progress=False)
-    with pytest.raises(ValueError, match="--data"):
-        train(["--data", "kitti:/x", "--out", str(tmp_path / "x"), "--no-progress"])
-    with pytest.raises(ValueError, match="--frames"):
-        train(["--frames", "4:2", "--out", str(tmp_path / "x"), "--no-progress"])
     with pytest.raises(ValueError, match="--batch-size"):
         Trainer(prepare_data(street, CAMS, 4), TINY, Switches(), tmp_path, progress=False, batch_size=0)
-    with pytest.raises(ValueError, match="--scale"):
-        train(["--scale", "0", "--out", str(tmp_path / "x"), "--no-progress"])
+    # the command: one line naming the argument, exit status 2 (the skeleton's error policy)
+    for argv, named in ((["--data", "kitti:/x"], "--data"), (["--frames", "4:2"], "--frames"),
+                        (["--scale", "0"], "--scale")):
+        capsys.readouterr()
+        assert train([*argv, "--out", str(tmp_path / "x"), "--no-progress"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("clsplat train autosplat: ") and named in err and "\n" not in err
 
 
 @pytest.mark.filterwarnings("ignore:All-NaN slice")

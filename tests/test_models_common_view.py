@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from clsplat.models.common.train import CHECKPOINT_FORMAT, save_checkpoint
-from clsplat.models.common.view import scene_from_checkpoint
+from clsplat.models.registry import scene_from_checkpoint
 from clsplat.viewer.render import render_view
 
 

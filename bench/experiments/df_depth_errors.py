@@ -50,7 +50,7 @@ VEHICLE = 3         # index of "vehicle" in clsplat.data.scene.SEMANTIC_CLASSES
 
 def _load(checkpoint: str, data: str, seed: int):
     from clsplat.models.common.data import parse_data
-    from clsplat.models.drivingforward.checkpoint import load_model
+    from clsplat.models.drivingforward.cli import load_model
 
     torch.manual_seed(0)
     torch.set_num_threads(1)
@@ -229,13 +229,13 @@ def grads(checkpoint: str, data: str, seed: int, scenes: int, first: int, split:
 def landscape(data: str, seed: int, scenes: int, first: int, sets: list[str] | None) -> None:
     from clsplat.models.common.data import parse_data
     from clsplat.models.common.presets import get_preset
-    from clsplat.models.drivingforward.cli import preset_overrides
+    from clsplat.models.common.presets import apply_sets
     from clsplat.models.drivingforward.data import load_triplet
     from clsplat.models.drivingforward.model import DrivingForward
 
     torch.manual_seed(0)
     torch.set_num_threads(1)
-    p = preset_overrides(get_preset("drivingforward", "small"), None, sets)
+    p = apply_sets(get_preset("drivingforward", "small"), sets)
     model, src = DrivingForward(p), parse_data(data, seed=seed)
     fwd, pose_fwd = model.depth_net.forward, model.pose_net.forward
     factors, terms = (0.7, 1.0, 1.4, 2.0, 4.0, 10.0), ("reproj", "spatial", "spatio_temporal", "smooth", "render", "loss")
@@ -304,11 +304,11 @@ def basin(data: str, seed: int, scenes: int, first: int, sets: list[str] | None,
     from clsplat.models.common.geometry import warp
     from clsplat.models.common.losses import photometric_error
     from clsplat.models.common.presets import get_preset
-    from clsplat.models.drivingforward.cli import preset_overrides
+    from clsplat.models.common.presets import apply_sets
     from clsplat.models.drivingforward.data import load_triplet
 
     torch.set_num_threads(1)
-    p = preset_overrides(get_preset("drivingforward", "small"), None, sets)
+    p = apply_sets(get_preset("drivingforward", "small"), sets)
     src = parse_data(data, seed=seed)
     factors = (0.5, 0.7, 0.85, 1.0, 1.2, 1.4, 1.7, 2.0, 2.5, 3.0, 5.0)
     acc = {f: [0.0, 0.0, 0, 0] for f in factors}    # error sum (seen), error sum (masked min), masked, seen
@@ -378,7 +378,7 @@ def baselines(data: str, seed: int, scenes: int, windows: int, caps: list[float]
 
 def drift(checkpoints: list[str], data: str, seed: int) -> None:
     from clsplat.models.common.data import parse_data
-    from clsplat.models.drivingforward.checkpoint import load_model
+    from clsplat.models.drivingforward.cli import load_model
     from clsplat.models.drivingforward.data import load_triplet
 
     torch.set_num_threads(1)

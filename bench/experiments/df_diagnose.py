@@ -33,13 +33,12 @@ TERMS = ("reproj", "spatial", "spatio_temporal", "smooth", "render")
 
 def _setup(preset_name: str, checkpoint: str | None, sets: list[str] | None = None):
     from clsplat.models.common.data import parse_data
-    from clsplat.models.common.presets import get_preset
-    from clsplat.models.drivingforward.cli import preset_overrides
+    from clsplat.models.common.presets import apply_sets, get_preset
     from clsplat.models.drivingforward.model import DrivingForward
 
     torch.manual_seed(0)
     torch.set_num_threads(1)
-    preset = preset_overrides(get_preset("drivingforward", preset_name), None, sets)
+    preset = apply_sets(get_preset("drivingforward", preset_name), sets)
     model = DrivingForward(preset)
     if checkpoint:
         from clsplat.models.common.train import load_checkpoint

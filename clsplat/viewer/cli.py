@@ -3,7 +3,7 @@
 PATH is an INRIA-layout ``.ply``, a checkpoint written by ``clsplat train`` (any family) or a run
 folder. A ``.ply`` is read here; checkpoints and run folders become a scene through a reader
 that a package registers in the ``clsplat.scene_readers`` entry-point group (setup.cfg: this
-distribution's models register ``clsplat.models.common.view:scene_from_checkpoint``), so the
+distribution's models register ``clsplat.models.registry:scene_from_checkpoint``), so the
 engine does not depend on the models.
 A user's mistake is one line on stderr and exit status 2.
 """

@@ -7,3 +7,4 @@ One module per stage: :mod:`.init` (LiDAR background, labels, sky dome), :mod:`.
 :mod:`.trainer` (the staged loop, checkpoints, evaluation), :mod:`.presets`, :mod:`.cli`
 (``clsplat train autosplat``) and :mod:`.demo` (``make demo``).
 """
+from . import presets as _presets  # noqa: F401  (registers the presets under "autosplat")

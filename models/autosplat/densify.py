@@ -28,7 +28,7 @@ from clsplat.strategy import rebuild
 
 from ..common.geometry import quat_to_matrix
 
-__all__ = ["GaussianParams", "GradStats", "densify_and_prune"]
+__all__ = ["GaussianParams", "GradStats", "Densifier", "densify_and_prune"]
 
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN")
 
@@ -180,3 +180,86 @@ def densify_and_prune(g: GaussianParams, stats: GradStats, opt: torch.optim.Opti
     stats.grad = torch.zeros(n_new)
     stats.count = torch.zeros(n_new)
     return {"cloned": int(clone_idx.shape[0]), "split": int(ns), "pruned": int(prune.sum()), "total": n_new}
+
+
+class Densifier:
+    """Densification of a scene's sets while their stage trains: the screen-space gradient
+    statistics of every set (summed over the ranks under ``torchrun``, so every rank densifies
+    alike) and, on the preset's schedule, :func:`densify_and_prune` of the sets a stage trains.
+
+    Args:
+        preset: an ``AutoSplatPreset`` (thresholds, schedule, ``max_gaussians``).
+        sizes: set key (``background``, ``object<k>``) -> its number of Gaussians.
+        sky: the label whose background Gaussians never grow (the sky dome keeps its layout).
+    """
+
+    def __init__(self, preset, sizes: dict[str, int], sky: int) -> None:
+        self.preset, self.sky = preset, sky
+        self.stats = {k: GradStats(n) for k, n in sizes.items()}
+
+    def cap(self, key: str, stage: str, n: int) -> int:
+        """The size set ``key`` may grow to in ``stage``: objects 4x their initial points; the
+        background ``max_gaussians``, of which phase 1 (road and sky alone) may fill only
+        ``phase1_budget_share``."""
+        p = self.preset
+        if key != "background":
+            return max(4 * p.object_points, n)
+        return int(p.max_gaussians * p.phase1_budget_share) if stage == "bg_phase1" else p.max_gaussians
+
+    def accumulate(self, renders: list, trained: list[str], world: int, width: int, height: int) -> None:
+        """Add one step's renders (``(meta, layout)`` pairs: the rasteriser's meta and the
+        ``(set key, rows)`` blocks of the rendered Gaussians) to the statistics of the ``trained``
+        sets; under torchrun the step's contributions are summed over the ranks first."""
+        target = self.stats if world == 1 else {k: GradStats(len(self.stats[k].grad)) for k in trained}
+        for meta, layout in renders:
+            ag = getattr(meta["means2d"], "absgrad", None)
+            if ag is None:
+                continue
+            start = 0
+            for key, rows in layout:
+                n = rows.shape[0]
+                if key in trained:
+                    target[key].add(ag[:, start:start + n], meta["radii"][:, start:start + n], width, height, rows)
+                start += n
+        if world > 1:
+            import torch.distributed as dist
+            flat = torch.cat([t for k in trained for t in (target[k].grad, target[k].count)])
+            dist.all_reduce(flat)
+            off = 0
+            for k in trained:
+                n = len(target[k].grad)
+                self.stats[k].grad += flat[off:off + n]
+                self.stats[k].count += flat[off + n:off + 2 * n]
+                off += 2 * n
+
+    def due(self, s_in: int, n_stage: int) -> bool:
+        """Whether step ``s_in`` (from 0) of a stage of ``n_stage`` steps densifies: every
+        ``densify_every`` steps from ``densify_start``, not in the stage's last 20 %."""
+        p, s = self.preset, s_in + 1
+        return s >= p.densify_start and s % p.densify_every == 0 and s <= 0.8 * n_stage
+
+    def densify(self, sets: dict[str, "GaussianParams"], opt: torch.optim.Optimizer, stage: str,
+                generator: torch.Generator) -> dict[str, int]:
+        """Densify and prune every set of ``sets`` (key -> set, those the stage trains) in place
+        and in ``opt``; returns ``{"densify_<key>": Gaussians after}``."""
+        p, record = self.preset, {}
+        for key, g in sets.items():
+            if len(g) == 0:
+                continue
+            growable = g.labels != self.sky if key == "background" else torch.ones(len(g), dtype=torch.bool)
+            res = densify_and_prune(
+                g, self.stats[key], opt, grad_threshold=p.grad_threshold,
+                split_scale=p.split_scale if key == "background" else p.object_split_scale,
+                prune_opacity=p.prune_opacity, prune_scale=p.prune_scale,
+                max_gaussians=self.cap(key, stage, len(g)), growable=growable, generator=generator)
+            record[f"densify_{key}"] = res["total"]
+        return record
+
+    def state(self) -> dict:
+        return {k: s.state() for k, s in self.stats.items()}
+
+    def load(self, sizes: dict[str, int], state: dict) -> None:
+        """Statistics for sets of ``sizes``, those of ``state`` (a checkpoint's) restored."""
+        self.stats = {k: GradStats(0) for k in sizes}
+        for k, st in state.items():
+            self.stats[k].load(st)

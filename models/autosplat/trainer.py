@@ -1,19 +1,19 @@
 """The staged AutoSplat optimisation on the shared training loop (:func:`..common.train.train`):
-the four stages as a schedule of Adam parameter groups, the per-sample loss, densification after
-the optimiser step, and AutoSplat's checkpoint state (the run's tensors come from :mod:`.data`,
-its evaluation is :mod:`.evaluate`). This module has no loop of its own: :class:`Trainer` is the
-family's :class:`~..common.train.LoopHooks`.
+the four stages as a schedule of Adam parameter groups, and AutoSplat's checkpoint state.
+:class:`Trainer` is the family's :class:`~..common.train.LoopHooks` and has no loop of its own;
+what each hook does lives beside it: the per-sample loss of each stage in :mod:`.loss`,
+densification and its statistics in :mod:`.densify` (:class:`~.densify.Densifier`), the
+evaluation in :mod:`.evaluate`, the run's tensors in :mod:`.data`.
 
 Stages (iterations from the preset; one iteration = all selected cameras of ``batch_size``
 training frames, 1 by default; sample ``index`` draws its frame with a generator keyed by
 (seed, index), so a resumed run and a data-parallel run draw the same frames):
 
-1. ``bg_phase1``: the road set and the sky set, each rendered alone and supervised on its own
-   pixels, plus β·C (flatness).
-2. ``bg_phase2``: all background Gaussians, pixels of tracked objects masked out, plus β·C.
-3. ``foreground``: objects (with mirror copies and residual SH) over the frozen background, full
-   images, plus the L1 sparsity of the residuals. Skipped when the sequence has no tracks.
-4. ``fusion``: everything, full images, with the per-object per-frame pose corrections.
+1. ``bg_phase1``: the road set and the sky set (and the sky colour).
+2. ``bg_phase2``: all background Gaussians.
+3. ``foreground``: objects (with mirror copies and residual SH) over the frozen background.
+   Skipped when the sequence has no tracks.
+4. ``fusion``: everything, with the per-object per-frame pose corrections.
 
 Parameter groups outside a stage's set get no update (:meth:`Trainer.trainable_groups`: the loop
 drops their gradients before Adam). Means' learning rates decay ×0.1 over the whole schedule (a
@@ -32,13 +32,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.distributed as dist
 
 from ..common.gaussians import GaussianSet
 from ..common.train import LoopHooks, TrainSpec, distributed_info, sample_generator, seed_everything, train
-from .background import flatness, masked_photometric, reference_frames
-from .densify import GaussianParams, GradStats, densify_and_prune
+from .background import reference_frames
+from .densify import Densifier, GaussianParams
 from .data import RunData
+from .loss import StepRenderer, stage_loss
 from .init import ROAD, SKY, init_background
 from .model import AutoSplatModel, Switches, collect_tracks
 from .objects import object_points_and_colours
@@ -97,11 +97,9 @@ class Trainer(LoopHooks):
         seed_everything(preset.seed)  # the residual MLPs' initial weights
         self.model = AutoSplatModel(data.seq, self.tracks, train_mask, preset.sh_degree, switches,
                                     preset.residual_width, preset.time_frequencies, preset.position_frequencies)
-        self.stats: dict[str, GradStats] = {}
+        self.densifier = Densifier(preset, self.model.sizes(), SKY)
+        self.renderer = StepRenderer(data, device)
         self.stage_seconds = {s: 0.0 for s in STAGES}
-        self._events: list = []
-        self._render_wall = 0.0
-        self._renders: list = []  # (meta, layout) of this step's renders, for the densification statistics
         self.step = 0
         self.opt: torch.optim.Optimizer | None = None
         self.scheduler = None
@@ -164,7 +162,7 @@ class Trainer(LoopHooks):
         add("sky", [m.sky_color], p.lr_sky)
         self.opt = torch.optim.Adam(groups, eps=1e-15)
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.opt, decays)
-        self.stats = {k: GradStats(n) for k, n in m.sizes().items()}
+        self.densifier = Densifier(p, m.sizes(), SKY)
 
     # ------------------------------------------------------------------ schedule
     def stage_of(self, step: int) -> tuple[str, int, int]:
@@ -176,15 +174,6 @@ class Trainer(LoopHooks):
                 return name, s, n
             s -= n
         raise ValueError(f"step {step} is past the schedule's {self.total} steps")
-
-    def _cap(self, key: str, stage: str, n: int) -> int:
-        """The size set ``key`` may grow to by densification in ``stage``: objects 4x their
-        initial points; the background ``max_gaussians``, of which phase 1 (road and sky alone)
-        may fill only ``phase1_budget_share``."""
-        p = self.preset
-        if key != "background":
-            return max(4 * p.object_points, n)
-        return int(p.max_gaussians * p.phase1_budget_share) if stage == "bg_phase1" else p.max_gaussians
 
     def _trained_sets(self, stage: str) -> list[str]:
         objs = [f"object{k}" for k in range(len(self.tracks))]
@@ -206,25 +195,6 @@ class Trainer(LoopHooks):
         return [i for i, o in enumerate(self.group_owner) if o in owners]
 
     # ------------------------------------------------------------------ one sample
-    def _render(self, gs: GaussianSet, viewmats: torch.Tensor, absgrad: bool = True):
-        C = viewmats.shape[0]
-        bg = torch.sigmoid(self.model.sky_color).expand(C, 3)
-        t0 = time.perf_counter()
-        out = gs.render(viewmats, self.data.Ks, self.data.width, self.data.height, backgrounds=bg,
-                        absgrad=absgrad, packed=False, device=self.device, events=self._events)
-        self._render_wall += time.perf_counter() - t0
-        return out
-
-    def _flatness(self) -> torch.Tensor:
-        rows, normals = self.model.flatness_frames()
-        bg = self.model.background
-        return flatness(bg.quats[rows], bg.log_scales[rows].exp(), reference_frames(normals))
-
-    def _sparsity(self, frame: int) -> torch.Tensor | None:
-        res = [self.model.residual(k, frame) for k in range(len(self.tracks)) if bool(self.model.present[k, frame])]
-        res = [r for r in res if r is not None]
-        return torch.cat([r.reshape(-1) for r in res]).abs().mean() if res else None
-
     def frame_of(self, index: int) -> int:
         """The training frame of sample ``index`` (drawn with a generator keyed by (seed, index))."""
         rng = np.random.default_rng([self.preset.seed, index])
@@ -232,106 +202,26 @@ class Trainer(LoopHooks):
 
     def sample_loss(self, model: AutoSplatModel, step: int, index: int) -> dict[str, torch.Tensor]:
         """The loss terms of sample ``index`` (one training frame, every selected camera) at global
-        iteration ``step``; its renders are kept for :meth:`after_step`'s statistics."""
-        p, d, m = self.preset, self.data, model
-        stage = self.stage_of(step)[0]
-        frame = self.frame_of(index)
-        target, vm = d.images[frame], d.viewmats[frame]
-        terms: dict[str, torch.Tensor] = {}
-        loss = torch.zeros(())
-        if stage == "bg_phase1":
-            for cls, name in ((ROAD, "road"), (SKY, "sky")):
-                mask = d.classes[frame] == cls
-                if not bool(mask.any()):
-                    continue
-                gs, layout = m.scene_at(frame, background=(cls,), objects=False)
-                if len(gs) == 0:
-                    continue
-                col, _, meta = self._render(gs, vm)
-                l, l1, _ = masked_photometric(col, target, mask, p.lambda_dssim)
-                loss = loss + l
-                terms[f"l1_{name}"] = l1
-                self._renders.append((meta, layout))
-        else:
-            if stage == "bg_phase2":
-                gs, layout = m.scene_at(frame, background=True, objects=False)
-                mask = ~d.foreground[frame] if self.switches.decompose else None
-            else:
-                gs, layout = m.scene_at(frame, background=True, objects=True,
-                                        detach_background=(stage == "foreground"))
-                mask = None
-            col, _, meta = self._render(gs, vm)
-            l, l1, dssim = masked_photometric(col, target, mask, p.lambda_dssim)
-            loss = loss + l
-            terms["l1"], terms["dssim"] = l1, dssim
-            self._renders.append((meta, layout))
-        if self.switches.flatness and stage != "foreground":
-            c = self._flatness()
-            terms["flatness"] = c
-            loss = loss + p.beta_flatness * c
-        if stage in ("foreground", "fusion"):
-            sp = self._sparsity(frame)
-            if sp is not None:
-                terms["sparsity"] = sp
-                loss = loss + p.sparsity_weight * sp
-        terms["loss"] = loss
-        return terms
+        iteration ``step`` (:func:`.loss.stage_loss`); its renders are kept for :meth:`after_step`."""
+        return stage_loss(model, self.renderer, self.data, self.preset, self.switches, self.stage_of(step)[0],
+                          self.frame_of(index), len(self.tracks))
 
     # ------------------------------------------------------------------ after the optimiser step
-    def _accumulate(self, trained: list[str], world: int) -> None:
-        """Add this step's screen-space gradients to the statistics of the ``trained`` sets; under
-        torchrun the step's contributions are summed over the ranks first."""
-        d = self.data
-        target = self.stats if world == 1 else {k: GradStats(len(self.stats[k].grad)) for k in trained}
-        for meta, layout in self._renders:
-            ag = getattr(meta["means2d"], "absgrad", None)
-            if ag is None:
-                continue
-            start = 0
-            for key, rows in layout:
-                n = rows.shape[0]
-                if key in trained:
-                    target[key].add(ag[:, start:start + n], meta["radii"][:, start:start + n], d.width,
-                                    d.height, rows)
-                start += n
-        if world > 1:
-            flat = torch.cat([t for k in trained for t in (target[k].grad, target[k].count)])
-            dist.all_reduce(flat)
-            off = 0
-            for k in trained:
-                n = len(target[k].grad)
-                self.stats[k].grad += flat[off:off + n]
-                self.stats[k].count += flat[off + n:off + 2 * n]
-                off += 2 * n
-
     def after_step(self, step: int, applied: bool) -> dict:
         """Densification statistics and, on schedule, densification and pruning of the sets the
         stage trains (nothing on a skipped step); returns the step's diagnostics for the log."""
-        p, m = self.preset, self.model
+        m = self.model
         stage, s_in, n_stage = self.stage_of(step)
         trained = self._trained_sets(stage)
         B = self.batch_size
         record: dict = {"stage": stage, "frames": [self.frame_of(i) for i in range(step * B, (step + 1) * B)]}
+        renders, device_s, wall_s = self.renderer.drain()
         if applied:
-            self._accumulate(trained, distributed_info()[1])
-        if (applied and self.switches.densify and s_in + 1 >= p.densify_start and (s_in + 1) % p.densify_every == 0
-                and s_in + 1 <= 0.8 * n_stage):
-            gen = sample_generator(p.seed, step)
-            for key in trained:
-                g = m.background if key == "background" else m.objects[int(key[6:])]
-                if len(g) == 0:
-                    continue
-                growable = g.labels != SKY if key == "background" else torch.ones(len(g), dtype=torch.bool)
-                res = densify_and_prune(
-                    g, self.stats[key], self.opt, grad_threshold=p.grad_threshold,
-                    split_scale=p.split_scale if key == "background" else p.object_split_scale,
-                    prune_opacity=p.prune_opacity, prune_scale=p.prune_scale,
-                    max_gaussians=self._cap(key, stage, len(g)),
-                    growable=growable, generator=gen)
-                record[f"densify_{key}"] = res["total"]
-        record.update(renderer_device_s=sum((ev.profile.end - ev.profile.start) for _, ev in self._events) * 1e-9,
-                      render_wall_s=self._render_wall, gaussians=sum(m.sizes().values()))
-        self._renders, self._events, self._render_wall = [], [], 0.0
+            self.densifier.accumulate(renders, trained, distributed_info()[1], self.data.width, self.data.height)
+        if applied and self.switches.densify and self.densifier.due(s_in, n_stage):
+            sets = {k: m.background if k == "background" else m.objects[int(k[6:])] for k in trained}
+            record.update(self.densifier.densify(sets, self.opt, stage, sample_generator(self.preset.seed, step)))
+        record.update(renderer_device_s=device_s, render_wall_s=wall_s, gaussians=sum(m.sizes().values()))
         return record
 
     # ------------------------------------------------------------------ checkpoints
@@ -343,7 +233,7 @@ class Trainer(LoopHooks):
     def state(self) -> dict:
         """AutoSplat's checkpoint ``extra``: set sizes, densification statistics, seconds per
         stage, and the run's identity (switches, cameras, training frames, tracks, batch size)."""
-        return {"sizes": self.model.sizes(), "stats": {k: s.state() for k, s in self.stats.items()},
+        return {"sizes": self.model.sizes(), "stats": self.densifier.state(),
                 **self._identity(), "stage_seconds": dict(self.stage_seconds)}
 
     def load_state(self, extra: dict, path: Path) -> None:
@@ -359,9 +249,7 @@ class Trainer(LoopHooks):
                 raise ValueError(f"checkpoint: {str(path)!r} was made with {key} {saved.get(key)!r}, this run has "
                                  f"{mine!r}; resume with the same arguments")
         self.model.resize_(ex["sizes"])
-        self.stats = {k: GradStats(0) for k in self.model.sizes()}
-        for k, st in ex["stats"].items():
-            self.stats[k].load(st)
+        self.densifier.load(self.model.sizes(), ex["stats"])
         self.stage_seconds.update(ex.get("stage_seconds", {}))
 
     # ------------------------------------------------------------------ the run
@@ -396,8 +284,8 @@ class Trainer(LoopHooks):
         """``[C, H, W, 3]`` render of ``frame`` (all parts) from ``viewmats`` (default the rig)."""
         gs, _ = self.model.scene_at(frame)
         vm = self.data.viewmats[frame] if viewmats is None else viewmats
-        self._events, self._render_wall = [], 0.0
-        col, _, _ = self._render(gs, vm, absgrad=False)
+        col, _, _ = self.renderer.render(self.model, gs, vm, absgrad=False)
+        self.renderer.drain()
         return col.clamp(0, 1)
 
     def scene_gaussians(self, frame: int) -> GaussianSet:

@@ -1,4 +1,4 @@
-"""AutoSplat in the viewer: a checkpoint rebuilt on its run's data, and the scene of a model at a
+"""AutoSplat in the viewer: the scene of a model at a
 frame (recording cameras and images, ego trajectory, LiDAR, boxes, a time slider that places the
 moving objects and their residual SH), also served live by ``clsplat train autosplat --view``."""
 from __future__ import annotations
@@ -11,17 +11,8 @@ import torch
 from clsplat.viewer.scene import ViewBox, ViewCamera, ViewScene
 
 from ..common.view import gaussians_scene
-from .evaluate import trainer_from_checkpoint
 
-__all__ = ["checkpoint_scene", "autosplat_scene"]
-
-
-def checkpoint_scene(ck: dict, ck_path: Path, run: Path, data: str | None, sample: int = 0, device=None,
-                     safe_pickle: bool = True) -> ViewScene:
-    """The scene of an AutoSplat checkpoint (``sample`` is unused: the model is the scene;
-    ``safe_pickle=False`` trusts the data's pickles)."""
-    tr = trainer_from_checkpoint(ck, ck_path, run, data, device=device, safe_pickle=safe_pickle)
-    return autosplat_scene(tr.model, tr.data.seq, tr.data, f"AutoSplat {tr.preset.name} ({run.name})")
+__all__ = ["autosplat_scene"]
 
 
 def autosplat_scene(model, seq, d, title: str, frame: int | None = None) -> ViewScene:

@@ -1,8 +1,7 @@
 """What every ``clsplat train FAMILY`` / ``clsplat eval FAMILY`` command shares.
 
-:func:`dispatch` routes ``clsplat train|eval FAMILY ...`` to ``clsplat.models.FAMILY.cli``'s
-``train(argv)`` / ``evaluate(argv)``. :func:`add_common_args` adds the arguments every family
-takes, so that the commands read alike::
+:func:`add_common_args` and :func:`add_eval_args` add the arguments every family takes, so that
+the commands read alike (the skeleton that runs them is :mod:`.command`)::
 
     clsplat train drivingforward --data synthetic --preset tiny --steps 100 --out runs/df
     clsplat eval pgt --checkpoint runs/pgt/checkpoint.pt --data synthetic --out runs/pgt-eval
@@ -10,11 +9,9 @@ takes, so that the commands read alike::
 from __future__ import annotations
 
 import argparse
-import importlib
-import sys
 
-__all__ = ["dispatch", "train_command", "eval_command", "add_common_args", "add_view_args", "add_eval_args",
-           "add_lpips_args", "lpips_from_args", "positive_int", "add_trust_pickle_arg", "no_weights",
+__all__ = ["add_common_args", "add_view_args", "add_eval_args",
+           "add_lpips_args", "lpips_from_args", "positive_int", "add_trust_pickle_arg",
            "add_eval_scenes_arg", "add_eval_split_arg"]
 
 
@@ -109,12 +106,6 @@ def add_lpips_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lpips-lin", default=None, help="local lpips v0.1 linear layers (lpips/weights/v0.1/vgg.pth)")
 
 
-def no_weights(args: argparse.Namespace, family: str, why: str) -> None:
-    """ValueError naming --weights for a family whose networks have no pretrained backbone."""
-    if args.weights is not None:
-        raise ValueError(f"--weights: {family} has no pretrained backbone to load ({why})")
-
-
 def lpips_from_args(args: argparse.Namespace):
     """The :class:`~.metrics.LPIPS` module named by ``--lpips-vgg/--lpips-lin``, or None; prints
     which, so that a run says whether LPIPS is on."""
@@ -123,32 +114,3 @@ def lpips_from_args(args: argparse.Namespace):
     module, message = lpips_or_none(args.lpips_vgg, args.lpips_lin)
     print(message, flush=True)
     return module
-
-
-def dispatch(command: str, argv: list[str]) -> int:
-    """Run ``clsplat.models.<family>.cli.train`` (command "train") or ``.evaluate`` ("eval")."""
-    from .. import FAMILIES
-    usage = f"usage: clsplat {command} {{{','.join(FAMILIES)}}} [options]   (--help after the family for its options)"
-    if not argv or argv[0] in ("-h", "--help"):
-        print(usage)
-        return 0 if argv else 2
-    family = argv[0]
-    if family not in FAMILIES:
-        print(f"clsplat {command}: unknown model family {family!r}; known: {', '.join(FAMILIES)}", file=sys.stderr)
-        return 2
-    mod = importlib.import_module(f"clsplat.models.{family}.cli")
-    fn = getattr(mod, "train" if command == "train" else "evaluate", None)
-    if fn is None:
-        print(f"clsplat {command} {family}: this family has no {command} command", file=sys.stderr)
-        return 2
-    return int(fn(argv[1:]) or 0)
-
-
-def train_command(argv: list[str]) -> int:
-    """train a model: clsplat train {drivingforward,pgt,autosplat} --help"""
-    return dispatch("train", argv)
-
-
-def eval_command(argv: list[str]) -> int:
-    """evaluate a trained model: clsplat eval {drivingforward,pgt,autosplat} --help"""
-    return dispatch("eval", argv)

@@ -70,15 +70,13 @@ def register(family: str, preset: Preset) -> Preset:
 
 
 def preset_names(family: str) -> list[str]:
-    """Names registered for ``family`` (importing the family's presets module registers them)."""
-    _import_family(family)
-    return list(_REGISTRY.get(family, {}))
+    """Names registered for ``family`` (importing the family's package registers them)."""
+    return list(_registered(family))
 
 
 def get_preset(family: str, name: str) -> Preset:
     """The preset ``name`` of ``family``; ValueError listing the known names otherwise."""
-    _import_family(family)
-    known = _REGISTRY.get(family, {})
+    known = _registered(family)
     if name not in known:
         raise ValueError(f"preset: unknown preset {name!r} for {family}; known: {sorted(known)}")
     return known[name]
@@ -172,10 +170,13 @@ def preset_from_saved(family: str, saved: dict, name: str | None = None) -> Pres
     return base.replace(**changes) if changes else base
 
 
-def _import_family(family: str) -> None:
-    """Import ``clsplat.models.<family>.presets`` so that its presets register themselves."""
+def _registered(family: str) -> dict[str, Preset]:
+    """``family``'s registered presets; ValueError for a family nothing registered (the family
+    package registers its presets when it is imported: ``import clsplat.models.<family>``, or
+    :mod:`clsplat.models.registry` for all of them)."""
     from .. import FAMILIES
-    if family not in FAMILIES:
-        raise ValueError(f"family: unknown model family {family!r}; known: {list(FAMILIES)}")
-    import importlib
-    importlib.import_module(f"clsplat.models.{family}.presets")
+    if family not in _REGISTRY:
+        if family not in FAMILIES:
+            raise ValueError(f"family: unknown model family {family!r}; known: {list(FAMILIES)}")
+        raise ValueError(f"family: no {family} preset is registered yet; import clsplat.models.{family} first")
+    return _REGISTRY[family]

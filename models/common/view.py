@@ -1,8 +1,8 @@
-"""Checkpoints and run folders of every model family -> a :class:`clsplat.viewer.ViewScene`
-(what ``clsplat view`` / ``clsplat render`` show for them; registered as the engine's
-``clsplat.scene_readers`` entry point), the helpers the families' ``view`` modules share, and
-:class:`TrainView` (``clsplat train ... --view``). Each family's ``view.checkpoint_scene`` builds
-its scene:
+"""What the model families share in the viewer: the helpers their ``view`` modules build scenes
+with, and :class:`TrainView` (``clsplat train ... --view``). Checkpoints and run folders become
+scenes in :func:`clsplat.models.registry.scene_from_checkpoint` (what ``clsplat view`` /
+``clsplat render`` show for them; the engine's ``clsplat.scene_readers`` entry point), through
+each family's :meth:`~.command.Family.checkpoint_scene`:
 
 * AutoSplat (a per-scene optimisation): the model is rebuilt from the checkpoint and the run's
   data (``metrics.json``'s ``data`` and ``scale``, else ``--data``), and the scene carries the
@@ -15,19 +15,17 @@ its scene:
   how ``clsplat train FAMILY --view`` shows a model as it trains.
 * A run folder without a checkpoint but with ``scene.ply`` shows the ``.ply``.
 
-Every failure is a ValueError naming PATH (unknown family, not a checkpoint, mismatched data).
 """
 from __future__ import annotations
 
-import importlib
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from clsplat.viewer.scene import ViewScene, scene_from_ply
+from clsplat.viewer.scene import ViewScene
 
-__all__ = ["scene_from_checkpoint", "TrainView", "train_watcher", "model_snapshot", "run_data", "gaussians_scene",
+__all__ = ["TrainView", "train_watcher", "model_snapshot", "run_data", "gaussians_scene",
            "depth_colour", "VARIANT_SAMPLES"]
 
 
@@ -73,44 +71,6 @@ def run_data(run: Path) -> str | None:
 
 #: samples of the held-out split a feed-forward checkpoint's viewer offers
 VARIANT_SAMPLES = 4
-
-
-def scene_from_checkpoint(path: str | Path, data: str | None = None, device=None, sample: int = 0,
-                          trust_pickle: bool = False) -> ViewScene:
-    """The scene of a checkpoint file or run folder (see the module docstring); ``trust_pickle``
-    (``--trust-pickle``) unpickles ``data``'s PandaSet files without the allow-list."""
-    from .. import FAMILIES
-    from .train import load_checkpoint
-
-    from .runfolder import STAGING
-
-    p = Path(path)
-    run = p if p.is_dir() else p.parent
-    ck_path = p
-    if p.is_dir():  # a finished run's checkpoint, else an unfinished one's, else the run's .ply
-        found = [c for c in (p / "checkpoint.pt", p / STAGING / "checkpoint.pt") if c.is_file()]
-        if not found:
-            if (p / "scene.ply").is_file():
-                return scene_from_ply(p / "scene.ply")
-            raise ValueError(f"PATH {str(path)!r}: a folder without checkpoint.pt (finished or in {STAGING}/) or "
-                             "scene.ply; expected an INRIA .ply, a checkpoint.pt written by clsplat train, or a run "
-                             "folder holding one")
-        ck_path = found[0]
-        run = ck_path.parent
-    try:
-        ck = load_checkpoint(ck_path)
-    except ValueError as e:
-        raise ValueError(f"PATH {str(path)!r} is not a scene: {e}; expected an INRIA .ply, a checkpoint.pt "
-                         "written by clsplat train, or a run folder holding one") from None
-    fam = ck.get("family")
-    if fam not in FAMILIES:
-        raise ValueError(f"PATH {str(path)!r}: a checkpoint of an unknown model family {fam!r}; "
-                         f"known: {', '.join(FAMILIES)}")
-    if not isinstance(sample, int) or sample < 0:
-        raise ValueError(f"--sample: expected an integer >= 0, got {sample!r}")
-    family = importlib.import_module(f"clsplat.models.{fam}.view")  # each family owns its scene
-    return family.checkpoint_scene(ck, ck_path, run, data, sample=sample, device=device,
-                                   safe_pickle=not trust_pickle)
 
 
 class TrainView:

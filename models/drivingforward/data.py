@@ -20,7 +20,12 @@ from torch import Tensor
 
 from ..common.data import DataSource, to_torch_frame
 
-__all__ = ["load_triplet", "colour_jitter", "gt_ego_motion", "camera0_motion", "ego_speed", "lidar_depth"]
+#: the synthetic world of a plain ``--data synthetic`` (the varied world: a constant ego motion
+#: and one street would make a constant pose and the ground prior exact, issue 32)
+DEFAULT_WORLD = "varied"
+
+__all__ = ["DEFAULT_WORLD", "load_triplet", "colour_jitter", "gt_ego_motion", "camera0_motion", "ego_speed",
+           "lidar_depth"]
 
 
 def load_triplet(source: DataSource, index: int, preset, split: str = "train",

@@ -14,8 +14,7 @@ from clsplat.viewer.scene import ViewCamera, ViewScene
 
 from ..common.data import parse_data
 from ..common.view import VARIANT_SAMPLES, depth_colour, gaussians_scene, model_snapshot, run_data
-from .checkpoint import load_model
-from .data import gt_ego_motion, load_triplet
+from .data import DEFAULT_WORLD, gt_ego_motion, load_triplet
 from .evaluation import OFFSETS
 
 __all__ = ["checkpoint_scene", "model_scene"]
@@ -58,16 +57,16 @@ def model_scene(model, preset, source, data_name: str, k: int = 0, frames: tuple
     return model_snapshot(model, build)
 
 
-def checkpoint_scene(ck: dict, ck_path: Path, run: Path, data: str | None, sample: int = 0, device=None,
+def checkpoint_scene(model, preset, run: Path, data: str | None, sample: int = 0,
                      safe_pickle: bool = True) -> ViewScene:
-    """The scene of a DrivingForward checkpoint run on held-out sample ``sample`` of ``data``, with
-    a variant per sample, frame set and camera set (``data``: default the run's, else synthetic;
-    ``safe_pickle=False`` trusts the data's pickles)."""
+    """The scene of a DrivingForward checkpoint's ``model`` (restored by the command skeleton)
+    run on held-out sample ``sample`` of ``data``, with a variant per sample, frame set and camera
+    set (``data``: default the run's, else synthetic; ``safe_pickle=False`` trusts the data's
+    pickles)."""
     data = data or run_data(run) or "synthetic"
 
-    model, preset = load_model(str(ck_path), device)
     model.eval()
-    source = parse_data(data, safe_pickle=safe_pickle)
+    source = parse_data(data, safe_pickle=safe_pickle, default_world=DEFAULT_WORLD)
     sc = model_scene(model, preset, source, data, sample)
     names = [c.name for c in sc.cameras]          # the data's cameras, rig order
     camera_sets = {"all cameras": None, "front camera": names[:1],

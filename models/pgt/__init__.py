@@ -14,3 +14,4 @@ budget κ in (0, 1] keeps round(κ·V·H·W) of them, chosen by finetuned copies
     evaluate   held-out quality, depth, the budget curve (budget.json / budget.png)
     cli        ``clsplat train pgt`` / ``clsplat eval pgt``
 """
+from . import presets as _presets  # noqa: F401  (registers the presets under "pgt")

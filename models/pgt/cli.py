@@ -23,21 +23,16 @@ budget stage's fields and steps are chosen); ``test`` (default) is reported once
 """
 from __future__ import annotations
 
-import sys
+import argparse
+from pathlib import Path
 
-from clsplat.argparser import ArgumentParser
-from clsplat.models.common.cli import (add_common_args, add_eval_args, add_eval_scenes_arg, add_eval_split_arg,
-                                      add_view_args, lpips_from_args, no_weights)
-from clsplat.models.common.data import parse_data
-from clsplat.models.common.presets import apply_sets, check_preset_matches, get_preset
-from clsplat.models.common.train import TrainSpec, load_checkpoint, seed_everything, set_threads
-from clsplat.models.common.train import train as run_train
+from clsplat.models.common.command import Family, Restored, TrainJob, eval_main, train_main
+from clsplat.models.common.presets import check_preset_matches
 
 from .budget import check_kappa
-from .model import PGT
 from .presets import BUDGET_FIELDS, saved_preset
 
-__all__ = ["train", "evaluate", "parse_budgets", "check_views_arg"]
+__all__ = ["train", "evaluate", "parse_budgets", "check_views_arg", "COMMANDS"]
 
 FAMILY = "pgt"
 
@@ -81,119 +76,130 @@ def _summary(m: dict) -> str:
               f"{a.get('abs_rel', float('nan')):.3f} (residual)")
 
 
-def train(argv: list[str]) -> int:
-    """``clsplat train pgt ...``; returns the exit status."""
-    p = ArgumentParser(prog="clsplat train pgt", description="Train PGT (base) or EcoSplat's budget stage.")
-    add_common_args(p, default_preset="small")
-    p.add_argument("--stage", choices=("base", "budget"), default="base",
-                   help="base: the pixel-aligned predictor; budget: EcoSplat stage 2 from --init")
-    p.add_argument("--init", default=None, help="base checkpoint to start the budget stage from")
-    add_eval_scenes_arg(p)
-    add_eval_split_arg(p)
-    add_view_args(p)
-    args = p.parse_args(argv)
-    try:
-        no_weights(args, "PGT", "its U-Net encoder and matcher train from random initialisation, as in the paper")
-        preset = apply_sets(get_preset(FAMILY, args.preset), args.set)
+class PGTCommands(Family):
+    """PGT's (and EcoSplat's budget stage's) parts of the command skeleton
+    (:mod:`clsplat.models.common.command`)."""
+
+    name = FAMILY
+    title = "PGT"
+    no_weights = "its U-Net encoder and matcher train from random initialisation, as in the paper"
+    train_help = "Train PGT (base) or EcoSplat's budget stage."
+    eval_help = "Evaluate PGT on held-out data: budget curve."
+
+    def add_train_args(self, p: argparse.ArgumentParser) -> None:
+        p.add_argument("--stage", choices=("base", "budget"), default="base",
+                       help="base: the pixel-aligned predictor; budget: EcoSplat stage 2 from --init")
+        p.add_argument("--init", default=None, help="base checkpoint to start the budget stage from")
+
+    def train_preset(self, args, preset):
         if args.stage == "budget" and args.init is None and not args.resume:
             raise ValueError("--init: the budget stage starts from a base checkpoint; give --init FILE")
-        source = parse_data(args.data, seed=args.seed, safe_pickle=not args.trust_pickle)
-        set_threads(args.threads, args.device)
-        seed_everything(args.seed)
+        return preset
+
+    def build(self, job: TrainJob):
+        from ..common.train import load_checkpoint
+        from .model import PGT
+        a, preset = job.args, job.preset
         model = PGT(preset)
-        if args.stage == "budget":
-            if args.init is not None:
-                ck = load_checkpoint(args.init, FAMILY)
+        if a.stage == "budget":
+            if a.init is not None:
+                ck = load_checkpoint(a.init, FAMILY)
                 # the base network must match; the budget stage's own fields may differ
                 saved = dict(ck.get("preset") or {})
                 saved.update({k: v for k, v in preset.to_dict().items() if k in BUDGET_FIELDS})
-                check_preset_matches(saved, preset, str(args.init))
-                state = {k: v for k, v in ck["model"].items() if not k.startswith("budget.")}
-                model.load_state_dict(state)
+                check_preset_matches(saved, preset, str(a.init))
+                model.load_state_dict({k: v for k, v in ck["model"].items() if not k.startswith("budget.")})
             model.enable_budget()
-        steps = args.steps or (preset.steps if args.stage == "base" else preset.budget_steps)
-        from .training import make_optimizer, make_sample_loss
-        opt, sched = make_optimizer(model, preset, steps, args.stage)
-        lpips = lpips_from_args(args)   # the loss's LPIPS term (w_lpips) and the final evaluation
-        from ..common.view import train_watcher
+        job.extra["steps"] = a.steps or (preset.steps if a.stage == "base" else preset.budget_steps)
+        return model
+
+    def scene(self, job: TrainJob):
+        # the model run on held-out sample 0 (input/target cameras, depth), refreshed as it trains
         from .view import model_scene
-        # --view: the model run on held-out sample 0 (input/target cameras, depth), refreshed as it trains
-        watcher = train_watcher(args, lambda: model_scene(model, preset, source, args.data,
-                                                          title=f"PGT {args.stage} (training)"), args.device)
-        from ..common.runfolder import RunFolder
-        from ..common.train import distributed_info, end_distributed
-        distributed_info()
-        with RunFolder(args.out, resume=args.resume) as rf:  # the lock; outputs staged, then published as a group
-            spec = TrainSpec(out_dir=rf.stage, steps=steps, batch_size=args.batch_size or preset.batch_size,
-                             checkpoint_every=args.checkpoint_every, seed=args.seed, grad_clip=preset.grad_clip,
-                             resume=args.resume, progress=not args.no_progress)
-            try:
-                run_train(model, opt, spec, preset, FAMILY,
-                          make_sample_loss(source, preset, args.stage, args.seed, lpips if preset.w_lpips else None),
-                          scheduler=sched, extra_state={"stage": args.stage},
-                          on_step=None if watcher is None else watcher.on_step)
-            finally:
-                if watcher is not None:
-                    watcher.close()
-            if args.eval_scenes > 0 and distributed_info()[0] == 0:
-                from .evaluate import evaluate_model, write_results
-                res = evaluate_model(model, source, preset, [1.0] if args.stage == "base" else DEFAULT_BUDGETS,
-                                     args.eval_scenes, args.seed, sheet=rf.stage / "contact_sheet.png",
-                                     lpips=lpips, step=steps,
-                                     views=2 if args.stage == "base" else preset.budget_views,
-                                     split=args.eval_split)
-                write_results(res, rf.stage, f"PGT {preset.name} ({args.stage}, step {steps}) on held-out "
-                                             f"{source.name} ({args.eval_split})")
-                print(_summary(res["metrics"]), flush=True)
-            rf.publish()
-        end_distributed()
-    except ValueError as e:
-        print(f"clsplat train pgt: {e}", file=sys.stderr)
-        return 2
-    return 0
+        return model_scene(job.model, job.preset, job.data, job.args.data, title=f"PGT {job.args.stage} (training)")
 
+    def fit(self, job: TrainJob) -> bool:
+        from ..common.train import TrainSpec, train as run
+        from .training import make_optimizer, make_sample_loss
+        a, preset, steps = job.args, job.preset, job.extra["steps"]
+        opt, sched = make_optimizer(job.model, preset, steps, a.stage)
+        spec = TrainSpec(out_dir=job.stage, steps=steps, batch_size=a.batch_size or preset.batch_size,
+                         checkpoint_every=a.checkpoint_every, seed=a.seed, grad_clip=preset.grad_clip,
+                         resume=a.resume, progress=not a.no_progress)
+        run(job.model, opt, spec, preset, FAMILY,   # the loss's LPIPS term only when w_lpips asks for it
+            make_sample_loss(job.data, preset, a.stage, a.seed, job.lpips if preset.w_lpips else None),
+            scheduler=sched, extra_state={"stage": a.stage}, on_step=job.on_step)
+        return True
 
-def evaluate(argv: list[str]) -> int:
-    """``clsplat eval pgt ...``; returns the exit status."""
-    p = ArgumentParser(prog="clsplat eval pgt", description="Evaluate PGT on held-out data: budget curve.")
-    add_eval_args(p)
-    p.add_argument("--budgets", default=",".join(f"{k:g}" for k in DEFAULT_BUDGETS),
-                   help="comma-separated κ in (0, 1]")
-    p.add_argument("--repeats", type=int, default=3, help="timed renders per point (median)")
-    p.add_argument("--views", type=int, default=DEFAULT_VIEWS,
-                   help="source views per sample: 2 (the base protocol: two frames of one camera) or 3..24 "
-                        "(the multi-view protocol: rig cameras at several instants, targets between them)")
-    add_eval_split_arg(p)
-    args = p.parse_args(argv)
-    try:
-        budgets = parse_budgets(args.budgets)
-        views = check_views_arg(args.views)
+    def evaluate_run(self, job: TrainJob) -> str:
+        a, preset, steps = job.args, job.preset, job.extra["steps"]
+        if a.eval_scenes <= 0:
+            return ""
+        from .evaluate import evaluate_model, write_results
+        res = evaluate_model(job.model, job.data, preset, [1.0] if a.stage == "base" else DEFAULT_BUDGETS,
+                             a.eval_scenes, a.seed, sheet=job.stage / "contact_sheet.png", lpips=job.lpips,
+                             step=steps, views=2 if a.stage == "base" else preset.budget_views, split=a.eval_split)
+        write_results(res, job.stage, f"PGT {preset.name} ({a.stage}, step {steps}) on held-out "
+                                      f"{job.data.name} ({a.eval_split})")
+        return _summary(res["metrics"])
+
+    def add_eval_args(self, p: argparse.ArgumentParser) -> None:
+        p.add_argument("--budgets", default=",".join(f"{k:g}" for k in DEFAULT_BUDGETS),
+                       help="comma-separated κ in (0, 1]")
+        p.add_argument("--repeats", type=int, default=3, help="timed renders per point (median)")
+        p.add_argument("--views", type=int, default=DEFAULT_VIEWS,
+                       help="source views per sample: 2 (the base protocol: two frames of one camera) or 3..24 "
+                            "(the multi-view protocol: rig cameras at several instants, targets between them)")
+
+    def check_eval_args(self, args) -> None:
+        parse_budgets(args.budgets)
+        check_views_arg(args.views)
         if args.repeats < 1:
             raise ValueError(f"--repeats: expected at least 1, got {args.repeats}")
-        ck = load_checkpoint(args.checkpoint, FAMILY)
-        preset = saved_preset(ck["preset"])   # with the run's --set changes
-        check_preset_matches(ck["preset"], preset, str(args.checkpoint))
-        source = parse_data(args.data, seed=args.seed, safe_pickle=not args.trust_pickle)
-        lpips = lpips_from_args(args)
-        set_threads(args.threads, args.device)
+
+    def saved_preset(self, saved, name=None):
+        return saved_preset(saved)   # a budget field its record lacks: the code's default when it was written
+
+    def restore_model(self, ck: dict, preset, path: Path, device=None, **context):
+        from .model import PGT
         model = PGT(preset)
         if any(k.startswith("budget.") for k in ck["model"]):
             model.enable_budget()
         model.load_state_dict(ck["model"])
-        from clsplat.io.atomic import staged_group
+        return model
+
+    def evaluate_checkpoint(self, restored: Restored, args, stage: Path, lpips) -> str:
+        from ..common.data import parse_data
         from .evaluate import evaluate_model, write_results
-        with staged_group(args.out) as stage:  # the four files replace an earlier evaluation's together
-            res = evaluate_model(model, source, preset, budgets, args.num_scenes, args.seed, args.repeats,
-                                 sheet=stage / "contact_sheet.png", lpips=lpips, step=int(ck["step"]), views=views,
-                                 split=args.eval_split)
-            res["metrics"]["checkpoint"] = str(args.checkpoint)
-            write_results(res, stage, f"PGT {preset.name} (step {ck['step']}) on held-out {source.name} "
-                                      f"({args.eval_split}), {views} views")
-        print(_summary(res["metrics"]))
-        for r in res["rows"]:
-            print(f"  {r['method']:>17} kappa={r['budget']:<5g} n={r['n_gaussians']:>8.0f} PSNR {r['psnr']:.2f} "
-                  f"(covered {r['psnr_covered']:.2f}) SSIM {r['ssim']:.3f} render {r['render_ms']:.1f} ms")
-    except ValueError as e:
-        print(f"clsplat eval pgt: {e}", file=sys.stderr)
-        return 2
-    return 0
+        budgets, views = parse_budgets(args.budgets), check_views_arg(args.views)
+        source = parse_data(args.data, seed=args.seed, safe_pickle=not args.trust_pickle,
+                            default_world=self.default_world)
+        preset, step = restored.preset, int(restored.checkpoint["step"])
+        res = evaluate_model(restored.model, source, preset, budgets, args.num_scenes, args.seed, args.repeats,
+                             sheet=stage / "contact_sheet.png", lpips=lpips, step=step, views=views,
+                             split=args.eval_split)
+        res["metrics"]["checkpoint"] = str(args.checkpoint)
+        write_results(res, stage, f"PGT {preset.name} (step {step}) on held-out {source.name} "
+                                  f"({args.eval_split}), {views} views")
+        return "\n".join([_summary(res["metrics"])] + [
+            f"  {r['method']:>17} kappa={r['budget']:<5g} n={r['n_gaussians']:>8.0f} PSNR {r['psnr']:.2f} "
+            f"(covered {r['psnr_covered']:.2f}) SSIM {r['ssim']:.3f} render {r['render_ms']:.1f} ms"
+            for r in res["rows"]])
+
+    def checkpoint_scene(self, restored: Restored, run: Path, data: str | None, sample: int = 0,
+                         safe_pickle: bool = True):
+        from .view import checkpoint_scene
+        return checkpoint_scene(restored.model, restored.preset, run, data, sample, safe_pickle)
+
+
+COMMANDS = PGTCommands()
+
+
+def train(argv: list[str]) -> int:
+    """``clsplat train pgt ...``; returns the exit status."""
+    return train_main(COMMANDS, argv)
+
+
+def evaluate(argv: list[str]) -> int:
+    """``clsplat eval pgt ...``; returns the exit status."""
+    return eval_main(COMMANDS, argv)

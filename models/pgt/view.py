@@ -10,11 +10,8 @@ import numpy as np
 from clsplat.viewer.scene import ViewCamera, ViewScene
 
 from ..common.data import parse_data
-from ..common.presets import check_preset_matches
 from ..common.view import VARIANT_SAMPLES, depth_colour, gaussians_scene, model_snapshot, run_data
 from .data import RING, make_sample
-from .model import PGT
-from .presets import saved_preset
 
 __all__ = ["checkpoint_scene", "model_scene"]
 
@@ -52,19 +49,14 @@ def _inputs(preset, k: int) -> str:
     return "+".join(RING[(start + j) % len(RING)] for j in range(preset.num_views))
 
 
-def checkpoint_scene(ck: dict, ck_path: Path, run: Path, data: str | None, sample: int = 0, device=None,
+def checkpoint_scene(model, preset, run: Path, data: str | None, sample: int = 0,
                      safe_pickle: bool = True) -> ViewScene:
-    """The scene of a PGT checkpoint run on held-out sample ``sample`` of ``data`` (input and
-    target cameras, predicted depth), with a variant per sample (``data``: default the run's, else
-    synthetic; ``safe_pickle=False`` trusts the data's pickles)."""
+    """The scene of a PGT checkpoint's ``model`` (restored by the command skeleton) run on
+    held-out sample ``sample`` of ``data`` (input and target cameras, predicted depth), with a
+    variant per sample (``data``: default the run's, else synthetic; ``safe_pickle=False`` trusts
+    the data's pickles)."""
     data = data or run_data(run) or "synthetic"
 
-    preset = saved_preset(ck["preset"])   # with the run's --set changes
-    check_preset_matches(ck["preset"], preset, str(ck_path))
-    model = PGT(preset)
-    if any(k.startswith("budget.") for k in ck["model"]):
-        model.enable_budget()
-    model.load_state_dict(ck["model"])
     model.eval()
     source = parse_data(data, safe_pickle=safe_pickle)
     sc = model_scene(model, preset, source, data, sample)
