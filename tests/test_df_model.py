@@ -327,7 +327,7 @@ def test_local_correlation_finds_a_known_shift():
     assert float(cue[:, :49].abs().max()) <= 1.0 + 1e-5
 
 
-@pytest.mark.parametrize("mode", ["bev", "camera"])
+@pytest.mark.parametrize("mode", ["bev", "camera", "camera_only"])
 def test_pose_correlation_cue_starts_at_no_motion_and_is_trained(sample, mode):
     """pose_corr_radius > 0: with the zero-initialised outputs the untrained network still predicts
     exactly no motion, and the temporal loss trains the cue's own layers (in "bev" mode once the
@@ -344,7 +344,10 @@ def test_pose_correlation_cue_starts_at_no_motion_and_is_trained(sample, mode):
     terms["reproj"].backward()
     head = m.pose_net.corr_proj if mode == "bev" else m.pose_net.odometry.out
     assert float(head.weight.grad.abs().sum()) > 0
-    assert (m.pose_net.odometry is None) == (mode == "bev") and (m.pose_net.corr_proj is None) == (mode == "camera")
+    assert (m.pose_net.odometry is None) == (mode == "bev") and (m.pose_net.corr_proj is None) == (mode != "bev")
+    if mode == "camera_only":     # the decoder's translation takes no part: only its rotation outputs learn
+        assert float(m.pose_net.decoder.pose_2.weight.grad[3:].abs().sum()) == 0
+        assert float(m.pose_net.decoder.pose_2.weight.grad[:3].abs().sum()) > 0
 
 
 def test_camera_odometry_head_reads_each_camera_in_its_own_frame(sample):
@@ -376,6 +379,7 @@ def test_pose_translation_scale_sets_the_translations_own_multiplier(sample):
     m = DrivingForward(TINY.replace(pose_translation_scale=2.0, pose_translation_init=(0.0, 0.0, -0.6)))
     assert float(m.pose_net.decoder.pose_2.bias[5]) == pytest.approx(-0.3)
     for bad in ({"pose_translation_scale": 0.0}, {"pose_translation_scale": True}, {"pose_corr_radius": -1},
-                {"pose_corr_radius": 1.5}, {"pose_corr_level": 3}, {"pose_corr_mode": "flow"}):
+                {"pose_corr_radius": 1.5}, {"pose_corr_level": 3}, {"pose_corr_mode": "flow"},
+                {"pose_corr_mode": "camera_only"}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             TINY.replace(**bad)

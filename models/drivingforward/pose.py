@@ -22,7 +22,8 @@ Issue 32 departures, each a preset field, off unless set:
   "camera": :class:`CameraOdometryHead` reads each camera's cue with shared weights as that
   camera's own translation (a side camera sees forward motion as its own lateral motion, so one
   head serves every camera), rotated into camera 0's frame and averaged over the cameras, and added
-  to the decoder's translation.
+  to the decoder's translation; "camera_only": that average is the translation, and the decoder
+  gives the rotation alone.
 * ``pose_translation_scale``: the translation outputs' own multiplier (the rotation keeps
   ``pose_scale``). With Adam, a parameter moves about ``lr`` per step whatever its gradient's size,
   so the output moves about ``lr x scale`` per unit of input: at the paper's 0.01 and 1e-4, the
@@ -201,7 +202,7 @@ class PoseNetwork(nn.Module):
         bev = self.fusion(feat8, scale_intrinsics(Ks, 1.0 / 8), cam_to_ego)
         raw = self.decoder(bev)
         rot = raw[:3] * p.pose_scale
-        t = raw[3:]
+        t = raw[3:] if p.pose_corr_mode != "camera_only" else torch.zeros_like(raw[3:])
         if self.odometry is not None:
             # each camera's own translation, into camera 0's frame: t_0 = R_0^T R_c t_c
             R = cam_to_ego[:, :3, :3].to(cue.dtype)

@@ -77,7 +77,8 @@ class DFPreset(Preset):
         pose_corr_level: the resolution of that cue, 1/level (2, 4 or 8).
         pose_corr_mode: "bev": the cue joins the 1/8 feature before the bird's-eye fusion; "camera":
             one head with shared weights reads each camera's cue as its own translation, rotated into
-            camera 0's frame and averaged, added to the decoder's translation.
+            camera 0's frame and averaged, added to the decoder's translation; "camera_only": that
+            average is the translation (the decoder gives the rotation only).
         min_depth, max_depth, focal_ref: depth = 1/(1/max + (1/min - 1/max) sigma) * fx / focal_ref.
         gs_encoder_channels, gs_decoder_channels, gs_head_channels: Gaussian network widths.
         sh_degree, sh_damping, sh_damping_decay: SH degree predicted and rendered; degree l >= 1 is
@@ -223,8 +224,12 @@ class DFPreset(Preset):
         if self.pose_corr_level not in (2, 4, 8) or isinstance(self.pose_corr_level, bool) \
                 or self.height % self.pose_corr_level or self.width % self.pose_corr_level:
             raise ValueError(f"preset {self.name}: pose_corr_level must be 2, 4 or 8, got {self.pose_corr_level!r}")
-        if self.pose_corr_mode not in ("bev", "camera"):
-            raise ValueError(f"preset {self.name}: pose_corr_mode must be 'bev' or 'camera', got {self.pose_corr_mode!r}")
+        if self.pose_corr_mode not in ("bev", "camera", "camera_only"):
+            raise ValueError(f"preset {self.name}: pose_corr_mode must be 'bev', 'camera' or 'camera_only', "
+                             f"got {self.pose_corr_mode!r}")
+        if self.pose_corr_mode == "camera_only" and (self.pose_corr_radius == 0 or self.pose_translation_init is not None):
+            raise ValueError(f"preset {self.name}: pose_corr_mode 'camera_only' takes the translation from the "
+                             f"correlation head alone: it needs pose_corr_radius > 0 and no pose_translation_init")
         if not isinstance(self.depth_zero_init, bool):
             raise ValueError(f"preset {self.name}: depth_zero_init must be True or False, got {self.depth_zero_init!r}")
         if self.smooth_order not in (1, 2):
