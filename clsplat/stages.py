@@ -288,10 +288,10 @@ ORDER_MIN_CHUNK = 2048
 #: GPU layout: keys per work-item; the radix counters then number about as many as the keys.
 ORDER_GPU_CHUNK = 256
 #: Serial layout: up to this many pairs that touch a tile, the whole stage runs in one
-#: work-item (kernels/order.cl's order_small): one launch instead of three per pass (count,
-#: scan, scatter) and the placement's. Measured on the loaded 2-core VM (/tmp-style A/B, 9
-#: rounds): at 10k pairs 0.8 ms (CPU and wall) against the chunked passes' 2.7 ms CPU, 6.7 ms
-#: wall and the per-tile sort's 1.8 ms; at 30k 2.0 against 3.2 ms CPU; at 100k about even.
+#: work-item (kernels/order.cl's order_small): one launch instead of two per pass (count,
+#: scatter), the gather's and the placement's. Measured on the loaded 2-core VM (medians of 9
+#: calls of the stage alone, wall): at 10k pairs 0.8 ms against the chunked passes' 1.6 ms and
+#: the per-tile sort's 1.8 ms; at 30k 2.0 against 2.8 ms; at 100k 12.8 against 6.1 ms.
 ORDER_SMALL = 1 << 15
 
 
@@ -320,29 +320,33 @@ def _sort_serial(rt: Runtime, cfg: RenderConfig) -> bool:
 
 def _counting_pass(rt: Runtime, cfg: RenderConfig, k: Callable[[str], cl.Kernel], count: str,
                    scatter: str, n_chunks: int, n_bins: int, head: tuple, count_args: tuple,
-                   scatter_args: tuple, name: str, events, own_scan: bool,
+                   scatter_args: tuple, name: str, events,
                    after_scan: Callable[[DeviceArray], None] | None = None) -> None:
     """One stable counting pass of kernels/order.cl, all on the device: count (``head +
-    count_args + (hist,)``), exclusive scan in (bin, chunk) order (``own_scan``: the kernel
-    scan_counters, else pyopencl's), scatter (``head + scatter_args`` with the scanned
-    positions where ``None`` stands)."""
-    local = 1 if _sort_serial(rt, cfg) else LOCAL_1D  # serial: one chunk per work-group, so
-    # PoCL spreads the chunks over its threads (it runs a work-group's items on one thread)
+    count_args + (hist,)``), then scatter (``head + scatter_args`` with the counts and the
+    positions where ``"hist"`` and ``"pos"`` stand). Serial layout: each scatter work-item
+    scans for itself; GPU layout: a scan launch in between (pyopencl's, or scan_counters
+    where that cannot run, see :func:`_host_scan`), then ``after_scan(pos)``."""
+    serial = _sort_serial(rt, cfg)
+    local = 1 if serial else LOCAL_1D  # serial: one chunk per work-group, so PoCL spreads
+    # the chunks over its threads (it runs a work-group's items on one thread)
     hist = rt.empty((n_bins * n_chunks,), torch.int32, zero=False)
     pos = rt.empty((n_bins * n_chunks,), torch.int32, zero=False)
     _record(events, name, rt.launch(k(count), n_chunks, local, *head, *count_args, hist.buffer))
-    if own_scan:
-        _record(events, name, rt.launch(k("scan_counters"), 1, 1, np.int32(n_bins),
-                                        np.int32(n_chunks), hist.buffer, pos.buffer))
-    else:
-        a = cl_array.Array(rt.queue, (n_bins * n_chunks,), np.int32, data=hist.buffer)
-        b = cl_array.Array(rt.queue, (n_bins * n_chunks,), np.int32, data=pos.buffer)
-        rt.hold(hist.buffer, pos.buffer)
-        rt.launches += 1  # writes pos (see Runtime.launches)
-        _record(events, "scan", rt.exclusive_scan_int32()(a, b, queue=rt.queue))
-    if after_scan is not None:
-        after_scan(pos)
-    args = tuple(pos.buffer if a is None else a for a in scatter_args)
+    if not serial:
+        if _host_scan(rt):
+            _record(events, name, rt.launch(k("scan_counters"), 1, 1, np.int32(n_bins),
+                                            np.int32(n_chunks), hist.buffer, pos.buffer))
+        else:
+            a = cl_array.Array(rt.queue, (n_bins * n_chunks,), np.int32, data=hist.buffer)
+            b = cl_array.Array(rt.queue, (n_bins * n_chunks,), np.int32, data=pos.buffer)
+            rt.hold(hist.buffer, pos.buffer)
+            rt.launches += 1  # writes pos (see Runtime.launches)
+            _record(events, "scan", rt.exclusive_scan_int32()(a, b, queue=rt.queue))
+        if after_scan is not None:
+            after_scan(pos)
+    sub = {"hist": hist.buffer, "pos": pos.buffer}
+    args = tuple(sub[a] if isinstance(a, str) else a for a in scatter_args)
     _record(events, name, rt.launch(k(scatter), n_chunks, local, *head, *args))
 
 
@@ -369,11 +373,9 @@ def depth_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Devi
     keys = rt.empty((total,), torch.int64, zero=False)
     if n == 0:
         return offsets, keys
-    # The serial layout's few chunks are scanned by one work-item, chunk-major; the GPU
-    # layout's many by pyopencl's scan, bin-major (by scan_counters too where that scan cannot
-    # run: CLSPLAT_HOST_SCAN=1, see _host_scan). No pass waits for the host.
+    # Counters chunk-major in the serial layout (each chunk scans for itself), bin-major in
+    # the GPU layout (a scan launch). No pass waits for the host.
     serial = _sort_serial(rt, cfg)
-    own_scan = serial or _host_scan(rt)
     defines = {"REAL_DOUBLE": cfg.precision == "float64", "RADIX_BITS": ORDER_RADIX_BITS,
                "HIST_CHUNK_MAJOR": serial}
     k = lambda name: rt.kernel("order", name, defines)  # noqa: E731
@@ -393,14 +395,14 @@ def depth_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Devi
     src, dst = rt.empty((n,), torch.int64, zero=False), rt.empty((n,), torch.int64, zero=False)
     head = (np.int32(C * N), np.int32(chunk), np.int32(ch))
     _counting_pass(rt, cfg, k, "depth_count_pairs", "depth_scatter_pairs", ch, bins, head,
-                   (rects.buffer, depths.buffer), (rects.buffer, depths.buffer, None, src.buffer),
-                   "sort_depth", events, own_scan)
+                   (rects.buffer, depths.buffer),
+                   (rects.buffer, depths.buffer, "hist", "pos", src.buffer), "sort_depth", events)
     ch = _order_chunks(rt, cfg, n, bins, n)
     chunk = -(-n // ch)
     head = (np.int32(n), np.int32(chunk), np.int32(ch))
     for shift in range(ORDER_RADIX_BITS, 32, ORDER_RADIX_BITS):
         _counting_pass(rt, cfg, k, "depth_count", "depth_scatter", ch, bins, head + (np.int32(shift),),
-                       (src.buffer,), (src.buffer, None, dst.buffer), "sort_depth", events, own_scan)
+                       (src.buffer,), (src.buffer, "hist", "pos", dst.buffer), "sort_depth", events)
         src, dst = dst, src
     # the tile placement: bins are the (camera, tile) segments
     srects = rt.empty((n, 4), torch.int32, zero=False)
@@ -411,15 +413,15 @@ def depth_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Devi
     chunk = -(-n // ch)
     head = (np.int32(n), np.int32(chunk), np.int32(ch), np.int32(tiles_x))
 
-    def starts(pos: DeviceArray) -> None:  # before the scatter advances the positions
+    def starts(pos: DeviceArray) -> None:  # GPU layout; before the scatter advances them
         _record(events, "bin_starts", rt.launch(
             k("segment_starts"), n_tiles + 1, LOCAL_1D, np.int32(n_tiles), np.int32(ch),
             np.int32(total), pos.buffer, offsets.buffer))
 
     _counting_pass(rt, cfg, k, "place_count", "place_scatter", ch, n_tiles, head,
                    (np.int32(n_tiles), srects.buffer),
-                   (np.int32(n_tiles), src.buffer, srects.buffer, None, keys.buffer), "bin_place",
-                   events, own_scan, after_scan=starts)
+                   (np.int32(n_tiles), np.int32(total), src.buffer, srects.buffer, "hist", "pos",
+                    offsets.buffer, keys.buffer), "bin_place", events, after_scan=starts)
     check_tile_offsets(offsets.host(), total)
     return offsets, keys
 

@@ -15,8 +15,8 @@
  *   count:   counter (b, c) = elements of chunk c that fall in bin b (each count kernel
  *            first zeroes its own chunk's counters);
  *   scan:    an exclusive prefix sum of the counters in bin-major, chunk-minor order gives
- *            each (bin, chunk) its first output position (scan_counters, or pyopencl's scan
- *            in the GPU layout);
+ *            each (bin, chunk) its first output position (serial layout: each scatter
+ *            work-item computes its own, see own_positions; GPU layout: pyopencl's scan);
  *   scatter: chunk c walks its elements again, in order, writing each to position (b, c)++.
  * Within a bin, earlier chunks come first (the scan's order) and a chunk keeps its own order:
  * stable. Each work-item writes only its own counters: no atomics, deterministic anywhere.
@@ -63,6 +63,23 @@ inline void zero_counters(__global int *h, int n_bins, int stride) {
     for (int b = 0; b < n_bins; ++b) h[b * stride] = 0;
 }
 
+/* The scan's positions of chunk c, written to its own counters in pos. In the serial layout
+ * each scatter work-item computes them itself from every chunk's counts (n_bins x n_chunks
+ * reads, a few thousand: less than the launch and wake-up of a separate scan); in the GPU
+ * layout a scan has filled pos already (thousands of chunks: that would be quadratic). */
+inline void own_positions(__global const int *hist, __global int *pos, int n_bins, int n_chunks,
+                          int c) {
+#if HIST_CHUNK_MAJOR
+    int run = 0;
+    for (int b = 0; b < n_bins; ++b)
+        for (int c2 = 0; c2 < n_chunks; ++c2) {
+            const int i = COUNTER(b, c2, n_bins, n_chunks);
+            if (c2 == c) pos[i] = run;
+            run += hist[i];
+        }
+#endif
+}
+
 /* Pass 0, count: digit `shift` of the depth key of every pair of chunk c that touches a tile. */
 __kernel void depth_count_pairs(const int CN, const int chunk, const int n_chunks,
                                 __global const int *rects,   /* [C, N, 4] */
@@ -82,11 +99,13 @@ __kernel void depth_count_pairs(const int CN, const int chunk, const int n_chunk
 /* Pass 0, scatter: the keys of those pairs, placed by their lowest depth digit. */
 __kernel void depth_scatter_pairs(const int CN, const int chunk, const int n_chunks,
                                   __global const int *rects, __global const REAL *depths,
-                                  __global int *pos,    /* the scanned counters */
-                                  __global ulong *dst)  /* [n visible pairs] */
+                                  __global const int *hist, /* the counts */
+                                  __global int *pos,        /* the scanned counts */
+                                  __global ulong *dst)      /* [n visible pairs] */
 {
     const int c = get_global_id(0);
     if (c >= n_chunks) return;
+    own_positions(hist, pos, RADIX_BINS, n_chunks, c);
     __global int *p = counters(pos, RADIX_BINS, n_chunks, c);
     const int st = COUNTER_STRIDE(n_chunks);
     const int lo = c * chunk, hi = min(lo + chunk, CN);
@@ -111,10 +130,12 @@ __kernel void depth_count(const int n, const int chunk, const int n_chunks, cons
 }
 
 __kernel void depth_scatter(const int n, const int chunk, const int n_chunks, const int shift,
-                            __global const ulong *src, __global int *pos, __global ulong *dst)
+                            __global const ulong *src, __global const int *hist,
+                            __global int *pos, __global ulong *dst)
 {
     const int c = get_global_id(0);
     if (c >= n_chunks) return;
+    own_positions(hist, pos, RADIX_BINS, n_chunks, c);
     __global int *p = counters(pos, RADIX_BINS, n_chunks, c);
     const int st = COUNTER_STRIDE(n_chunks);
     const int lo = c * chunk, hi = min(lo + chunk, n);
@@ -165,10 +186,8 @@ __kernel void place_count(const int n, const int chunk, const int n_chunks, cons
     }
 }
 
-/* The exclusive prefix sum of the counters in (bin, chunk) order, in one work-item: the serial
- * layout's few chunks make a few thousand counters (and where pyopencl's scan cannot run, e.g.
- * under Oclgrind's uninitialised-value checker, the GPU layout's too). Run on the device, it
- * spares the host a wait for the count kernel: under load each wait cost milliseconds. */
+/* The exclusive prefix sum of the counters in (bin, chunk) order, in one work-item, for the
+ * GPU layout where pyopencl's scan cannot run (Oclgrind's uninitialised-value checker). */
 __kernel void scan_counters(const int n_bins, const int n_chunks,
                             __global const int *hist, __global int *pos)
 {
@@ -194,14 +213,23 @@ __kernel void segment_starts(const int n_tiles, const int n_chunks, const int to
 
 /* Tile placement, scatter: each key into every tile of its rectangle, in depth order. */
 __kernel void place_scatter(const int n, const int chunk, const int n_chunks, const int tiles_x,
-                            const int n_tiles,
+                            const int n_tiles, const int total,
                             __global const ulong *keys,  /* [n] depth-sorted */
                             __global const int *srects,  /* [n, 4] from gather_rects */
-                            __global int *pos,           /* the scanned counters */
+                            __global const int *hist,    /* the counts */
+                            __global int *pos,           /* the scanned counts */
+                            __global int *offsets,       /* [n_tiles + 1] */
                             __global ulong *out)         /* [M] the tile lists */
 {
     const int c = get_global_id(0);
     if (c >= n_chunks) return;
+    own_positions(hist, pos, n_tiles, n_chunks, c);
+#if HIST_CHUNK_MAJOR
+    if (c == 0) { /* the segment starts (segment_starts' work in the GPU layout) */
+        for (int t = 0; t < n_tiles; ++t) offsets[t] = pos[t];
+        offsets[n_tiles] = total;
+    }
+#endif
     __global int *p = counters(pos, n_tiles, n_chunks, c);
     const int st = COUNTER_STRIDE(n_chunks);
     const int lo = c * chunk, hi = min(lo + chunk, n);
