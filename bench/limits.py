@@ -16,33 +16,29 @@ __kernel void copy16(__global const float16 *src, __global float16 *dst, const i
     if (i < n) dst[i] = src[i];
 }
 /* 8 independent multiply-add chains (mul+add, contracted to FMA with -cl-mad-enable; PoCL 3.0
- * aborts in instruction selection on the fma() builtin for float16) on float16 vectors: 8 * 16 * 2 flops per iteration. */
-__kernel void fma_peak(__global float *out, const int iters, const float a, const float b) {
-    const int i = get_global_id(0);
-    const float16 va = (float16)(a), vb = (float16)(b);
-    float16 x0 = (float16)(i * 1e-9f), x1 = x0 + 1e-3f, x2 = x0 + 2e-3f, x3 = x0 + 3e-3f;
-    float16 x4 = x0 + 4e-3f, x5 = x0 + 5e-3f, x6 = x0 + 6e-3f, x7 = x0 + 7e-3f;
-    for (int k = 0; k < iters; ++k) {
-        x0 = x0 * va + vb; x1 = x1 * va + vb; x2 = x2 * va + vb; x3 = x3 * va + vb;
-        x4 = x4 * va + vb; x5 = x5 * va + vb; x6 = x6 * va + vb; x7 = x7 * va + vb;
-    }
-    const float16 s = ((x0 + x1) + (x2 + x3)) + ((x4 + x5) + (x6 + x7));
-    out[i] = s.s0 + s.s1 + s.s2 + s.s3 + s.s4 + s.s5 + s.s6 + s.s7 + s.s8 + s.s9 + s.sa + s.sb + s.sc + s.sd + s.se + s.sf;
+ * aborts in instruction selection on the fma() builtin for float16) on VT vectors of type T:
+ * 8 * lanes * 2 flops per iteration. The lanes are summed into out so that nothing is dead. */
+#define FMA_PEAK(NAME, T, VT)                                                                       \
+__kernel void NAME(__global T *out, const int iters, const T a, const T b) {                        \
+    const int i = get_global_id(0);                                                                 \
+    const VT va = (VT)(a), vb = (VT)(b);                                                            \
+    VT x0 = (VT)(i * (T)1e-9), x1 = x0 + (T)1e-3, x2 = x0 + (T)2e-3, x3 = x0 + (T)3e-3;               \
+    VT x4 = x0 + (T)4e-3, x5 = x0 + (T)5e-3, x6 = x0 + (T)6e-3, x7 = x0 + (T)7e-3;                   \
+    for (int k = 0; k < iters; ++k) {                                                               \
+        x0 = x0 * va + vb; x1 = x1 * va + vb; x2 = x2 * va + vb; x3 = x3 * va + vb;                 \
+        x4 = x4 * va + vb; x5 = x5 * va + vb; x6 = x6 * va + vb; x7 = x7 * va + vb;                 \
+    }                                                                                               \
+    const VT s = ((x0 + x1) + (x2 + x3)) + ((x4 + x5) + (x6 + x7));                                 \
+    T lanes[sizeof(VT) / sizeof(T)];                                                                \
+    *(VT *)lanes = s;                                                                               \
+    T sum = 0;                                                                                      \
+    for (int k = 0; k < (int)(sizeof(VT) / sizeof(T)); ++k) sum += lanes[k];                        \
+    out[i] = sum;                                                                                   \
 }
+FMA_PEAK(fma_peak, float, float16)
 #ifdef cl_khr_fp64
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
-__kernel void fma_peak_f64(__global double *out, const int iters, const double a, const double b) {
-    const int i = get_global_id(0);
-    const double8 va = (double8)(a), vb = (double8)(b);
-    double8 x0 = (double8)(i * 1e-9), x1 = x0 + 1e-3, x2 = x0 + 2e-3, x3 = x0 + 3e-3;
-    double8 x4 = x0 + 4e-3, x5 = x0 + 5e-3, x6 = x0 + 6e-3, x7 = x0 + 7e-3;
-    for (int k = 0; k < iters; ++k) {
-        x0 = x0 * va + vb; x1 = x1 * va + vb; x2 = x2 * va + vb; x3 = x3 * va + vb;
-        x4 = x4 * va + vb; x5 = x5 * va + vb; x6 = x6 * va + vb; x7 = x7 * va + vb;
-    }
-    const double8 s = ((x0 + x1) + (x2 + x3)) + ((x4 + x5) + (x6 + x7));
-    out[i] = s.s0 + s.s1 + s.s2 + s.s3 + s.s4 + s.s5 + s.s6 + s.s7;
-}
+FMA_PEAK(fma_peak_f64, double, double8)
 #endif
 """
 

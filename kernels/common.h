@@ -330,6 +330,15 @@ inline void stage_sample_soa(int i, uint cg, __global const REAL *means2d, __glo
         l_f[CCHUNK * i + ch] = ch0 + ch < CHANNELS ? feats[(size_t)cg * CHANNELS + ch0 + ch] : (REAL)0;
 }
 
+/* Slot i of the last extent-bit word past the batch's end: a sample no pixel sees (its extent
+ * bounds are negative), so the word-wide extent tests need no bounds check. */
+inline void pad_sample_soa(int i, __local REAL *l_x, __local REAL *l_y, __local REAL *l_bx, __local REAL *l_by) {
+    l_x[i] = 0;
+    l_y[i] = 0;
+    l_bx[i] = -1;
+    l_by[i] = -1;
+}
+
 /* Prefetch (on PoCL's CPU device, CLS_POCL_CPU; elsewhere nothing) the compositing parameters
  * of sample cg and nf of its features from channel ch0 on. A batch's samples are random Gaussians, each a cache miss per array; prefetched while the
  * batch before is composited, their staging no longer waits on memory. */

@@ -123,11 +123,8 @@ void composite_fwd(const int width, const int height, const int tiles_x, const i
                 const uint cg = key_id(keys[b0 + i]);
                 stage_sample_soa(i, cg, means2d, conics, opac_cg, extents, feats, l_x, l_y, l_ca,
                                  l_cb, l_cc, l_op, l_sm, l_bx, l_by, l_f, ch0, CCHUNK);
-            } else { /* padding of the last word: seen by no pixel */
-                l_x[i] = 0;
-                l_y[i] = 0;
-                l_bx[i] = -1;
-                l_by[i] = -1;
+            } else {
+                pad_sample_soa(i, l_x, l_y, l_bx, l_by);
             }
         }
 #else

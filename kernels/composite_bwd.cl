@@ -202,11 +202,8 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
                  * its row-major tile rectangle, the order in which its tiles were counted. */
                 const int4 r = vload4(cg, rects);
                 l_slot[i] = isect_offsets[cg] + (ty - r.y) * (r.z - r.x) + (tx - r.x);
-            } else { /* padding of the last word: seen by no pixel */
-                l_x[i] = 0;
-                l_y[i] = 0;
-                l_bx[i] = -1;
-                l_by[i] = -1;
+            } else {
+                pad_sample_soa(i, l_x, l_y, l_bx, l_by);
             }
         }
 #else

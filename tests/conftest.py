@@ -91,6 +91,37 @@ def single_camera(width: int = 64, height: int = 48, fov: float = 60.0, dtype=F6
     return torch.eye(4, dtype=dtype)[None], intrinsics(width, height, fov).to(dtype)[None]
 
 
+def torchrun_two(tmp_path, family: str, args: list[str], timeout: int = 600) -> tuple[dict, dict]:
+    """Train ``family`` with ``args`` once in this process into ``tmp_path/one`` and once under
+    ``torchrun --nproc_per_node 2`` into ``tmp_path/two`` (one thread per process); the two
+    checkpoints, after asserting that both runs succeeded and the second ran two processes."""
+    import socket
+    import subprocess
+    import sys
+
+    from clsplat.cli import console
+
+    assert console(["train", family, *args, "--out", str(tmp_path / "one")]) == 0
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    script = tmp_path / f"{family}_train.py"
+    script.write_text(f"import sys; from clsplat.cli import console; sys.exit(console(['train', '{family}', *sys.argv[1:]]))")
+    r = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
+                        str(port), str(script), *args, "--out", str(tmp_path / "two")],
+                       capture_output=True, text=True, timeout=timeout, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "2 process(es)" in r.stdout
+    return (torch.load(tmp_path / "one" / "checkpoint.pt", weights_only=True),
+            torch.load(tmp_path / "two" / "checkpoint.pt", weights_only=True))
+
+
+@pytest.fixture(scope="session")
+def two_process_run():
+    """:func:`torchrun_two`: a family's one-process run beside its ``torchrun`` two-process run."""
+    return torchrun_two
+
+
 @pytest.fixture(scope="session")
 def rt():
     return clsplat.get_runtime()

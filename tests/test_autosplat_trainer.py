@@ -4,7 +4,6 @@ parallelism, skipped stages, bad input."""
 import json
 import math
 import os
-import socket
 import subprocess
 import sys
 
@@ -100,25 +99,14 @@ def test_a_non_finite_step_is_skipped(street, tmp_path):
 
 
 @pytest.mark.slow   # torchrun: two processes
-def test_torchrun_data_parallel_equals_one_process(tmp_path):
+def test_torchrun_data_parallel_equals_one_process(tmp_path, two_process_run):
     """``torchrun --nproc_per_node 2 ... --batch-size 2``: each rank renders one of the iteration's two
     frames, gradients and densification statistics are summed over the ranks, and the run ends where
     one process with two frames per iteration does (float sums in another order: close, not bitwise)."""
     args = ["--data", "synthetic", "--preset", "tiny", "--frames", "0:4", "--scale", "0.2", "--cameras",
             "CAM_FRONT", "CAM_BACK", "--batch-size", "2", "--no-progress"]
-    assert train([*args, "--out", str(tmp_path / "one")]) == 0
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    script = tmp_path / "autosplat_train.py"
-    script.write_text("import sys; from clsplat.cli import console; sys.exit(console(['train', 'autosplat', *sys.argv[1:]]))")
-    r = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
-                        str(port), str(script), *args, "--out", str(tmp_path / "two")],
-                       capture_output=True, text=True, timeout=600, env={**os.environ, "OMP_NUM_THREADS": "1"})
-    assert r.returncode == 0, r.stderr[-3000:]
-    assert "2 process(es)" in r.stdout
-    one = torch.load(tmp_path / "one" / "checkpoint.pt", weights_only=True)
-    two = torch.load(tmp_path / "two" / "checkpoint.pt", weights_only=True)
+    one, two = two_process_run(tmp_path, "autosplat", args)
+    script = tmp_path / "autosplat_train.py"    # the entry point two_process_run wrote
     assert two["step"] == one["step"] == TINY_STEPS
     assert two["extra"]["sizes"] == one["extra"]["sizes"]
     for k, v in one["model"].items():

@@ -231,35 +231,17 @@ def test_errors_name_the_argument(runs, tmp_path, capsys):
     assert "does not exist" in capsys.readouterr().err
 
 
-def test_two_process_data_parallel_equals_one_process(tmp_path):
+def test_two_process_data_parallel_equals_one_process(tmp_path, two_process_run):
     """``torchrun --nproc_per_node 2`` with global batch 2 makes the same update as one process
     with batch 2 (gradients all-reduced). BatchNorm running statistics are not part of the update:
     as with torch DDP's buffer broadcast, the checkpoint carries rank 0's."""
-    import os
-    import socket
-    import subprocess
-    import sys
-
     # --threads 1 in both runs: each sample's forward and backward then do the same float32
     # arithmetic in one process and in two (torch's default thread count follows the machine's
     # load, and another count changes the convolutions' summation order), so what differs is only
     # the reduction this test is about.
     args = ["--preset", "tiny", "--steps", "1", "--batch-size", "2", "--eval-scenes", "0", "--no-progress",
             "--threads", "1"]
-    assert train([*args, "--out", str(tmp_path / "one")]) == 0
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    code = "import sys; from clsplat.models.drivingforward.cli import train; sys.exit(train(sys.argv[1:]))"
-    script = tmp_path / "df_train.py"
-    script.write_text(code)
-    r = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
-                        str(port), str(script), *args, "--out", str(tmp_path / "two")],
-                       capture_output=True, text=True, timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
-    assert r.returncode == 0, r.stderr[-3000:]
-    assert "2 process(es)" in r.stdout
-    one = torch.load(tmp_path / "one" / "checkpoint.pt", weights_only=True)
-    two = torch.load(tmp_path / "two" / "checkpoint.pt", weights_only=True)
+    one, two = two_process_run(tmp_path, "drivingforward", args, timeout=300)
     assert two["step"] == one["step"] == 1
     # Compare the gradients, not Adam's step. Adam's first step moves every weight by about
     # lr * sign(g), so a gradient element that is rounding noise around zero (a bias in front of a

@@ -41,6 +41,14 @@ def out(model):
         return model(images, Ks, c2w), (images, Ks, c2w)
 
 
+def _with_budget(model: PGT, preset) -> PGT:
+    """A PGT of ``preset`` holding ``model``'s weights, with fresh budget heads (copies of its own)."""
+    m = PGT(preset)
+    m.load_state_dict(model.state_dict())
+    m.enable_budget()
+    return m
+
+
 def test_head_shapes_and_ranges(out):
     o, (images, Ks, c2w) = out
     V, _, H, W = images.shape
@@ -112,9 +120,7 @@ def test_kappa_one_is_the_base_model_bitwise(model, preset):
     images, Ks, c2w = _views(seed=3)
     with torch.no_grad():
         base = model(images, Ks, c2w)
-    m = PGT(preset)
-    m.load_state_dict(model.state_dict())
-    m.enable_budget()
+    m = _with_budget(model, preset)
     with torch.no_grad():  # finetuned heads that differ from the base heads
         for prm in m.budget.parameters():
             prm.add_(torch.randn_like(prm) * 0.1)
@@ -128,9 +134,7 @@ def test_kappa_one_is_the_base_model_bitwise(model, preset):
 
 def test_fresh_budget_heads_copy_the_base_heads_exactly(model):
     images, Ks, c2w = _views(seed=4)
-    m = PGT(TINY)
-    m.load_state_dict(model.state_dict())
-    m.enable_budget()
+    m = _with_budget(model, TINY)
     with torch.no_grad():
         base = m(images, Ks, c2w)
         half = m(images, Ks, c2w, kappa=0.5)
@@ -147,9 +151,7 @@ def test_fresh_budget_heads_copy_the_base_heads_exactly(model):
 @pytest.mark.parametrize("views", [2, 3])
 def test_gaussian_count_for_every_kappa(model, views, preset):
     images, Ks, c2w = _views(V=views, seed=5)
-    m = PGT(preset)
-    m.load_state_dict(model.state_dict())
-    m.enable_budget()
+    m = _with_budget(model, preset)
     P = TINY.height * TINY.width
     with torch.no_grad():
         for kappa in (1.0, 0.5, 0.1, 0.05, 1e-4):
@@ -167,9 +169,7 @@ def test_issue18_heads_start_as_the_base_and_select_by_importance(model):
     base opacity; the selection spreads the budget (no top-K by opacity); the fill cap lets a
     widened far Gaussian grow past ``scale_cap`` metres."""
     images, Ks, c2w = _views(seed=4)
-    m = PGT(ISSUE18)
-    m.load_state_dict(model.state_dict())
-    m.enable_budget()
+    m = _with_budget(model, ISSUE18)
     with torch.no_grad():
         base = m(images, Ks, c2w)
         o = m(images, Ks, c2w, kappa=0.1)
@@ -202,9 +202,7 @@ def test_kappa_decoder_starts_as_the_base_and_changes_the_features_with_kappa(mo
     ``kappa_film`` there is no κ input in the decoder."""
     images, Ks, c2w = _views(V=3, seed=6)
     p = ISSUE18.replace(kappa_decoder=stages)
-    m = PGT(p)
-    m.load_state_dict(model.state_dict())
-    m.enable_budget()
+    m = _with_budget(model, p)
     assert len(m.budget.decoder.stages) == stages and len(m.budget.decoder.film) == stages
     with torch.no_grad():
         base = m(images, Ks, c2w)
@@ -236,9 +234,7 @@ def test_full_gives_the_finetuned_parameters_unpruned(model, preset):
     from clsplat.models.pgt.evaluate import BASELINES, baseline_mask
     from clsplat.models.pgt.model import learned_selection
     images, Ks, c2w = _views(V=3, seed=7)
-    m = PGT(preset)
-    m.load_state_dict(model.state_dict())
-    m.enable_budget()
+    m = _with_budget(model, preset)
     with torch.no_grad():
         for prm in m.budget.parameters():   # finetuned heads that differ from the base heads
             prm.add_(torch.randn_like(prm) * 0.1)
