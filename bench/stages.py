@@ -88,7 +88,8 @@ COMPOSITE_OPS = {
     "alpha": {"lane": 6, "lane_per_channel": 2},
 }
 
-STAGE_ORDER = ("project", "sh", "bin_count", "scan", "bin_scatter", "sort_local", "sort_merge", "composite")
+STAGE_ORDER = ("project", "sh", "sort_small", "sort_depth", "bin_gather", "bin_place", "bin_count", "scan",
+               "bin_scatter", "sort_serial", "sort_local", "sort_merge", "composite")
 
 
 def _inputs(scene: dict, cfg: RenderConfig) -> dict:
@@ -266,8 +267,7 @@ def composite_counts(scene: dict, cfg: RenderConfig | None = None, device=None,
     else:
         c = x["colors"]
         feats = arr((c.expand(C, N, c.shape[-1]) if c.dim() == 2 else c).contiguous())
-    offsets, keys = engine.bin_tiles(rt, cfg, p.rects, p.depths, W, H, ts)
-    engine.sort_segments(rt, cfg, keys, offsets, host_offsets=offsets.tensor)
+    offsets, keys = engine.tile_lists(rt, cfg, p.rects, p.depths, W, H, ts)
     CH = feats.tensor.shape[-1]
     pix, _, chunk, _ = engine.composite_layout(rt, cfg, ts, CH)
     group = ts * ts // pix
@@ -343,6 +343,15 @@ def stage_bytes(scene: dict, M: int, real: int = 4) -> dict:
         "bin_scatter": C * N * (16 + real) + M * (8 + 8 + 4),
         "sort_local": M * 16,
         "sort_merge": M * 16,
+        # kernels/order.cl (issue 35), with every pair touching a tile (an upper bound): the
+        # radix sort's pass 0 reads rects and depths twice and writes the keys, 3 more passes
+        # read the keys twice and write them once; the gather reads a key and a rectangle at
+        # random and writes one; the placement reads the sorted rectangles twice, the keys once
+        # and writes the tile lists
+        "sort_depth": C * N * (2 * (16 + real) + 8 + 3 * 24),
+        "bin_gather": C * N * (8 + 16 + 16),
+        "bin_place": C * N * (2 * 16 + 8) + M * 8,
+        "sort_small": C * N * (2 * (16 + real) + 8 + 3 * 24 + 2 * (8 + 16)) + M * 8,
         "composite": M * (8 + (6 + CH) * real) + P * (CH + 1) * real,
     }
 
