@@ -33,7 +33,7 @@ def _scene():
     car[0, 4:10, 5:15] = True                   # 60 pixels in camera 0
     car[1, 0:3, 0:4] = True                     # 12 pixels in camera 1
     ped = np.zeros((2, 24, 32), bool)
-    ped[1, 12:20, 20:23] = True                 # 24 pixels
+    ped[1, 8:20, 20:24] = True                  # 48 pixels
     truck = np.zeros((2, 24, 32), bool)
     truck[0, 15:20, 20:30] = True
     render[torch.from_numpy(car)] = 0.3
@@ -45,7 +45,7 @@ def test_per_class_psnr_equals_the_hand_computation():
     render, truth, masks, labels = _scene()
     s = object_scores([render], [truth], [masks], labels)
     pc = s["per_class"]
-    assert pc["car"]["pixels"] == 72 and pc["pedestrian"]["pixels"] == 24 and pc["other"]["pixels"] == 50
+    assert pc["car"]["pixels"] == 72 and pc["pedestrian"]["pixels"] == 48 and pc["other"]["pixels"] == 50
     # every pixel of the car is off by 0.2 in all channels: MSE 0.04, PSNR = -10 log10(0.04)
     assert pc["car"]["psnr"] == pytest.approx(-10 * math.log10(0.04), abs=1e-4)
     assert pc["pedestrian"]["psnr"] == pytest.approx(20.0, abs=1e-4)      # MSE 0.01
@@ -88,7 +88,9 @@ def test_the_worst_tracks_sheet_ranks_by_psnr(tmp_path):
     assert rows == [1, 2]                                    # car (14.0 dB), then pedestrian (20 dB)
     assert (tmp_path / "w.png").stat().st_size > 1000
     tiny = {1: np.zeros((2, 24, 32), bool)}
-    tiny[1][0, 0, :MIN_TRACK_PIXELS - 1] = True              # too few pixels to rank
+    tiny[1][0, :2, :MIN_TRACK_PIXELS // 2] = True             # many pixels over two views, too few in either
+    tiny[1][1, :2, :MIN_TRACK_PIXELS // 2 - 1] = True
+    tiny[1][0, 0, 0] = False
     s = object_scores([render], [truth], [tiny], labels)
     assert worst_tracks_sheet([render], [truth], [tiny], s, [3], ["A", "B"], tmp_path / "x.png") == []
     assert not (tmp_path / "x.png").exists()
@@ -97,7 +99,7 @@ def test_the_worst_tracks_sheet_ranks_by_psnr(tmp_path):
 def test_object_report_on_the_generated_street(tmp_path):
     """On generated frames the masks are the instance masks; a render equal to the truth scores
     inf everywhere, and a darkened car pixel set lowers the car class alone."""
-    seq = generate_sequence(height=24, width=40, num_frames=3, lidar=False, cameras=("CAM_FRONT", "CAM_BACK"), dt=0.2)
+    seq = generate_sequence(height=48, width=80, num_frames=3, lidar=False, cameras=("CAM_FRONT", "CAM_BACK"), dt=0.2)
     cams = ["CAM_FRONT", "CAM_BACK"]
     truths = [torch.from_numpy(seq.images(i, cams)) for i in (1, 2)]
     masks = track_masks(seq, 1, cams, [1, 2])

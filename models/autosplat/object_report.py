@@ -16,9 +16,9 @@ is reconstructed on the held-out frames, pooled by class, and a contact sheet of
   ``padding="same"``, averaged over channels).
 * :func:`object_report` is the ``objects`` section of ``metrics.json``
   (:func:`.evaluate.evaluate_run` calls it on the held-out frames' renders) and writes
-  ``objects_worst.png``: for the :data:`WORST` tracks of lowest PSNR (among those with at least
-  :data:`MIN_TRACK_PIXELS` pixels), the held-out view (frame, camera) where each covers the most
-  pixels, cropped around it: render | truth | error.
+  ``objects_worst.png``: for the :data:`WORST` tracks of lowest PSNR (among those that cover at least
+  :data:`MIN_TRACK_PIXELS` pixels of some held-out view), the held-out view (frame, camera) where
+  each covers the most pixels, cropped around it: render | truth | error.
 
 The tracks scored are the moving ones (``moving_track_ids`` with the preset's
 ``dynamic_threshold``), those ``psnr_objects`` pools over, also for plain 3DGS (``--no-decompose``),
@@ -44,8 +44,9 @@ __all__ = ["OBJECT_CLASSES", "WORST", "MIN_TRACK_PIXELS", "SHEET_NAME", "object_
 OBJECT_CLASSES: tuple[str, ...] = ("car", "pedestrian", "other")
 #: tracks shown on the worst-tracks sheet
 WORST = 5
-#: a track is ranked (and shown) only with at least this many pixels over the held-out frames
-MIN_TRACK_PIXELS = 16
+#: a track is ranked for the sheet only when one held-out view shows at least this many of its pixels
+#: (about 7 x 7: on a busy street the tracks of a few pixels far away were all the sheet showed)
+MIN_TRACK_PIXELS = 48
 SHEET_NAME = "objects_worst.png"
 #: the sheet's crop size (pixels, height x width) and the margin around a track's pixels (share of its extent)
 CROP_HW = (96, 128)
@@ -175,11 +176,11 @@ def worst_tracks_sheet(renders: Sequence[torch.Tensor], truths: Sequence[torch.T
                        cameras: Sequence[str], path: Path, worst: int = WORST) -> list[int]:
     """Write the sheet of the ``worst`` tracks of lowest PSNR in ``scores`` (:func:`object_scores`
     of these views) to ``path``, one row per track (its best view, cropped); returns their ids in
-    row order (none written when no track has :data:`MIN_TRACK_PIXELS` pixels)."""
+    row order (none written when no track covers :data:`MIN_TRACK_PIXELS` pixels of a view)."""
     from clsplat.io.contact_sheet import make_contact_sheet
 
     ranked = sorted((v["psnr"], t) for t, v in scores["per_track"].items()
-                    if v["pixels"] >= MIN_TRACK_PIXELS and v["best_view"] is not None and v["psnr"] is not None)
+                    if v["best_view"] is not None and v["best_view"][2] >= MIN_TRACK_PIXELS and v["psnr"] is not None)
     rows = [t for _, t in ranked[:worst]]
     if not rows:
         return []
