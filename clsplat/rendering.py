@@ -149,7 +149,8 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
         rasterize_mode: "classic" or "antialiased" (opacity scaled by the eps2d compensation).
         channel_chunk: accepted for gsplat compatibility (clsplat composites all channels in
             one pass); must be a positive int.
-        segmented: accepted for gsplat compatibility; clsplat's sort is always per tile.
+        segmented: accepted for gsplat compatibility; clsplat always sorts once by depth, then
+            places the Gaussians into their tiles in order (kernels/order.cl).
         distributed, camera_model, covars, with_ut, with_eval3d, radial_coeffs,
             tangential_coeffs, thin_prism_coeffs, ftheta_coeffs, rolling_shutter, viewmats_rs:
             gsplat features clsplat does not implement: accepted at gsplat's defaults only,
