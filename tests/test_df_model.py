@@ -383,3 +383,32 @@ def test_pose_translation_scale_sets_the_translations_own_multiplier(sample):
                 {"pose_corr_mode": "camera_only"}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             TINY.replace(**bad)
+
+
+def test_flow_statistics_read_a_known_flow_field():
+    """pose_corr_head "flow": a uniform flow (1, -2) px gives mean dx 1 and dy -2 in both halves; a
+    pure expansion (flow = 0.5 x the offset from the principal point) gives expansion 0.5 (x^2 + y^2)
+    summed over the half, i.e. > 0, and mean dx, dy 0 over a symmetric image."""
+    from clsplat.models.drivingforward.pose import flow_statistics
+    K = torch.tensor([[[4.0, 0.0, 4.0], [0.0, 4.0, 4.0], [0.0, 0.0, 1.0]]])
+    flow = torch.tensor([1.0, -2.0]).reshape(1, 2, 1, 1).expand(1, 2, 8, 8)
+    st = flow_statistics(flow, K)
+    assert torch.allclose(st[0, [0, 1, 3, 4]], torch.tensor([1.0, -2.0, 1.0, -2.0]))
+    c = torch.arange(8, dtype=torch.float32) + 0.5 - 4.0
+    grow = 0.5 * torch.stack([c.reshape(1, 8).expand(8, 8), c.reshape(8, 1).expand(8, 8)]).unsqueeze(0)
+    st = flow_statistics(grow, K)
+    assert torch.allclose(st[0, [0, 3]], torch.zeros(2), atol=1e-6)
+    assert float(st[0, 2]) > 0 and torch.allclose(st[0, 2], st[0, 5])
+
+
+def test_flow_head_starts_at_no_motion_and_learns_from_the_photometric_terms(sample):
+    torch.manual_seed(0)
+    m = DrivingForward(TINY.replace(pose_corr_radius=2, pose_corr_mode="camera_only", pose_corr_head="flow",
+                                    pose_zero_init=True, pose_translation_scale=10.0))
+    assert sum(q.numel() for q in m.pose_net.odometry.parameters()) == 6 * 3 + 3
+    T = m.pose_net(sample["images"][1], sample["images"][2], sample["Ks"], sample["cam_to_ego"])
+    assert torch.equal(T.detach(), torch.eye(4, dtype=T.dtype))
+    m.training_losses(sample["images"], sample["images"], sample["Ks"], sample["cam_to_ego"])["reproj"].backward()
+    assert float(m.pose_net.odometry.out.weight.grad.abs().sum()) > 0
+    with pytest.raises(ValueError, match="pose_corr_head"):
+        TINY.replace(pose_corr_head="mlp")

@@ -23,7 +23,8 @@ Issue 32 departures, each a preset field, off unless set:
   camera's own translation (a side camera sees forward motion as its own lateral motion, so one
   head serves every camera), rotated into camera 0's frame and averaged over the cameras, and added
   to the decoder's translation; "camera_only": that average is the translation, and the decoder
-  gives the rotation alone.
+  gives the rotation alone. ``pose_corr_head`` "conv": that head is two convs on the whole cue;
+  "flow": a linear map of six statistics of the soft-argmax flow (:func:`flow_statistics`).
 * ``pose_translation_scale``: the translation outputs' own multiplier (the rotation keeps
   ``pose_scale``). With Adam, a parameter moves about ``lr`` per step whatever its gradient's size,
   so the output moves about ``lr x scale`` per unit of input: at the paper's 0.01 and 1e-4, the
@@ -41,7 +42,7 @@ from .fusion import VolumetricFusion, scale_intrinsics
 
 import torch.nn.functional as F
 
-__all__ = ["PoseDecoder", "PoseNetwork", "CameraOdometryHead", "carry_pose", "ego_motion", "local_correlation"]
+__all__ = ["PoseDecoder", "PoseNetwork", "CameraOdometryHead", "FlowStatsHead", "flow_statistics", "carry_pose", "ego_motion", "local_correlation"]
 
 
 def ego_motion(T0: Tensor, E0: Tensor) -> Tensor:
@@ -122,6 +123,41 @@ class CameraOdometryHead(nn.Module):
         return self.out(x.mean(dim=(2, 3)))
 
 
+def flow_statistics(flow: Tensor, Ks: Tensor) -> Tensor:
+    """Six numbers per camera from a flow field: the mean flow (dx, dy) and the mean expansion
+    ``x dx + y dy`` (x, y: the pixel's normalised image coordinates, (u - cx)/fx, (v - cy)/fy),
+    over the lower and the upper half of the image.
+
+    Args:
+        flow: ``[V, 2, h, w]`` displacements in pixels at that resolution; Ks ``[V, 3, 3]`` at it.
+    Returns:
+        ``[V, 6]``: lower half (dx, dy, expansion), upper half (dx, dy, expansion).
+    """
+    V, _, h, w = flow.shape
+    u = torch.arange(w, dtype=flow.dtype, device=flow.device) + 0.5
+    v = torch.arange(h, dtype=flow.dtype, device=flow.device) + 0.5
+    x = (u.reshape(1, 1, w) - Ks[:, 0, 2].reshape(V, 1, 1)) / Ks[:, 0, 0].reshape(V, 1, 1)
+    y = (v.reshape(1, h, 1) - Ks[:, 1, 2].reshape(V, 1, 1)) / Ks[:, 1, 1].reshape(V, 1, 1)
+    expansion = x * flow[:, 0] + y * flow[:, 1]
+    f = torch.stack([flow[:, 0], flow[:, 1], expansion], 1)          # [V, 3, h, w]
+    return torch.cat([f[:, :, h // 2:].mean(dim=(2, 3)), f[:, :, :h // 2].mean(dim=(2, 3))], 1)
+
+
+class FlowStatsHead(nn.Module):
+    """Each camera's :func:`flow_statistics` -> its own translation by one linear map shared by
+    every camera, ``[V, 6] -> [V, 3]``, starting at zero (18 weights and 3 biases: few enough for
+    the photometric terms to set in a few hundred steps)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.out = nn.Linear(6, 3)
+        nn.init.zeros_(self.out.weight)
+        nn.init.zeros_(self.out.bias)
+
+    def forward(self, cue: Tensor, Ks: Tensor) -> Tensor:
+        return self.out(flow_statistics(cue[:, -2:], Ks))
+
+
 class PoseDecoder(nn.Module):
     """Conv pose decoder: ``[1, C, X, Y] -> [6]`` (1x1 -> 256, two stride-2 3x3, 1x1 -> 6, mean)."""
 
@@ -160,11 +196,13 @@ class PoseNetwork(nn.Module):
             cue = (2 * preset.pose_corr_radius + 1) ** 2 + 2
             if preset.pose_corr_mode == "bev":
                 self.corr_proj = nn.Conv2d(cue, preset.fusion_channels, 1)
+            elif preset.pose_corr_head == "flow":
+                self.odometry = FlowStatsHead()
             else:
                 self.odometry = CameraOdometryHead(cue)
         he_init(self.reduce, self.fusion, self.decoder, *(m for m in (self.corr_proj,) if m is not None),
                 skip=(self.decoder.pose_2,))   # see depth.he_init
-        if self.odometry is not None:
+        if isinstance(self.odometry, CameraOdometryHead):
             he_init(self.odometry, skip=(self.odometry.out,))
         if preset.pose_zero_init:     # no motion, exactly, until the photometric terms say otherwise
             nn.init.zeros_(self.decoder.pose_2.weight)
@@ -206,7 +244,10 @@ class PoseNetwork(nn.Module):
         if self.odometry is not None:
             # each camera's own translation, into camera 0's frame: t_0 = R_0^T R_c t_c
             R = cam_to_ego[:, :3, :3].to(cue.dtype)
-            t_c = self.odometry(cue)
+            if isinstance(self.odometry, FlowStatsHead):
+                t_c = self.odometry(cue, scale_intrinsics(Ks, 1.0 / p.pose_corr_level).to(cue.dtype))
+            else:
+                t_c = self.odometry(cue)
             t = t + (R[0].T @ (R @ t_c.unsqueeze(-1)).squeeze(-1).T).T.mean(0)
         t = t * self.translation_scale
         m = p.max_translation

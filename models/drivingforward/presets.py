@@ -79,6 +79,9 @@ class DFPreset(Preset):
             one head with shared weights reads each camera's cue as its own translation, rotated into
             camera 0's frame and averaged, added to the decoder's translation; "camera_only": that
             average is the translation (the decoder gives the rotation only).
+        pose_corr_head: the per-camera head of the "camera" modes: "conv" (two stride-2 convs on the
+            cue, mean, linear) or "flow" (a linear map of six statistics of the cue's soft-argmax
+            flow: mean dx, dy and expansion over the lower and upper image halves).
         min_depth, max_depth, focal_ref: depth = 1/(1/max + (1/min - 1/max) sigma) * fx / focal_ref.
         gs_encoder_channels, gs_decoder_channels, gs_head_channels: Gaussian network widths.
         sh_degree, sh_damping, sh_damping_decay: SH degree predicted and rendered; degree l >= 1 is
@@ -154,6 +157,7 @@ class DFPreset(Preset):
     pose_corr_radius: int = 0
     pose_corr_level: int = 4
     pose_corr_mode: str = "bev"
+    pose_corr_head: str = "conv"
     min_depth: float = 1.5
     max_depth: float = 80.0
     focal_ref: float = 300.0
@@ -227,6 +231,8 @@ class DFPreset(Preset):
         if self.pose_corr_mode not in ("bev", "camera", "camera_only"):
             raise ValueError(f"preset {self.name}: pose_corr_mode must be 'bev', 'camera' or 'camera_only', "
                              f"got {self.pose_corr_mode!r}")
+        if self.pose_corr_head not in ("conv", "flow"):
+            raise ValueError(f"preset {self.name}: pose_corr_head must be 'conv' or 'flow', got {self.pose_corr_head!r}")
         if self.pose_corr_mode == "camera_only" and (self.pose_corr_radius == 0 or self.pose_translation_init is not None):
             raise ValueError(f"preset {self.name}: pose_corr_mode 'camera_only' takes the translation from the "
                              f"correlation head alone: it needs pose_corr_radius > 0 and no pose_translation_init")
