@@ -344,13 +344,14 @@ def stage_bytes(scene: dict, M: int, real: int = 4) -> dict:
         "sort_local": M * 16,
         "sort_merge": M * 16,
         # kernels/order.cl (issue 35), with every pair touching a tile (an upper bound): the
-        # radix sort's pass 0 reads rects and depths twice and writes the keys, 3 more passes
-        # read the keys twice and write them once; the gather reads a key and a rectangle at
-        # random and writes one; the placement reads the sorted rectangles twice, the keys once
-        # and writes the tile lists
-        "sort_depth": C * N * (2 * (16 + real) + 8 + 3 * 24),
-        "bin_gather": C * N * (8 + 16 + 16),
-        "bin_place": C * N * (2 * 16 + 8) + M * 8,
+        # radix sort's pass 0 reads rects and depths and writes 8-byte packed rectangles, then
+        # reads those and depths again and writes the keys; 3 more passes read the keys twice
+        # and write them once; the gather reads a key and a packed rectangle (at random) and
+        # writes one; the placement reads the sorted rectangles twice, the keys once and
+        # writes the tile lists. order_small: project's rectangles instead of packed ones.
+        "sort_depth": C * N * (16 + real + 8 + 8 + real + 8 + 3 * 24),
+        "bin_gather": C * N * (8 + 8 + 8),
+        "bin_place": C * N * (2 * 8 + 8) + M * 8,
         "sort_small": C * N * (2 * (16 + real) + 8 + 3 * 24 + 2 * (8 + 16)) + M * 8,
         "composite": M * (8 + (6 + CH) * real) + P * (CH + 1) * real,
     }

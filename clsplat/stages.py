@@ -287,6 +287,10 @@ ORDER_CHUNKS_PER_UNIT = 4
 ORDER_MIN_CHUNK = 2048
 #: GPU layout: keys per work-item; the radix counters then number about as many as the keys.
 ORDER_GPU_CHUNK = 256
+#: Tile coordinates kernels/order.cl packs in 16 bits (x up to tiles_x, y up to C * tiles_y):
+#: beyond it (over a million pixels across, or C * rows of tiles over 65535) the per-tile sort
+#: runs instead; it gives the same lists.
+ORDER_PACK_MAX = 0xFFFF
 #: Serial layout: up to this many pairs that touch a tile, the whole stage runs in one
 #: work-item (kernels/order.cl's order_small): one launch instead of two per pass (count,
 #: scatter), the gather's and the placement's. Measured on the loaded 2-core VM (medians of 9
@@ -393,10 +397,11 @@ def depth_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Devi
     ch = _order_chunks(rt, cfg, C * N, bins, n)
     chunk = -(-(C * N) // ch)
     src, dst = rt.empty((n,), torch.int64, zero=False), rt.empty((n,), torch.int64, zero=False)
-    head = (np.int32(C * N), np.int32(chunk), np.int32(ch))
+    prects = rt.empty((C * N, 2), torch.int32, zero=False)  # packed rectangles (order.cl)
+    head = (np.int32(C * N), np.int32(chunk), np.int32(ch), np.int32(N), np.int32(tiles_y))
     _counting_pass(rt, cfg, k, "depth_count_pairs", "depth_scatter_pairs", ch, bins, head,
-                   (rects.buffer, depths.buffer),
-                   (rects.buffer, depths.buffer, "hist", "pos", src.buffer), "sort_depth", events)
+                   (rects.buffer, depths.buffer, prects.buffer),
+                   (prects.buffer, depths.buffer, "hist", "pos", src.buffer), "sort_depth", events)
     ch = _order_chunks(rt, cfg, n, bins, n)
     chunk = -(-n // ch)
     head = (np.int32(n), np.int32(chunk), np.int32(ch))
@@ -405,10 +410,9 @@ def depth_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Devi
                        (src.buffer,), (src.buffer, "hist", "pos", dst.buffer), "sort_depth", events)
         src, dst = dst, src
     # the tile placement: bins are the (camera, tile) segments
-    srects = rt.empty((n, 4), torch.int32, zero=False)
-    _record(events, "bin_gather", rt.launch(
-        k("gather_rects"), ch, 1 if serial else LOCAL_1D, *head, np.int32(N),
-        np.int32(tiles_y), src.buffer, rects.buffer, srects.buffer))
+    srects = rt.empty((n, 2), torch.int32, zero=False)
+    _record(events, "bin_gather", rt.launch(k("gather_rects"), ch, 1 if serial else LOCAL_1D, *head,
+                                            src.buffer, prects.buffer, srects.buffer))
     ch = _order_chunks(rt, cfg, n, n_tiles, total)
     chunk = -(-n // ch)
     head = (np.int32(n), np.int32(chunk), np.int32(ch), np.int32(tiles_x))
@@ -431,8 +435,11 @@ def tile_lists(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Devic
                per_intersection: int = 16, reserve: int = 0) -> tuple[DeviceArray, DeviceArray]:
     """Every tile's list of (camera, Gaussian) keys in depth order: (offsets [C*T+1] int32,
     read back; keys [M] int64), by ``cfg.sort_impl``: "depth" (:func:`depth_tiles`) or
-    "tiles" (the baseline, :func:`bin_tiles` then :func:`sort_segments`). Same result."""
-    if cfg.sort_impl == "depth":
+    "tiles" (the baseline, :func:`bin_tiles` then :func:`sort_segments`). Same result; the
+    baseline also where the depth sort's packed rectangles cannot hold the tile coordinates
+    (:data:`ORDER_PACK_MAX`)."""
+    tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
+    if cfg.sort_impl == "depth" and max(tiles_x, depths.tensor.shape[0] * tiles_y) <= ORDER_PACK_MAX:
         return depth_tiles(rt, cfg, rects, depths, width, height, tile_size, events,
                            per_intersection, reserve)
     offsets, keys = bin_tiles(rt, cfg, rects, depths, width, height, tile_size, events,

@@ -29,7 +29,9 @@
  * pairs straight from project's outputs in ascending cg order, drops those that touch no
  * tile and builds the keys; stability keeps equal depths in ascending cg, the full key order.
  * Tile placement: the bins are the (camera, tile) segments; a pair counts into, then writes
- * to, every tile of its rectangle (gathered once into key order first). Chunk 0's scanned positions are the segments' starts.
+ * to, every tile of its rectangle (packed by pass 0, gathered once into key order first).
+ * Chunk 0's scanned positions are the segments' starts (the tile offsets).
+ * order_small: all of it in one work-item, for small inputs of the serial layout.
  * Build parameters: REAL_DOUBLE, RADIX_BITS, HIST_CHUNK_MAJOR.
  */
 
@@ -80,10 +82,26 @@ inline void own_positions(__global const int *hist, __global int *pos, int n_bin
 #endif
 }
 
+/* A pair's tile rectangle in 8 bytes, (x0 | x1 << 16, y0 | y1 << 16), the rows of camera c
+ * shifted by c * tiles_y so that tile (x, y) is segment y * tiles_x + x (the driver checks
+ * that tiles_x and C * tiles_y fit in 16 bits). Half of project's 16 for the random gather
+ * of the sorted pairs' rectangles, which dominates the placement at 1M pairs. Scalar loads
+ * and stores, as in touches_tiles. */
+inline void store_packed(__global uint *prects, int i, int4 r, int dy) {
+    prects[2 * i] = (uint)r.x | ((uint)r.z << 16);
+    prects[2 * i + 1] = (uint)(r.y + dy) | ((uint)(r.w + dy) << 16);
+}
+inline int4 load_packed(__global const uint *prects, int i) {
+    const uint a = prects[2 * i], b = prects[2 * i + 1];
+    return (int4)((int)(a & 0xffffu), (int)(b & 0xffffu), (int)(a >> 16), (int)(b >> 16));
+}
+
 /* Pass 0, count: digit `shift` of the depth key of every pair of chunk c that touches a tile. */
-__kernel void depth_count_pairs(const int CN, const int chunk, const int n_chunks,
+__kernel void depth_count_pairs(const int CN, const int chunk, const int n_chunks, const int N,
+                                const int tiles_y,
                                 __global const int *rects,   /* [C, N, 4] */
                                 __global const REAL *depths, /* [C, N] */
+                                __global uint *prects,       /* [C * N, 2] packed; 0: no tile */
                                 __global int *hist)          /* RADIX_BINS x n_chunks counters */
 {
     const int c = get_global_id(0);
@@ -92,13 +110,25 @@ __kernel void depth_count_pairs(const int CN, const int chunk, const int n_chunk
     const int st = COUNTER_STRIDE(n_chunks);
     zero_counters(h, RADIX_BINS, st);
     const int lo = c * chunk, hi = min(lo + chunk, CN);
-    for (int cg = lo; cg < hi; ++cg)
-        if (touches_tiles(rects, cg)) ++h[radix_digit(depth_key(depths[cg], (uint)cg), 0) * st];
+    int cam = lo / N, next = (cam + 1) * N; /* one division per chunk, not per pair */
+    for (int cg = lo; cg < hi; ++cg) {
+        if (cg == next) {
+            ++cam;
+            next += N;
+        }
+        if (touches_tiles(rects, cg)) {
+            ++h[radix_digit(depth_key(depths[cg], (uint)cg), 0) * st];
+            store_packed(prects, cg, vload4(cg, rects), cam * tiles_y);
+        } else {
+            prects[2 * cg] = prects[2 * cg + 1] = 0u;
+        }
+    }
 }
 
 /* Pass 0, scatter: the keys of those pairs, placed by their lowest depth digit. */
-__kernel void depth_scatter_pairs(const int CN, const int chunk, const int n_chunks,
-                                  __global const int *rects, __global const REAL *depths,
+__kernel void depth_scatter_pairs(const int CN, const int chunk, const int n_chunks, const int N,
+                                  const int tiles_y,
+                                  __global const uint *prects, __global const REAL *depths,
                                   __global const int *hist, /* the counts */
                                   __global int *pos,        /* the scanned counts */
                                   __global ulong *dst)      /* [n visible pairs] */
@@ -110,7 +140,7 @@ __kernel void depth_scatter_pairs(const int CN, const int chunk, const int n_chu
     const int st = COUNTER_STRIDE(n_chunks);
     const int lo = c * chunk, hi = min(lo + chunk, CN);
     for (int cg = lo; cg < hi; ++cg)
-        if (touches_tiles(rects, cg)) {
+        if (prects[2 * cg] != 0u || prects[2 * cg + 1] != 0u) { /* touches a tile */
             const ulong key = depth_key(depths[cg], (uint)cg);
             dst[p[radix_digit(key, 0) * st]++] = key;
         }
@@ -145,32 +175,27 @@ __kernel void depth_scatter(const int n, const int chunk, const int n_chunks, co
     }
 }
 
-/* The sorted pairs' tile rectangles, read once in key order: rows of camera c's tiles
- * shifted by c * tiles_y, so that tile (x, y) is segment y * tiles_x + x. The placement passes
- * then read rectangles in sequence: gathering them there, inside loops whose trip counts
- * depend on the gathered values, stalls on every cache miss (measured: the placement ran at
- * about a third of its speed at 1M pairs), where this loop keeps many loads in flight. */
-__kernel void gather_rects(const int n, const int chunk, const int n_chunks, const int N,
-                           const int tiles_y,
-                           __global const ulong *keys,  /* [n] depth-sorted */
-                           __global const int *rects,   /* [C, N, 4] */
-                           __global int *srects)        /* [n, 4] */
+/* The sorted pairs' packed rectangles, read once in key order, so that the placement passes
+ * read them in sequence (a random read per pair is the placement's main cost at 1M pairs). */
+__kernel void gather_rects(const int n, const int chunk, const int n_chunks,
+                           __global const ulong *keys,   /* [n] depth-sorted */
+                           __global const uint *prects,  /* [C * N, 2] from depth_count_pairs */
+                           __global uint *srects)        /* [n, 2] */
 {
     const int c = get_global_id(0);
     if (c >= n_chunks) return;
     const int lo = c * chunk, hi = min(lo + chunk, n);
     for (int i = lo; i < hi; ++i) {
         const uint cg = key_id(keys[i]);
-        const int4 r = vload4(cg, rects);
-        const int dy = ((int)cg / N) * tiles_y;
-        vstore4((int4)(r.x, r.y + dy, r.z, r.w + dy), i, srects);
+        srects[2 * i] = prects[2 * cg];
+        srects[2 * i + 1] = prects[2 * cg + 1];
     }
 }
 
 /* Tile placement, count: entries per (camera, tile) segment and chunk of the sorted keys. */
 __kernel void place_count(const int n, const int chunk, const int n_chunks, const int tiles_x,
                           const int n_tiles,
-                          __global const int *srects,  /* [n, 4] from gather_rects */
+                          __global const uint *srects,  /* [n, 2] from gather_rects */
                           __global int *hist)          /* n_tiles x n_chunks counters */
 {
     const int c = get_global_id(0);
@@ -180,7 +205,7 @@ __kernel void place_count(const int n, const int chunk, const int n_chunks, cons
     zero_counters(h, n_tiles, st);
     const int lo = c * chunk, hi = min(lo + chunk, n);
     for (int i = lo; i < hi; ++i) {
-        const int4 r = vload4(i, srects);
+        const int4 r = load_packed(srects, i);
         for (int ty = r.y; ty < r.w; ++ty)
             for (int tx = r.x; tx < r.z; ++tx) ++h[(ty * tiles_x + tx) * st];
     }
@@ -215,7 +240,7 @@ __kernel void segment_starts(const int n_tiles, const int n_chunks, const int to
 __kernel void place_scatter(const int n, const int chunk, const int n_chunks, const int tiles_x,
                             const int n_tiles, const int total,
                             __global const ulong *keys,  /* [n] depth-sorted */
-                            __global const int *srects,  /* [n, 4] from gather_rects */
+                            __global const uint *srects,  /* [n, 2] from gather_rects */
                             __global const int *hist,    /* the counts */
                             __global int *pos,           /* the scanned counts */
                             __global int *offsets,       /* [n_tiles + 1] */
@@ -235,7 +260,7 @@ __kernel void place_scatter(const int n, const int chunk, const int n_chunks, co
     const int lo = c * chunk, hi = min(lo + chunk, n);
     for (int i = lo; i < hi; ++i) {
         const ulong key = keys[i];
-        const int4 r = vload4(i, srects);
+        const int4 r = load_packed(srects, i);
         for (int ty = r.y; ty < r.w; ++ty)
             for (int tx = r.x; tx < r.z; ++tx) out[p[(ty * tiles_x + tx) * st]++] = key;
     }

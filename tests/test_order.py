@@ -144,3 +144,21 @@ def test_bad_settings_are_one_line():
         RenderConfig(sort_chunks=0)
     with pytest.raises(ValueError, match="^sort_chunks: expected an int"):
         RenderConfig(sort_chunks=2.0)
+
+
+@pytest.mark.parametrize("C", [1600, 1700])
+def test_packed_coordinates_up_to_their_limit(rt, cfg32, monkeypatch, C):
+    """1600 cameras of 40 tile rows: packed rows up to 63999, the depth sort's lists equal the
+    baseline's. 1700 (68000 rows, over ORDER_PACK_MAX): tile_lists runs the baseline."""
+    tiles_y = 40
+    rects, depths = random_pairs(2, C, 3, 2, tiles_y, 2, torch.float32)
+    if C * tiles_y > stages.ORDER_PACK_MAX:
+        def refuse(*a, **k):
+            raise AssertionError("depth_tiles called beyond the packed coordinates")
+        monkeypatch.setattr(stages, "depth_tiles", refuse)
+    cfg = cfg32.with_(sort_chunks=3)  # the chunked passes (pack, gather, unpack)
+    off, keys = stages.tile_lists(rt, cfg, rt.array(rects), rt.array(depths), 32, tiles_y * 16, 16)
+    off_b, keys_b = stages.tile_lists(rt, cfg.with_(sort_impl="tiles"), rt.array(rects.clone()),
+                                      rt.array(depths.clone()), 32, tiles_y * 16, 16)
+    assert torch.equal(off.host(), off_b.host()) and torch.equal(keys.host(), keys_b.host())
+    assert keys.tensor.numel() > C
