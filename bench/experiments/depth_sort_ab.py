@@ -13,7 +13,8 @@ profiling events (the "sort" stage: every event whose name starts with ``sort``,
 ("stage": both), the wall time of the whole call with the queue drained before and after
 (it includes the host's scans and waits, which no event holds), the process's CPU time
 over the call (all threads, PoCL's included: the work done, which waiting for a core on a
-loaded machine does not stretch), and in a second call per round the CPU time of each stage's
+loaded machine does not stretch), the device milliseconds of each kernel ("kernels_ms", medians; a kernel launched several
+times summed per call), and in a second call per round the CPU time of each stage's
 kernels ("sort_cpu", "bin_cpu": each kernel waited for after its launch, the CPU time from
 its enqueue to its end; the sort kernels are :data:`SORT_KERNELS`); with ``--render``, the
 wall time of a whole forward render (``clsplat.rasterization``, no graph; the images of the
@@ -47,16 +48,29 @@ KEYS = ("sort", "bin", "stage", "wall", "cpu", "sort_cpu", "bin_cpu")
 def _one_call(rt, cfg, p, scene) -> tuple[dict, torch.Tensor, torch.Tensor]:
     """Wall ms, device ms per stage group, and the tile lists of one :func:`tile_lists` call."""
     events: list = []
-    rt.finish()
-    c0, t0 = time.process_time(), time.perf_counter()
-    off, keys = stages.tile_lists(rt, cfg, p.rects, p.depths, scene["width"], scene["height"], 16,
-                                  events=events)
-    rt.finish()
-    wall, cpu = (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
-    t = {"wall": wall, "cpu": cpu, "sort": 0.0, "bin": 0.0}
+    launched: list = []  # (kernel name, event) of every rt.launch: the per-kernel breakdown
+    launch = rt.launch
+
+    def named(kernel, *args):
+        ev = launch(kernel, *args)
+        launched.append((kernel.function_name, ev))
+        return ev
+    rt.launch = named
+    try:
+        rt.finish()
+        c0, t0 = time.process_time(), time.perf_counter()
+        off, keys = stages.tile_lists(rt, cfg, p.rects, p.depths, scene["width"], scene["height"], 16,
+                                      events=events)
+        rt.finish()
+        wall, cpu = (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
+    finally:
+        del rt.launch
+    t = {"wall": wall, "cpu": cpu, "sort": 0.0, "bin": 0.0, "_kernels": {}}
     for name, ev in events:
         t["sort" if name.startswith("sort") else "bin"] += event_ms(ev)
     t["stage"] = t["sort"] + t["bin"]
+    for name, ev in launched:
+        t["_kernels"][name] = t["_kernels"].get(name, 0.0) + event_ms(ev)
     return t, off.host().clone(), keys.host().clone()
 
 
@@ -151,6 +165,8 @@ def main(argv: list[str] | None = None) -> int:
                         "ratio": round(med["depth"] / med["tiles"], 4),
                         "ratio_per_round_median": round(statistics.median(
                             d[key] / t[key] for d, t in zip(times[j]["depth"], times[j]["tiles"])), 4)}
+        row["kernels_ms"] = {impl: {name: round(statistics.median(t["_kernels"].get(name, 0.0) for t in times[j][impl]), 3)
+                                    for name in times[j][impl][0]["_kernels"]} for impl in IMPLS}
         print(json.dumps(row), flush=True)
         rows.append(row)
     if len(rows) > 1:
