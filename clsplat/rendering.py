@@ -234,7 +234,7 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
     CH = n_col + (depth_col >= 0)
     real_bytes = 8 if cfg.precision == "float64" else 4
     # The plan knows its memory: the pixel buffers are checked before any work, the
-    # intersections (RasterizeFn, stages.bin_tiles) once their count is known.
+    # intersections (RasterizeFn, stages.tile_lists) once their count is known.
     want_grad = torch.is_grad_enabled() and any(
         isinstance(v, torch.Tensor) and v.requires_grad for v in t.values())
     pixels = pixel_plan(B, C, height, width, n_col, depth_col >= 0, real_bytes, grad=want_grad,
