@@ -2,6 +2,7 @@
 interleaved in one process: the sort stage's table of bench/notes/engine_render_plan.md §5.
 
     python bench/experiments/depth_sort_ab.py [--ns 10000,100000,300000,1000000] [--rounds 7] [--render]
+        [--tiny ROUNDS]
 
 For each N, one scene of :func:`clsplat.bench.scenes.sweep_n` (one 640x352 camera, Gaussians
 of scene A's sizes) is projected once, up front; then each of ``--rounds`` rounds calls
@@ -18,7 +19,7 @@ times summed per call), and in a second call per round the CPU time of each stag
 kernels ("sort_cpu", "bin_cpu": each kernel waited for after its launch, the CPU time from
 its enqueue to its end; the sort kernels are :data:`SORT_KERNELS`); with ``--render``, the
 wall time of a whole forward render (``clsplat.rasterization``, no graph; the images of the
-two must be equal). The two implementations' tile lists must be equal, key for
+two must be equal); with ``--tiny``, the fixed cost per call (:func:`tiny_calls`). The two implementations' tile lists must be equal, key for
 key (checked on every call). Prints one JSON line per N with the medians, the depth / tiles
 ratios of the medians and the median of the per-round ratios, then the log-log slopes of
 each median against N (a fit over every N >= 100000, and over all N).
@@ -115,6 +116,37 @@ def _render_call(cfg, scene, x) -> dict:
     return {"render": (time.perf_counter() - t0) * 1e3, "_img": img}
 
 
+def tiny_calls(rounds: int, calls: int = 10) -> dict:
+    """The fixed cost per call: 100 Gaussians at 64 x 48, forward + backward of ``img.sum() +
+    alpha.sum()`` through :func:`clsplat.rasterization`, per implementation; ``rounds``
+    rounds of ``calls`` calls each (the round's median kept), the order flipping every round."""
+    g = torch.Generator().manual_seed(0)
+    N, W, H = 100, 64, 48
+    xs = [torch.cat([(torch.rand(N, 2, generator=g) - 0.5) * 2, 2 + 2 * torch.rand(N, 1, generator=g)], 1),
+          torch.randn(N, 4, generator=g), 0.05 + 0.1 * torch.rand(N, 3, generator=g),
+          0.3 + 0.6 * torch.rand(N, generator=g), torch.rand(N, 3, generator=g)]
+    vm, K = torch.eye(4)[None], torch.tensor([[[50.0, 0, 32], [0, 50, 24], [0, 0, 1]]])
+    cfgs = {impl: clsplat.RenderConfig(sort_impl=impl) for impl in IMPLS}
+
+    def call(cfg) -> float:
+        p = [x.clone().requires_grad_() for x in xs]
+        t0 = time.perf_counter()
+        img, alpha, _ = clsplat.rasterization(*p, vm, K, W, H, config=cfg)
+        (img.sum() + alpha.sum()).backward()
+        return (time.perf_counter() - t0) * 1e3
+    for impl in IMPLS:  # warm-up
+        for _ in range(5):
+            call(cfgs[impl])
+    res = {impl: [] for impl in IMPLS}
+    for r in range(rounds):
+        for impl in (IMPLS if r % 2 == 0 else IMPLS[::-1]):
+            res[impl].append(statistics.median(call(cfgs[impl]) for _ in range(calls)))
+    med = {impl: statistics.median(v) for impl, v in res.items()}
+    return {"tiny_fwd_bwd_ms": {impl: round(v, 3) for impl, v in med.items()},
+            "ratio": round(med["depth"] / med["tiles"], 4),
+            "ratio_per_round_median": round(statistics.median(d / t for d, t in zip(res["depth"], res["tiles"])), 4)}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python bench/experiments/depth_sort_ab.py",
                                  description=__doc__.split("\n")[0])
@@ -122,6 +154,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rounds", type=int, default=7)
     ap.add_argument("--render", action="store_true",
                     help="also time a whole forward render per implementation and N (images must be equal)")
+    ap.add_argument("--tiny", type=int, default=0, metavar="ROUNDS",
+                    help="also time ROUNDS rounds of 10 tiny calls (100 Gaussians, 64x48, fwd+bwd) per implementation")
     a = ap.parse_args(argv)
     ns = [int(x) for x in a.ns.split(",")]
     if a.rounds < 1 or any(n < 1 for n in ns):
@@ -180,6 +214,8 @@ def main(argv: list[str] | None = None) -> int:
                 if big.sum() > 1:
                     slopes[f"{key}_{impl}_from_100k"] = round(float(np.polyfit(x[big], y[big], 1)[0]), 3)
         print(json.dumps({"loglog_slope": slopes}), flush=True)
+    if a.tiny:
+        print(json.dumps(tiny_calls(a.tiny)), flush=True)
     return 0
 
 
