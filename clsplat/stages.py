@@ -287,6 +287,12 @@ ORDER_CHUNKS_PER_UNIT = 4
 ORDER_MIN_CHUNK = 2048
 #: GPU layout: keys per work-item; the radix counters then number about as many as the keys.
 ORDER_GPU_CHUNK = 256
+#: Serial layout: each scatter work-item scans the counters for itself (kernels/order.cl's
+#: own_positions) while all of them together read at most this many counters (bins x
+#: chunks^2: the default 8 chunks of 2 cores read 56k for 880 tiles, 64 chunks of 16 cores
+#: 3.6M, a millisecond or more); beyond it
+#: (many cores' chunks, many tiles) one scan launch is cheaper.
+ORDER_OWN_SCAN_MAX = 1 << 20
 #: Tile coordinates kernels/order.cl packs in 16 bits (x up to tiles_x, y up to C * tiles_y):
 #: beyond it (over a million pixels across, or C * rows of tiles over 65535) the per-tile sort
 #: runs instead; it gives the same lists.
@@ -327,18 +333,21 @@ def _counting_pass(rt: Runtime, cfg: RenderConfig, k: Callable[[str], cl.Kernel]
                    scatter_args: tuple, name: str, events,
                    after_scan: Callable[[DeviceArray], None] | None = None) -> None:
     """One stable counting pass of kernels/order.cl, all on the device: count (``head +
-    count_args + (hist,)``), then scatter (``head + scatter_args`` with the counts and the
-    positions where ``"hist"`` and ``"pos"`` stand). Serial layout: each scatter work-item
-    scans for itself; GPU layout: a scan launch in between (pyopencl's, or scan_counters
-    where that cannot run, see :func:`_host_scan`), then ``after_scan(pos)``."""
+    count_args + (hist,)``), then scatter (``head + scatter_args`` with the own-scan flag, the
+    counts and the positions where ``"own"``, ``"hist"`` and ``"pos"`` stand). Serial layout
+    with few chunks (:data:`ORDER_OWN_SCAN_MAX`): each scatter work-item scans for itself;
+    else a scan launch in between (pyopencl's on bin-major counters, scan_counters on
+    chunk-major ones or where pyopencl's cannot run, see :func:`_host_scan`), then
+    ``after_scan(pos)``."""
     serial = _sort_serial(rt, cfg)
+    own = serial and n_bins * n_chunks * n_chunks <= ORDER_OWN_SCAN_MAX
     local = 1 if serial else LOCAL_1D  # serial: one chunk per work-group, so PoCL spreads
     # the chunks over its threads (it runs a work-group's items on one thread)
     hist = rt.empty((n_bins * n_chunks,), torch.int32, zero=False)
     pos = rt.empty((n_bins * n_chunks,), torch.int32, zero=False)
     _record(events, name, rt.launch(k(count), n_chunks, local, *head, *count_args, hist.buffer))
-    if not serial:
-        if _host_scan(rt):
+    if not own:
+        if serial or _host_scan(rt):
             _record(events, name, rt.launch(k("scan_counters"), 1, 1, np.int32(n_bins),
                                             np.int32(n_chunks), hist.buffer, pos.buffer))
         else:
@@ -349,7 +358,7 @@ def _counting_pass(rt: Runtime, cfg: RenderConfig, k: Callable[[str], cl.Kernel]
             _record(events, "scan", rt.exclusive_scan_int32()(a, b, queue=rt.queue))
         if after_scan is not None:
             after_scan(pos)
-    sub = {"hist": hist.buffer, "pos": pos.buffer}
+    sub = {"own": np.int32(own), "hist": hist.buffer, "pos": pos.buffer}
     args = tuple(sub[a] if isinstance(a, str) else a for a in scatter_args)
     _record(events, name, rt.launch(k(scatter), n_chunks, local, *head, *args))
 
@@ -401,13 +410,14 @@ def depth_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Devi
     head = (np.int32(C * N), np.int32(chunk), np.int32(ch), np.int32(N), np.int32(tiles_y))
     _counting_pass(rt, cfg, k, "depth_count_pairs", "depth_scatter_pairs", ch, bins, head,
                    (rects.buffer, depths.buffer, prects.buffer),
-                   (prects.buffer, depths.buffer, "hist", "pos", src.buffer), "sort_depth", events)
+                   (prects.buffer, depths.buffer, "own", "hist", "pos", src.buffer), "sort_depth",
+                   events)
     ch = _order_chunks(rt, cfg, n, bins, n)
     chunk = -(-n // ch)
     head = (np.int32(n), np.int32(chunk), np.int32(ch))
     for shift in range(ORDER_RADIX_BITS, 32, ORDER_RADIX_BITS):
         _counting_pass(rt, cfg, k, "depth_count", "depth_scatter", ch, bins, head + (np.int32(shift),),
-                       (src.buffer,), (src.buffer, "hist", "pos", dst.buffer), "sort_depth", events)
+                       (src.buffer,), (src.buffer, "own", "hist", "pos", dst.buffer), "sort_depth", events)
         src, dst = dst, src
     # the tile placement: bins are the (camera, tile) segments
     srects = rt.empty((n, 2), torch.int32, zero=False)
@@ -417,14 +427,14 @@ def depth_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Devi
     chunk = -(-n // ch)
     head = (np.int32(n), np.int32(chunk), np.int32(ch), np.int32(tiles_x))
 
-    def starts(pos: DeviceArray) -> None:  # GPU layout; before the scatter advances them
+    def starts(pos: DeviceArray) -> None:  # after a scan launch; before the scatter advances them
         _record(events, "bin_starts", rt.launch(
             k("segment_starts"), n_tiles + 1, LOCAL_1D, np.int32(n_tiles), np.int32(ch),
             np.int32(total), pos.buffer, offsets.buffer))
 
     _counting_pass(rt, cfg, k, "place_count", "place_scatter", ch, n_tiles, head,
                    (np.int32(n_tiles), srects.buffer),
-                   (np.int32(n_tiles), np.int32(total), src.buffer, srects.buffer, "hist", "pos",
+                   (np.int32(n_tiles), np.int32(total), src.buffer, srects.buffer, "own", "hist", "pos",
                     offsets.buffer, keys.buffer), "bin_place", events, after_scan=starts)
     check_tile_offsets(offsets.host(), total)
     return offsets, keys

@@ -15,8 +15,8 @@
  *   count:   counter (b, c) = elements of chunk c that fall in bin b (each count kernel
  *            first zeroes its own chunk's counters);
  *   scan:    an exclusive prefix sum of the counters in bin-major, chunk-minor order gives
- *            each (bin, chunk) its first output position (serial layout: each scatter
- *            work-item computes its own, see own_positions; GPU layout: pyopencl's scan);
+ *            each (bin, chunk) its first output position (few chunks: each scatter
+ *            work-item computes its own, see own_positions; else a scan launch);
  *   scatter: chunk c walks its elements again, in order, writing each to position (b, c)++.
  * Within a bin, earlier chunks come first (the scan's order) and a chunk keeps its own order:
  * stable. Each work-item writes only its own counters: no atomics, deterministic anywhere.
@@ -65,13 +65,14 @@ inline void zero_counters(__global int *h, int n_bins, int stride) {
     for (int b = 0; b < n_bins; ++b) h[b * stride] = 0;
 }
 
-/* The scan's positions of chunk c, written to its own counters in pos. In the serial layout
- * each scatter work-item computes them itself from every chunk's counts (n_bins x n_chunks
- * reads, a few thousand: less than the launch and wake-up of a separate scan); in the GPU
- * layout a scan has filled pos already (thousands of chunks: that would be quadratic). */
-inline void own_positions(__global const int *hist, __global int *pos, int n_bins, int n_chunks,
-                          int c) {
-#if HIST_CHUNK_MAJOR
+/* With own_scan, chunk c's scan positions, computed by its scatter work-item itself from every
+ * chunk's counts and written to its own counters in pos: n_bins x n_chunks reads, a few
+ * thousand for the serial layout's few chunks, less than the launch and wake-up of a separate
+ * scan. Without (the GPU layout's thousands of chunks, or many cores' chunks: the reads grow
+ * as chunks squared), a scan launch has filled pos already. */
+inline void own_positions(int own_scan, __global const int *hist, __global int *pos, int n_bins,
+                          int n_chunks, int c) {
+    if (!own_scan) return;
     int run = 0;
     for (int b = 0; b < n_bins; ++b)
         for (int c2 = 0; c2 < n_chunks; ++c2) {
@@ -79,7 +80,6 @@ inline void own_positions(__global const int *hist, __global int *pos, int n_bin
             if (c2 == c) pos[i] = run;
             run += hist[i];
         }
-#endif
 }
 
 /* A pair's tile rectangle in 8 bytes, (x0 | x1 << 16, y0 | y1 << 16), the rows of camera c
@@ -129,13 +129,14 @@ __kernel void depth_count_pairs(const int CN, const int chunk, const int n_chunk
 __kernel void depth_scatter_pairs(const int CN, const int chunk, const int n_chunks, const int N,
                                   const int tiles_y,
                                   __global const uint *prects, __global const REAL *depths,
+                                  const int own_scan,
                                   __global const int *hist, /* the counts */
                                   __global int *pos,        /* the scanned counts */
                                   __global ulong *dst)      /* [n visible pairs] */
 {
     const int c = get_global_id(0);
     if (c >= n_chunks) return;
-    own_positions(hist, pos, RADIX_BINS, n_chunks, c);
+    own_positions(own_scan, hist, pos, RADIX_BINS, n_chunks, c);
     __global int *p = counters(pos, RADIX_BINS, n_chunks, c);
     const int st = COUNTER_STRIDE(n_chunks);
     const int lo = c * chunk, hi = min(lo + chunk, CN);
@@ -160,12 +161,12 @@ __kernel void depth_count(const int n, const int chunk, const int n_chunks, cons
 }
 
 __kernel void depth_scatter(const int n, const int chunk, const int n_chunks, const int shift,
-                            __global const ulong *src, __global const int *hist,
-                            __global int *pos, __global ulong *dst)
+                            __global const ulong *src, const int own_scan,
+                            __global const int *hist, __global int *pos, __global ulong *dst)
 {
     const int c = get_global_id(0);
     if (c >= n_chunks) return;
-    own_positions(hist, pos, RADIX_BINS, n_chunks, c);
+    own_positions(own_scan, hist, pos, RADIX_BINS, n_chunks, c);
     __global int *p = counters(pos, RADIX_BINS, n_chunks, c);
     const int st = COUNTER_STRIDE(n_chunks);
     const int lo = c * chunk, hi = min(lo + chunk, n);
@@ -211,8 +212,9 @@ __kernel void place_count(const int n, const int chunk, const int n_chunks, cons
     }
 }
 
-/* The exclusive prefix sum of the counters in (bin, chunk) order, in one work-item, for the
- * GPU layout where pyopencl's scan cannot run (Oclgrind's uninitialised-value checker). */
+/* The exclusive prefix sum of the counters in (bin, chunk) order, in one work-item: for
+ * chunk-major counters too many for own_positions, and in the GPU layout where pyopencl's
+ * scan cannot run (Oclgrind's uninitialised-value checker). */
 __kernel void scan_counters(const int n_bins, const int n_chunks,
                             __global const int *hist, __global int *pos)
 {
@@ -241,6 +243,7 @@ __kernel void place_scatter(const int n, const int chunk, const int n_chunks, co
                             const int n_tiles, const int total,
                             __global const ulong *keys,  /* [n] depth-sorted */
                             __global const uint *srects,  /* [n, 2] from gather_rects */
+                            const int own_scan,
                             __global const int *hist,    /* the counts */
                             __global int *pos,           /* the scanned counts */
                             __global int *offsets,       /* [n_tiles + 1] */
@@ -248,13 +251,11 @@ __kernel void place_scatter(const int n, const int chunk, const int n_chunks, co
 {
     const int c = get_global_id(0);
     if (c >= n_chunks) return;
-    own_positions(hist, pos, n_tiles, n_chunks, c);
-#if HIST_CHUNK_MAJOR
-    if (c == 0) { /* the segment starts (segment_starts' work in the GPU layout) */
-        for (int t = 0; t < n_tiles; ++t) offsets[t] = pos[t];
+    own_positions(own_scan, hist, pos, n_tiles, n_chunks, c);
+    if (own_scan && c == 0) { /* the segment starts (else segment_starts' work) */
+        for (int t = 0; t < n_tiles; ++t) offsets[t] = pos[COUNTER(t, 0, n_tiles, n_chunks)];
         offsets[n_tiles] = total;
     }
-#endif
     __global int *p = counters(pos, n_tiles, n_chunks, c);
     const int st = COUNTER_STRIDE(n_chunks);
     const int lo = c * chunk, hi = min(lo + chunk, n);

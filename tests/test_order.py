@@ -52,7 +52,8 @@ def both(rt, cfg: RenderConfig, rects, depths, width, height, tile):
 
 @pytest.mark.parametrize("scan", ["host", "device"])
 @pytest.mark.parametrize("layout", ["serial", "bitonic"])
-@pytest.mark.parametrize("chunks", [None, 1, 3, 64])
+@pytest.mark.parametrize("chunks", [None, 1, 3, 64, 100])  # 100: serial counters too many for
+# own_positions (ORDER_OWN_SCAN_MAX): a scan_counters launch on chunk-major counters
 @pytest.mark.parametrize("n_depths,dtype", [(None, torch.float32), (3, torch.float32), (4, torch.float64)])
 def test_same_tile_lists_as_the_per_tile_sort(rt, monkeypatch, scan, layout, chunks, n_depths, dtype):
     monkeypatch.setenv("CLSPLAT_HOST_SCAN", "1" if scan == "host" else "0")
@@ -83,6 +84,13 @@ def test_all_depths_equal_and_trivial_passes(rt, layout, chunks):
     ids = keys & 0xFFFFFFFF
     for s, e in zip(off[:-1].tolist(), off[1:].tolist()):
         assert bool((ids[s + 1:e] > ids[s:e - 1]).all())
+
+
+def test_own_scan_threshold():
+    """The chunk counts the tests use meet both sides of ORDER_OWN_SCAN_MAX (9 x 5 tiles x 3
+    cameras; 256 radix bins)."""
+    assert 135 * 64 * 64 <= stages.ORDER_OWN_SCAN_MAX < 135 * 100 * 100
+    assert 256 * 64 * 64 <= stages.ORDER_OWN_SCAN_MAX < 256 * 100 * 100
 
 
 def test_default_chunks_split_a_large_pass(rt):
