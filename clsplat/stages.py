@@ -135,14 +135,18 @@ def _scan_exclusive(rt: Runtime, src: DeviceArray, dst: DeviceArray, events) -> 
     _record(events, "scan", rt.exclusive_scan_int32()(a, b, queue=rt.queue))
 
 
-def _intersections(rt: Runtime, rects: DeviceArray, per_intersection: int,
-                   reserve: int) -> tuple[int, int]:
+def _intersections(rt: Runtime, rects: DeviceArray, per_intersection: int, reserve: int,
+                   per_pair: int = 0, per_touching: int = 0, unused: int = 0) -> tuple[int, int]:
     """(intersections M, pairs that touch a tile) from rects [C,N,4], after the memory checks.
 
     The exact total from the rectangles, in int64 and before any per-tile work: an int32
     scan would wrap silently, and counting ~1e9 intersections only to refuse them is slow.
     In numpy: torch's element-wise ops over the [C*N, 4] rectangles cost 10-100 ms of CPU time
     at 1M pairs on the 2-core VM (its threads spin), numpy's one thread 9 ms.
+    ``per_pair`` bytes per pair and ``per_touching`` per pair that touches a tile (the depth
+    sort's arrays), less ``unused`` of the ``per_intersection`` bytes per intersection (the
+    per-tile sort's scratch, which the depth sort does not allocate), are checked with them,
+    spread over the intersections.
     """
     r = rects.host().reshape(-1, 4).numpy()
     w, h = r[:, 2] - r[:, 0], r[:, 3] - r[:, 1]
@@ -150,10 +154,12 @@ def _intersections(rt: Runtime, rects: DeviceArray, per_intersection: int,
     if total >= 2**31 - 1:
         raise ValueError(f"means, scales: {total} (camera, Gaussian, tile) intersections exceed the "
                          "int32 index range; render fewer cameras, fewer or smaller Gaussians per call")
-    check_intersection_memory(rt, total, per_intersection, reserve)
+    n = int(np.count_nonzero((w > 0) & (h > 0)))
+    extra = max(0, per_pair * len(r) + per_touching * n - unused * total)
+    check_intersection_memory(rt, total, per_intersection + (-(-extra // total) if total else 0), reserve)
     rt.check_memory(total * 8, f"means, scales: the keys of {total} (camera, Gaussian, tile) "
                     "intersections (render fewer cameras, fewer or smaller Gaussians per call)")
-    return total, int(np.count_nonzero((w > 0) & (h > 0)))
+    return total, n
 
 
 def bin_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: DeviceArray,
@@ -381,7 +387,10 @@ def depth_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Devi
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
     tpc = tiles_x * tiles_y
     n_tiles = C * tpc
-    total, n = _intersections(rt, rects, per_intersection, reserve)
+    # besides the tile lists: 8-byte packed rectangles per pair; per pair that touches a tile
+    # two key arrays and the sorted rectangles (24); the per-tile sort's 8-byte scratch per
+    # intersection (in plan.intersection_bytes) is not allocated
+    total, n = _intersections(rt, rects, per_intersection, reserve, per_pair=8, per_touching=24, unused=8)
     offsets = rt.empty((n_tiles + 1,), torch.int32)
     keys = rt.empty((total,), torch.int64, zero=False)
     if n == 0:

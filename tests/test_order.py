@@ -170,3 +170,18 @@ def test_packed_coordinates_up_to_their_limit(rt, cfg32, monkeypatch, C):
                                       rt.array(depths.clone()), 32, tiles_y * 16, 16)
     assert torch.equal(off.host(), off_b.host()) and torch.equal(keys.host(), keys_b.host())
     assert keys.tensor.numel() > C
+
+
+def test_memory_check_counts_the_depth_sorts_arrays(rt, cfg32, monkeypatch):
+    """Pairs of one tile each: the depth sort's per-pair arrays (8 + 24 bytes) outweigh the
+    per-tile sort's scratch (8 per intersection) it does not allocate; the intersection check
+    sees them, spread over the intersections (16 + 24 bytes each here)."""
+    seen = []
+    monkeypatch.setattr(stages, "check_intersection_memory",
+                        lambda rt_, total, per, reserve=0: seen.append((total, per, reserve)))
+    rects = torch.tensor([[[0, 0, 1, 1], [1, 0, 2, 1], [0, 0, 0, 0], [1, 1, 2, 2]]], dtype=torch.int32)
+    depths = torch.tensor([[1.0, 2.0, 3.0, 4.0]])
+    stages.depth_tiles(rt, cfg32, rt.array(rects), rt.array(depths), 32, 32, 16, per_intersection=16,
+                       reserve=5)
+    # 3 intersections; extra = 8 x 4 pairs + 24 x 3 touching - 8 x 3 = 80 -> 27 per intersection
+    assert seen == [(3, 16 + 27, 5)]
