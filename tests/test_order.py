@@ -93,14 +93,17 @@ def test_own_scan_threshold():
     assert 256 * 64 * 64 <= stages.ORDER_OWN_SCAN_MAX < 256 * 100 * 100
 
 
-def test_default_chunks_split_a_large_pass(rt):
+@pytest.mark.parametrize("layout", ["serial", "bitonic"])
+def test_default_chunks_split_a_large_pass(rt, layout):
     """Above ORDER_SMALL pairs the serial layout splits each pass into several chunks (what
-    the default path runs at scale), and the lists still equal the baseline's."""
+    the default path runs at scale; the GPU layout: ~200 chunks of ORDER_GPU_CHUNK keys and
+    pyopencl's scan), and the lists still equal the baseline's."""
     n = 50_000
+    cfg = RenderConfig(sort_layout=layout)
     assert n > stages.ORDER_SMALL
-    assert stages._order_chunks(rt, RenderConfig(sort_layout="serial"), n, 256, n) > 1
+    assert stages._order_chunks(rt, cfg, n, 256, n) > (1 if layout == "serial" else 100)
     rects, depths = random_pairs(11, 1, n, 40, 22, 50, torch.float32)
-    (off, keys), (off_b, keys_b) = both(rt, RenderConfig(sort_layout="serial"), rects, depths, 640, 352, 16)
+    (off, keys), (off_b, keys_b) = both(rt, cfg, rects, depths, 640, 352, 16)
     assert torch.equal(off, off_b) and torch.equal(keys, keys_b)
 
 
