@@ -299,10 +299,12 @@ ORDER_GPU_CHUNK = 256
 #: 3.6M, a millisecond or more); beyond it
 #: (many cores' chunks, many tiles) one scan launch is cheaper.
 ORDER_OWN_SCAN_MAX = 1 << 20
-#: Tile coordinates kernels/order.cl packs in 16 bits (x up to tiles_x, y up to C * tiles_y):
-#: beyond it (over a million pixels across, or C * rows of tiles over 65535) the per-tile sort
-#: runs instead; it gives the same lists.
-ORDER_PACK_MAX = 0xFFFF
+#: Bits per tile coordinate in kernels/order.cl's packed rectangles (two coordinates a 32-bit
+#: word): x up to tiles_x, y up to C * tiles_y must fit (ORDER_PACK_MAX); beyond it (over a
+#: million pixels across at tile 16, or C x rows of tiles over 65535) the per-tile sort runs
+#: instead; it gives the same lists.
+ORDER_PACK_BITS = 16
+ORDER_PACK_MAX = (1 << ORDER_PACK_BITS) - 1
 #: Serial layout: up to this many pairs that touch a tile, the whole stage runs in one
 #: work-item (kernels/order.cl's order_small): one launch instead of two per pass (count,
 #: scatter), the gather's and the placement's. Measured on the loaded 2-core VM (medians of 9
@@ -399,7 +401,7 @@ def depth_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Devi
     # the GPU layout (a scan launch). No pass waits for the host.
     serial = _sort_serial(rt, cfg)
     defines = {"REAL_DOUBLE": cfg.precision == "float64", "RADIX_BITS": ORDER_RADIX_BITS,
-               "HIST_CHUNK_MAJOR": serial}
+               "HIST_CHUNK_MAJOR": serial, "PACK_BITS": ORDER_PACK_BITS}
     k = lambda name: rt.kernel("order", name, defines)  # noqa: E731
     bins = 1 << ORDER_RADIX_BITS
     if cfg.sort_chunks is None and serial and n <= ORDER_SMALL:

@@ -32,7 +32,7 @@
  * to, every tile of its rectangle (packed by pass 0, gathered once into key order first).
  * Chunk 0's scanned positions are the segments' starts (the tile offsets).
  * order_small: all of it in one work-item, for small inputs of the serial layout.
- * Build parameters: REAL_DOUBLE, RADIX_BITS, HIST_CHUNK_MAJOR.
+ * Build parameters: REAL_DOUBLE, RADIX_BITS, HIST_CHUNK_MAJOR, PACK_BITS.
  */
 
 /* RADIX_BITS (a divisor of 32) comes from the driver, clsplat.stages.ORDER_RADIX_BITS,
@@ -82,18 +82,19 @@ inline void own_positions(int own_scan, __global const int *hist, __global int *
         }
 }
 
-/* A pair's tile rectangle in 8 bytes, (x0 | x1 << 16, y0 | y1 << 16), the rows of camera c
- * shifted by c * tiles_y so that tile (x, y) is segment y * tiles_x + x (the driver checks
- * that tiles_x and C * tiles_y fit in 16 bits). Half of project's 16 for the random gather
- * of the sorted pairs' rectangles, which dominates the placement at 1M pairs. Scalar loads
- * and stores, as in touches_tiles. */
+/* A pair's tile rectangle in 8 bytes, (x0 | x1 << PACK_BITS, y0 | y1 << PACK_BITS), the
+ * rows of camera c shifted by c * tiles_y so that tile (x, y) is segment y * tiles_x + x (the
+ * driver checks that tiles_x and C * tiles_y fit in PACK_BITS, clsplat.stages.ORDER_PACK_BITS).
+ * Half of project's 16 bytes for the random gather of the sorted pairs' rectangles, which
+ * dominates the placement at 1M pairs. Scalar loads and stores, as in touches_tiles. */
+#define PACK_MASK ((1u << PACK_BITS) - 1u)
 inline void store_packed(__global uint *prects, int i, int4 r, int dy) {
-    prects[2 * i] = (uint)r.x | ((uint)r.z << 16);
-    prects[2 * i + 1] = (uint)(r.y + dy) | ((uint)(r.w + dy) << 16);
+    prects[2 * i] = (uint)r.x | ((uint)r.z << PACK_BITS);
+    prects[2 * i + 1] = (uint)(r.y + dy) | ((uint)(r.w + dy) << PACK_BITS);
 }
 inline int4 load_packed(__global const uint *prects, int i) {
     const uint a = prects[2 * i], b = prects[2 * i + 1];
-    return (int4)((int)(a & 0xffffu), (int)(b & 0xffffu), (int)(a >> 16), (int)(b >> 16));
+    return (int4)((int)(a & PACK_MASK), (int)(b & PACK_MASK), (int)(a >> PACK_BITS), (int)(b >> PACK_BITS));
 }
 
 /* Pass 0, count: digit `shift` of the depth key of every pair of chunk c that touches a tile. */
