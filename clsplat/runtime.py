@@ -37,6 +37,7 @@ from typing import Callable, Iterable, Iterator, Mapping
 
 import numpy as np
 import pyopencl as cl
+import pyopencl.array as cl_array
 import torch
 
 from .memory import available_host_memory, fmt_bytes, host_allowance
@@ -51,6 +52,9 @@ _DEVICE_ENV = "CLSPLAT_DEVICE"
 _HOST_MEMORY_ENV = "CLSPLAT_HOST_MEMORY"
 LOCAL_MEM_BUDGET = 48 * 1024  # bytes of local memory a kernel may use: a GPU's, not PoCL's
 INT32_MAX = 2**31 - 1
+#: values in the one-time check of the device's prefix scan (Runtime.checked_scan_int32): several
+#: of pyopencl's work-group intervals, so the carries between them are checked too
+SCAN_SELF_TEST = 4099
 _RW = cl.mem_flags.READ_WRITE
 _RW_HOST_PTR = cl.mem_flags.READ_WRITE | cl.mem_flags.USE_HOST_PTR
 HOST_CHECK_BYTES = 16 << 20  # allocations from this size on are checked against free host memory
@@ -290,6 +294,28 @@ class Runtime:
                 input_expr="src[i]", scan_expr="a+b", neutral="0",
                 output_statement="dst[i] = prev_item;")
         return self._scans["int32"]
+
+    def checked_scan_int32(self):
+        """:meth:`exclusive_scan_int32`, checked against a host prefix sum the first time it is
+        used: every sort stage indexes memory with the scan's output, so an OpenCL
+        implementation that miscomputes it (a driver bug; Oclgrind's uninitialised-value
+        checker) is refused before it sends an out-of-range offset into a kernel. RuntimeError
+        naming ``CLSPLAT_HOST_SCAN=1`` (the host's scan) when the check fails."""
+        scan = self.exclusive_scan_int32()
+        if self._scans.get("checked") is not scan:
+            x = np.random.default_rng(0).integers(0, 1000, SCAN_SELF_TEST).astype(np.int32)
+            a, b = cl_array.to_device(self.queue, x), cl_array.empty(self.queue, x.shape, np.int32)
+            scan(a, b, queue=self.queue)
+            got, want = b.get(), (np.cumsum(x) - x).astype(np.int32)
+            if not np.array_equal(got, want):
+                bad = int(np.argmax(got != want))
+                raise RuntimeError(
+                    f"scan: the device's prefix scan returned inconsistent sums in a self-test of {x.size} "
+                    f"values (first wrong at {bad}: {int(got[bad])}, expected {int(want[bad])}); the OpenCL "
+                    "implementation miscomputes pyopencl's scan, refusing to index memory with it "
+                    "(CLSPLAT_HOST_SCAN=1 scans on the host)")
+            self._scans["checked"] = scan
+        return scan
 
     # -- launches -----------------------------------------------------------------------
     def enqueue(self, kernel: cl.Kernel, global_size: int, local_size: int, *args) -> cl.Event:

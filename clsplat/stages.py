@@ -132,7 +132,7 @@ def _scan_exclusive(rt: Runtime, src: DeviceArray, dst: DeviceArray, events) -> 
     a = cl_array.Array(rt.queue, (n,), np.int32, data=src.buffer)
     b = cl_array.Array(rt.queue, (n,), np.int32, data=dst.buffer)
     rt.hold(src.buffer, dst.buffer)
-    _record(events, "scan", rt.exclusive_scan_int32()(a, b, queue=rt.queue))
+    _record(events, "scan", rt.checked_scan_int32()(a, b, queue=rt.queue))
 
 
 def _intersections(rt: Runtime, rects: DeviceArray, per_intersection: int, reserve: int,
@@ -363,7 +363,7 @@ def _counting_pass(rt: Runtime, cfg: RenderConfig, k: Callable[[str], cl.Kernel]
             b = cl_array.Array(rt.queue, (n_bins * n_chunks,), np.int32, data=pos.buffer)
             rt.hold(hist.buffer, pos.buffer)
             rt.launches += 1  # writes pos (see Runtime.launches)
-            _record(events, "scan", rt.exclusive_scan_int32()(a, b, queue=rt.queue))
+            _record(events, "scan", rt.checked_scan_int32()(a, b, queue=rt.queue))
         if after_scan is not None:
             after_scan(pos)
     sub = {"own": np.int32(own), "hist": hist.buffer, "pos": pos.buffer}

@@ -142,9 +142,13 @@ def test_too_many_intersections_refused(monkeypatch, rt):
         clsplat.rasterization(**scene)
 
 
-def test_garbage_scan_offsets_raise_instead_of_crashing(monkeypatch, rt):
+@pytest.mark.parametrize("sort_impl,layout", [("tiles", None), ("tiles", "bitonic"), ("depth", "bitonic")])
+def test_garbage_scan_offsets_raise_instead_of_crashing(monkeypatch, rt, sort_impl, layout):
     """A faulty scan (an implementation that miscompiles pyopencl's scan, as Oclgrind's
-    uninitialised checker makes it) must not send out-of-range offsets into the kernels."""
+    uninitialised checker makes it) must not send out-of-range offsets into the kernels: the
+    scan is checked against the host's before its first use (Runtime.checked_scan_int32), on
+    every path that scans on the device (the per-tile sort's binning; the depth sort's passes
+    in the GPU layout)."""
     def bad_scan(self):
         def scan(a, b, queue=None):
             garbage = torch.randint(-2**30, 2**30, (b.shape[0],), dtype=torch.int32).numpy()
@@ -152,5 +156,19 @@ def test_garbage_scan_offsets_raise_instead_of_crashing(monkeypatch, rt):
         return scan
     monkeypatch.setattr(Runtime, "exclusive_scan_int32", bad_scan)
     monkeypatch.setenv("CLSPLAT_HOST_SCAN", "0")  # the device's scan, wherever the host's is the default
-    with pytest.raises(RuntimeError, match="^bin: the device's prefix scan returned inconsistent"):
-        clsplat.rasterization(**_scene(3, torch.float32))
+    cfg = RenderConfig(sort_impl=sort_impl, sort_layout=layout)
+    with pytest.raises(RuntimeError, match="^scan: the device's prefix scan returned inconsistent sums"):
+        clsplat.rasterization(**_scene(3, torch.float32), config=cfg)
+
+
+def test_the_scan_self_test_passes_on_a_sound_scan(monkeypatch, rt):
+    """The same renders with the real scan on the device: the check passes, the images equal
+    the host scan's."""
+    scene = _scene(3, torch.float32)
+    monkeypatch.setenv("CLSPLAT_HOST_SCAN", "1")
+    want = [clsplat.rasterization(**scene, config=RenderConfig(sort_impl=s, sort_layout="bitonic"))[0]
+            for s in ("tiles", "depth")]
+    monkeypatch.setenv("CLSPLAT_HOST_SCAN", "0")
+    for s, w in zip(("tiles", "depth"), want):
+        img = clsplat.rasterization(**scene, config=RenderConfig(sort_impl=s, sort_layout="bitonic"))[0]
+        assert torch.equal(img, w), s
