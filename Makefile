@@ -20,9 +20,10 @@ demo: $(STAMP)
 test: $(STAMP)
 	POCL_MAX_WORK_GROUP_SIZE=256 $(VENV)/bin/pytest -q --durations=15 tests
 
-# the edit-test loop: everything but what trains, spawns interpreters, simulates or drives a browser
+# the edit-test loop: everything but what trains, spawns interpreters, simulates or drives a browser,
+# on every core (pytest-xdist; the quick tier spawns nothing, tests/test_tiers.py sees to it)
 check: $(STAMP)
-	POCL_MAX_WORK_GROUP_SIZE=256 $(VENV)/bin/pytest -q -m "not slow" tests
+	POCL_MAX_WORK_GROUP_SIZE=256 $(VENV)/bin/pytest -q -n auto -m "not slow" tests
 
 bench: $(STAMP)
 	$(VENV)/bin/clsplat bench all --out bench/out
