@@ -202,11 +202,11 @@ def check_tile_offsets(off: torch.Tensor, total: int) -> None:
     """Refuse tile offsets [C*T+1] that are not a non-decreasing run from 0 to ``total``:
     every later kernel indexes the intersection list with them, so a faulty scan (a driver
     bug, a miscompiled kernel) would make them read and write out of bounds."""
-    o = off.to(torch.int64)
-    if o.numel() == 0 or int(o[0]) != 0 or int(o[-1]) != total or bool((o[1:] < o[:-1]).any()):
+    o = off.numpy()  # numpy: a few us against ~40 for torch's ops; compared, never subtracted
+    if o.size == 0 or int(o[0]) != 0 or int(o[-1]) != total or bool((o[1:] < o[:-1]).any()):
         raise RuntimeError(
             f"bin: the device's prefix scan returned inconsistent tile offsets (first "
-            f"{int(o[0]) if o.numel() else None}, last {int(o[-1]) if o.numel() else None}, "
+            f"{int(o[0]) if o.size else None}, last {int(o[-1]) if o.size else None}, "
             f"expected 0 .. {total}, non-decreasing); the OpenCL implementation miscomputed "
             "pyopencl's scan, refusing to index with them")
 
@@ -405,8 +405,13 @@ def depth_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Devi
     k = lambda name: rt.kernel("order", name, defines)  # noqa: E731
     bins = 1 << ORDER_RADIX_BITS
     if cfg.sort_chunks is None and serial and n <= ORDER_SMALL:
-        scratch = [rt.empty((n,), torch.int64, zero=False) for _ in range(2)]
-        cnt = rt.empty((max(bins, n_tiles),), torch.int32, zero=False)
+        # scratch used inside the one launch only (the in-order queue runs launches one at a
+        # time): kept in the render plan, one set per power-of-two size bucket and tile count
+        cap, n_cnt = max(1024, 1 << (n - 1).bit_length()), max(bins, n_tiles)
+        scratch = rt.plan(("order_small_scratch", cap, n_cnt), lambda: (
+            rt.empty((cap,), torch.int64, zero=False), rt.empty((cap,), torch.int64, zero=False),
+            rt.empty((n_cnt,), torch.int32, zero=False)))
+        scratch, cnt = scratch[:2], scratch[2]
         _record(events, "sort_small", rt.launch(
             k("order_small"), 1, 1, np.int32(C * N), np.int32(N), np.int32(tiles_x),
             np.int32(tiles_y), np.int32(n_tiles), rects.buffer, depths.buffer, scratch[0].buffer,
@@ -491,8 +496,16 @@ def composite_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: i
     Sized for :attr:`Runtime.local_mem` (at most 48 KiB, what GPUs offer). ``geom_grads``
     geometry gradient values (backward only) and, with ``color_grad``, one colour gradient
     per channel of a chunk are staged per item and sample in local memory too, in ``waves``
-    waves of items (see kernels/composite_bwd.cl).
+    waves of items (see kernels/composite_bwd.cl). Worked out once per shape and config (the
+    render plan, :meth:`Runtime.plan`).
     """
+    return rt.plan(("composite_layout", cfg, tile_size, channels, geom_grads, color_grad, backward),
+                   lambda: _composite_layout(rt, cfg, tile_size, channels, geom_grads, color_grad,
+                                             backward))
+
+
+def _composite_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: int,
+                      geom_grads: int, color_grad: bool, backward: bool) -> tuple[int, int, int, int]:
     # 8 floats or 4 doubles fill one 256-bit AVX register; PoCL rejects wider double vectors
     # on CPUs without AVX-512 (no kernel is produced).
     real = 8 if cfg.precision == "float64" else 4
@@ -574,6 +587,14 @@ def inline_exp_exact(rt: Runtime, cfg: RenderConfig, defines: dict) -> bool:
 
 def _composite_kernel(rt: Runtime, cfg: RenderConfig, stage: str, defines: dict, group: int,
                       tile_size: int) -> cl.Kernel:
+    """The compositing kernel for ``defines``, checked against the device's group and local
+    memory limits once per shape and config (the render plan, :meth:`Runtime.plan`)."""
+    return rt.plan(("composite_kernel", stage, cfg, tuple(sorted(defines.items())), group, tile_size),
+                   lambda: _build_composite_kernel(rt, cfg, stage, defines, group, tile_size))
+
+
+def _build_composite_kernel(rt: Runtime, cfg: RenderConfig, stage: str, defines: dict, group: int,
+                            tile_size: int) -> cl.Kernel:
     name = stage if stage == "composite_bwd" else "composite_fwd"
     if composite_tuned(rt, cfg):
         defines = defines | {"CLS_POCL_CPU": rt.is_pocl_cpu}
@@ -647,9 +668,9 @@ def slot_width(channels: int, geom: bool, color: bool, absgrad: bool) -> int:
 
 def isect_offsets(rt: Runtime, rects: DeviceArray) -> DeviceArray:
     """[C*N] first gradient slot of each pair: exclusive prefix of its tile count."""
-    r = rects.host().reshape(-1, 4)
-    n = ((r[:, 2] - r[:, 0]) * (r[:, 3] - r[:, 1])).to(torch.int64)
-    return rt.array((torch.cumsum(n, 0) - n).to(torch.int32))
+    r = rects.host().reshape(-1, 4).numpy()  # numpy: a few us against ~40 for torch's ops
+    n = ((r[:, 2] - r[:, 0]) * (r[:, 3] - r[:, 1])).astype(np.int64)
+    return rt.array(torch.from_numpy((np.cumsum(n) - n).astype(np.int32)))
 
 
 def composite_bwd(rt: Runtime, cfg: RenderConfig, fwd: dict, v_out: DeviceArray,
@@ -710,7 +731,9 @@ def reduce_slots(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, offs: Devic
               "v_feats": (C, N, channels) if color else None}
     # The kernel writes every entry of what is built in (no zero fill); the others are
     # never written, and a one-element buffer stands in for each.
-    out = {k: rt.empty(sh if sh is not None else (1,), dt, zero=False) for k, sh in shapes.items()}
+    out = {k: rt.empty(sh, dt, zero=False) if sh is not None else
+           rt.plan(("reduce_placeholder", k, dt), lambda: rt.empty((1,), dt, zero=False))
+           for k, sh in shapes.items()}
     defines = {"REAL_DOUBLE": cfg.precision == "float64", "CHANNELS": channels,
                "GEOM_GRAD": geom, "COLOR_GRAD": color, "ABSGRAD": absgrad}
     k = rt.kernel("reduce", "reduce_slots", defines)

@@ -220,3 +220,61 @@ def test_scratch_memory_is_zeroed_reused_and_never_shared_by_two_blocks():
     with rt.scratch() as alloc:  # larger than what is kept: fresh memory
         assert alloc((2000, 9), torch.float32).tensor.data_ptr() != ptr
     rt.release_scratch()
+
+
+def test_render_plan_is_reused_per_shape_and_bounded(make_scene):
+    """Runtime.plan: a second forward + backward of one shape builds no plan entry (every
+    per-shape piece is found), and its results are bitwise the first's; the cache keeps at most
+    PLAN_CACHE_SIZE entries, least recently used dropped first; a build that raises is not kept."""
+    from clsplat.runtime import PLAN_CACHE_SIZE
+    rt = clsplat.get_runtime()
+    scene = make_scene(0, N=40, C=1, width=32, height=24, dtype=torch.float32)
+    for k in ("means", "quats", "scales", "opacities", "colors"):
+        scene[k] = scene[k].clone().requires_grad_()
+
+    def render() -> list[torch.Tensor]:
+        img, alpha, _ = clsplat.rasterization(**scene)
+        (img.sum() + alpha.sum()).backward()
+        grads = [scene[k].grad for k in ("means", "quats", "scales", "opacities", "colors")]
+        for k in ("means", "quats", "scales", "opacities", "colors"):
+            scene[k].grad = None
+        return [img.detach(), alpha.detach()] + grads
+
+    first = render()
+    builds, hits = rt.plan_builds, rt.plan_hits
+    second = render()
+    assert rt.plan_builds == builds  # nothing per shape worked out again
+    assert rt.plan_hits >= hits + 4  # both compositing kernels and layouts, the sort's scratch
+    assert all(torch.equal(a, b) for a, b in zip(first, second))
+
+    made = []
+    for i in range(PLAN_CACHE_SIZE + 5):
+        assert rt.plan(("test_entry", i), lambda i=i: made.append(i) or i) == i
+    assert len(rt._plans) <= PLAN_CACHE_SIZE and len(made) == PLAN_CACHE_SIZE + 5
+    assert rt.plan(("test_entry", PLAN_CACHE_SIZE + 4), lambda: -1) == PLAN_CACHE_SIZE + 4  # kept
+    assert rt.plan(("test_entry", 0), lambda: -1) == -1  # the oldest was dropped, built again
+
+    def refuse():
+        raise ValueError("tile_size: refused")
+    for _ in range(2):  # refused each time, never cached
+        with pytest.raises(ValueError, match="tile_size: refused"):
+            rt.plan(("test_refused",), refuse)
+    assert ("test_refused",) not in rt._plans
+    render()  # the render's own entries, evicted above, are built again
+
+
+def test_scalar_arguments_declared_once_and_redeclared_on_change(rt):
+    """Runtime.enqueue declares a kernel's numpy scalar arguments to pyopencl (its fast,
+    struct-packed path) once per signature; launching with other scalar types redeclares."""
+    import numpy as np
+    k = rt.kernel("reduce", "reduce_slots", {"REAL_DOUBLE": False, "CHANNELS": 1, "GEOM_GRAD": False,
+                                              "COLOR_GRAD": True, "ABSGRAD": False})
+    rects = rt.array(torch.tensor([[0, 0, 1, 2], [0, 0, 1, 1]], dtype=torch.int32).reshape(1, 2, 4))
+    offs = rt.array(torch.tensor([0, 2], dtype=torch.int32))
+    slots = rt.array(torch.tensor([[1.5], [2.25], [4.0]]))
+    outs = [rt.empty((1,), torch.float32) for _ in range(4)] + [rt.empty((1, 2, 1), torch.float32)]
+    for n in (np.int32(2), np.uint32(2), np.int32(2)):
+        outs[-1].tensor.zero_()
+        rt.launch(k, 2, 64, n, rects.buffer, offs.buffer, slots.buffer, *(o.buffer for o in outs))
+        assert rt._arg_dtypes[k.int_ptr][0] == n.dtype
+        assert outs[-1].host().flatten().tolist() == [3.75, 4.0]
