@@ -21,7 +21,7 @@ import torch
 
 from . import plan, stages
 from .config import RenderConfig
-from .runtime import Runtime, read_back
+from .runtime import DeviceArray, Runtime, read_back
 
 __all__ = ["Settings", "ProjectFn", "ShFn", "RasterizeFn"]
 
@@ -47,6 +47,21 @@ class Settings:
     isect: tuple | None = None  # (tile offsets, sorted keys) of the forward, for ``meta``
     absgrad_sink: object = None  # callable(absgrad [C,N,2]); default: set means2d.absgrad
     pixel_reserve: int = 0  # bytes of pixel buffers still to come (clsplat.plan)
+    # data_ptr -> the device array of a non-differentiable projection output (radii, rects,
+    # extents) of this call, which the later Functions pass to their kernels instead of making
+    # a new buffer (_array). Differentiable outputs are not held: output -> grad_fn -> ctx ->
+    # Settings -> array -> output would be a cycle the GC cannot free.
+    arrays: dict | None = None
+
+
+def _array(s: Settings, t: torch.Tensor, read_only: bool = False) -> DeviceArray:
+    """``t`` on the device: the projection's own array where ``t`` is one of its
+    non-differentiable outputs (see :attr:`Settings.arrays`), else a new one."""
+    a = s.arrays.get(t.data_ptr()) if s.arrays else None
+    if (a is not None and a.tensor.shape == t.shape and a.tensor.dtype == t.dtype
+            and a.tensor.stride() == t.stride()):
+        return a
+    return s.rt.array(t, read_only)
 
 
 def _finite_grad(name: str, g: torch.Tensor | None) -> None:
@@ -69,6 +84,11 @@ class ProjectFn(torch.autograd.Function):
                            near_plane=s.near_plane, far_plane=s.far_plane, eps2d=s.eps2d,
                            radius_clip=s.radius_clip, antialiased=s.antialiased, events=s.events)
         outs = read_back(p.means2d, p.conics, p.depths, p.opacities, p.radii, p.rects, p.extents)
+        p.rects.read_only = True  # no later command writes the rectangles: read without a wait
+        if s.arrays is None:
+            s.arrays = {}
+        s.arrays.update((a.tensor.data_ptr(), a) for a in (p.radii, p.rects, p.extents)
+                        if a.tensor.numel())
         ctx.mark_non_differentiable(*outs[4:])
         ctx.save_for_backward(means, quats, scales, opacities, viewmats, Ks, outs[4])
         ctx.s = s
@@ -94,7 +114,7 @@ class ProjectFn(torch.autograd.Function):
             inputs = {n: rt.array(t.detach()) for n, t in zip(
                 ("means", "quats", "scales", "opacities", "viewmats", "Ks"),
                 (means, quats, scales, opacities, viewmats, Ks))}
-        out = stages.project_bwd(rt, s.cfg, inputs, rt.array(radii),
+        out = stages.project_bwd(rt, s.cfg, inputs, _array(s, radii),
                                  {k: rt.array(v) for k, v in grads.items()}, s.width, s.height,
                                  eps2d=s.eps2d, antialiased=s.antialiased,
                                  viewmat_grad=ctx.needs_input_grad[4], events=s.events)
@@ -120,7 +140,7 @@ class ShFn(torch.autograd.Function):
         rt, arr = s.rt, s.rt.array
         ctx.orig_viewmats = viewmats.detach()
         viewmats = _centre_viewmats(ctx.orig_viewmats)
-        colors = stages.sh_colors(rt, s.cfg, arr(means), arr(viewmats), arr(coeffs), arr(radii),
+        colors = stages.sh_colors(rt, s.cfg, arr(means), arr(viewmats), arr(coeffs), _array(s, radii),
                                   s.sh_degree, events=s.events).host()
         ctx.save_for_backward(coeffs, means, viewmats, radii)
         ctx.s = s
@@ -136,7 +156,7 @@ class ShFn(torch.autograd.Function):
         rt, arr = s.rt, s.rt.array
         v_coeffs, v_means, v_dirs = stages.sh_colors_bwd(
             rt, s.cfg, arr(means.detach()), arr(viewmats.detach()), arr(coeffs.detach()),
-            arr(radii), arr(v_colors.contiguous()), s.sh_degree, need_means, need_view,
+            _array(s, radii), arr(v_colors.contiguous()), s.sh_degree, need_means, need_view,
             events=s.events)
         v_view = None
         if need_view:  # direction = mean - centre, centre = inverse(viewmats)[:3, 3] as in
@@ -155,7 +175,7 @@ class RasterizeFn(torch.autograd.Function):
         rt, cfg, arr = s.rt, s.cfg, s.rt.array
         a = {"means2d": arr(means2d.detach()), "conics": arr(conics.detach()),
              "opacities": arr(opacities.detach()), "feats": arr(feats.detach()),
-             "rects": arr(rects, read_only=True), "extents": arr(extents)}
+             "rects": _array(s, rects, read_only=True), "extents": _array(s, extents)}
         want_grad = any(ctx.needs_input_grad[:4])  # False under no_grad or for constants
         per_isect = plan.intersection_bytes(feats.shape[-1], feats.element_size(), grad=want_grad,
                                             absgrad=s.absgrad)

@@ -26,6 +26,9 @@ from .validate import check_options, check_rasterization_inputs, check_screen_ex
 __all__ = ["rasterization", "RollingShutterType", "DEFAULT_TILE_SIZE"]
 
 DEFAULT_TILE_SIZE = 16  # what gsplat uses for tile_size=None
+#: the default config per precision, made once (immutable): no RenderConfig is made and checked
+#: per call without a config
+_DEFAULT_CONFIGS = {p: RenderConfig(precision=p) for p in ("float32", "float64")}
 
 
 class RollingShutterType(Enum):
@@ -226,7 +229,12 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
     if precision is None:
         precision = (config.precision if config is not None else None) or (
             "float64" if out_dtype == torch.float64 else "float32")
-    cfg = (config or RenderConfig()).with_(precision=precision)
+    # (a config already of this precision, or the default one made once: RenderConfig's checks
+    # ran when it was made; a config made here goes through them, a bad precision fails them)
+    if config is None:
+        cfg = _DEFAULT_CONFIGS.get(precision) or RenderConfig(precision=precision)
+    else:
+        cfg = config if config.precision == precision else config.with_(precision=precision)
     rt = get_runtime(device)
     if cfg.precision == "float64" and not rt.has_fp64:
         raise ValueError(f"precision: float64 needs cl_khr_fp64, which {rt.name} lacks")
