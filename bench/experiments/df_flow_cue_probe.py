@@ -1,0 +1,76 @@
+"""How much of the ego motion can the pose network's flow cue carry? (issue 32, lead "what the pose
+network can see")
+
+For training and validation windows of the varied world, :func:`local_correlation` (the cue of
+``pose_corr_radius``) is computed between frames t and t+1 of every camera, reduced to the six
+:func:`flow_statistics` per camera, and the flow head's map (``pose_corr_head="flow"``: camera 0's
+translation = mean over cameras of ``R_0^T R_c (A phi_c + b)``) is fitted by least squares to the
+data's true camera-0 translation on the training windows and scored on the validation windows.
+This is the best the 21-parameter head can do on this cue (a ceiling for a run, not a result):
+if it were no better than the constant motion, no training of the head could be.
+
+    .venv/bin/python bench/experiments/df_flow_cue_probe.py --data synthetic --train 100 --val 40
+"""
+from __future__ import annotations
+
+import argparse
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", default="synthetic", help="--data spec (default: the varied world)")
+    p.add_argument("--preset", default="small")
+    p.add_argument("--train", type=int, default=100, help="training windows of the fit")
+    p.add_argument("--val", type=int, default=40, help="validation windows it is scored on")
+    p.add_argument("--radius", type=int, default=3)
+    p.add_argument("--level", type=int, default=4)
+    a = p.parse_args(argv)
+
+    import numpy as np
+    import torch
+
+    from clsplat.models.common.data import parse_data
+    from clsplat.models.common.presets import get_preset
+    from clsplat.models.drivingforward.data import gt_ego_motion, load_triplet
+    from clsplat.models.drivingforward.fusion import scale_intrinsics
+    from clsplat.models.drivingforward.pose import flow_statistics, local_correlation
+
+    preset = get_preset("drivingforward", a.preset)
+    src = parse_data(a.data, default_world="varied")
+
+    def design(split: str, n: int):
+        X, Y = [], []
+        for i in range(n):
+            s = load_triplet(src, i, preset, split)
+            E = s["cam_to_ego"].double()
+            R = E[:, :3, :3]
+            T0 = torch.linalg.inv(E[0]) @ gt_ego_motion(s)[2].double() @ E[0]
+            cue = local_correlation(s["images"][1], s["images"][2], a.radius, a.level)
+            phi = flow_statistics(cue[:, -2:], scale_intrinsics(s["Ks"], 1.0 / a.level)).double()
+            phi = torch.cat([phi, torch.ones(phi.shape[0], 1, dtype=phi.dtype)], 1)
+            M = torch.einsum("ckj,cm->kjm", R[0].T.unsqueeze(0) @ R, phi) / E.shape[0]   # t0 = M : [A | b]
+            X.append(M.reshape(3, -1).numpy())
+            Y.append(T0[:3, 3].numpy())
+        return np.concatenate(X), np.concatenate(Y)
+
+    Xt, Yt = design("train", a.train)
+    Xv, Yv = design("val", a.val)
+    A, *_ = np.linalg.lstsq(Xt, Yt, rcond=None)
+    for name, X, Y in (("train (fit)", Xt, Yt), ("val", Xv, Yv)):
+        P, T = (X @ A).reshape(-1, 3), Y.reshape(-1, 3)
+        err, n = np.linalg.norm(P - T, axis=1), np.linalg.norm(T, axis=1)
+        mv = n > 0.05
+        print(f"{name}: {len(n)} windows ({mv.sum()} moving): translation error median {np.median(err[mv] / n[mv]) * 100:.0f} % "
+              f"moving, {err[~mv].mean() if (~mv).any() else float('nan'):.3f} m standing; "
+              f"corr(|pred|, |true|) {np.corrcoef(np.linalg.norm(P, axis=1), n)[0, 1]:.2f}")
+    # the constant-motion control on the same windows: the training windows' mean translation
+    c = Yt.reshape(-1, 3).mean(0)
+    T = Yv.reshape(-1, 3)
+    n = np.linalg.norm(T, axis=1)
+    mv = n > 0.05
+    print(f"constant motion (train mean {np.linalg.norm(c):.3f} m) on val: median {np.median(np.linalg.norm(T - c, axis=1)[mv] / n[mv]) * 100:.0f} % moving")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
