@@ -139,7 +139,7 @@ class Runtime:
     _kernels: dict = field(default_factory=dict, init=False, repr=False)
     _scans: dict = field(default_factory=dict, init=False, repr=False)
     _group_limits: dict = field(default_factory=dict, init=False, repr=False)
-    # kernel.int_ptr -> the scalar-argument dtypes declared to pyopencl (see enqueue)
+    # kernel.int_ptr -> the argument types whose scalar dtypes were declared to pyopencl (enqueue)
     _arg_dtypes: dict = field(default_factory=dict, init=False, repr=False)
     # (stage, kernel name, sorted defines, fast_math) -> kernel: the per-launch look-up, which
     # neither reads nor hashes the sources (they are package data, fixed for the process).
@@ -340,13 +340,13 @@ class Runtime:
         signature (``set_scalar_arg_dtypes``), so its invoker packs them with ``struct``
         (the same bytes): its generic path spent ~9 us of the calling thread per scalar
         (the project kernel's 10 scalars: 95 of its 145 us), the declared path ~0.2."""
-        sig = tuple(a.dtype if isinstance(a, np.generic) else None for a in args)
+        sig = tuple(map(type, args))  # the argument types decide the dtypes
         key = kernel.int_ptr
         if self._arg_dtypes.get(key) != sig:
-            kernel.set_scalar_arg_dtypes(list(sig))
+            kernel.set_scalar_arg_dtypes([np.dtype(t) if issubclass(t, np.generic) else None
+                                          for t in sig])
             self._arg_dtypes[key] = sig
-        self._in_flight.extend(a for a, t in zip(args, sig)
-                               if t is None and isinstance(a, cl.MemoryObjectHolder))
+        self._in_flight += [a for a in args if isinstance(a, cl.MemoryObjectHolder)]
         self.launches += 1
         return kernel(self.queue, (global_size,), (local_size,), *args)
 

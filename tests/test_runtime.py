@@ -276,5 +276,5 @@ def test_scalar_arguments_declared_once_and_redeclared_on_change(rt):
     for n in (np.int32(2), np.uint32(2), np.int32(2)):
         outs[-1].tensor.zero_()
         rt.launch(k, 2, 64, n, rects.buffer, offs.buffer, slots.buffer, *(o.buffer for o in outs))
-        assert rt._arg_dtypes[k.int_ptr][0] == n.dtype
+        assert rt._arg_dtypes[k.int_ptr][0] is type(n)
         assert outs[-1].host().flatten().tolist() == [3.75, 4.0]
