@@ -167,6 +167,22 @@ def autosplat_tiny_run(tmp_path_factory):
     return out
 
 
+#: the DrivingForward run read by the CLI and contract tests: tiny, 2 steps, checkpoints every
+#: step, the validation curve every step, one held-out window scored
+DF_TINY_RUN = ["train", "drivingforward", "--preset", "tiny", "--steps", "2", "--no-progress", "--checkpoint-every",
+               "1", "--eval-scenes", "1", "--val-every", "1", "--val-scenes", "1"]
+
+
+@pytest.fixture(scope="session")
+def df_tiny_run(tmp_path_factory):
+    """The run folder of ``clsplat DF_TINY_RUN``, trained once per test session for every file
+    that reads it. Read-only: a test that writes into a run copies it first."""
+    from clsplat.cli import console
+    out = tmp_path_factory.mktemp("df_tiny") / "run"
+    assert console([*DF_TINY_RUN, "--out", str(out)]) == 0
+    return out
+
+
 def engine_project(rt, cfg: RenderConfig, scene: dict, tile_size: int = 16, near_plane=0.01,
                    far_plane=1e10, eps2d=0.3, radius_clip=0.0, antialiased=False) -> dict:
     """Run kernels/project.cl through clsplat.stages.project; host tensors keyed like the reference."""

@@ -26,10 +26,11 @@ def _train(out, steps, *extra):
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory):
+def runs(tmp_path_factory, df_tiny_run):
+    import shutil
     root = tmp_path_factory.mktemp("df")
     curve = ("--val-every", "1", "--val-scenes", "1")
-    assert _train(root / "straight", 2, "--eval-scenes", "1", *curve) == 0
+    shutil.copytree(df_tiny_run, root / "straight")   # the session's run (conftest.DF_TINY_RUN)
     assert _train(root / "resumed", 1, "--eval-scenes", "0", *curve) == 0
     assert _train(root / "resumed", 2, "--eval-scenes", "0", "--resume", *curve) == 0
     assert _train(root / "dataset", 2, "--eval-scenes", "1", "--pose", "dataset",
