@@ -259,6 +259,15 @@ class Runtime:
             raise ValueError(f"{stage}: the kernel needs {lmem} bytes of local memory, the device "
                              f"has {self.device.local_mem_size}{hint}")
 
+    def check_group_once(self, kernel: cl.Kernel, stage: str, group: int, hint: str = "") -> None:
+        """:meth:`check_group` the first time a kernel is checked (or after ``_group_limits``
+        was emptied); later, ``group`` against the kernel's limit kept there (a dict look-up:
+        the limits and the kernel's local memory are fixed for the process)."""
+        limit = self._group_limits.get(kernel.int_ptr)
+        if limit is None or group > limit:
+            self.check_group(kernel, stage, group, hint)
+            self._group_limits[kernel.int_ptr] = self.kernel_group_limit(kernel)
+
     # -- programs -----------------------------------------------------------------------
     def program(self, stage: str, defines: Mapping[str, object], fast_math: bool = False) -> cl.Program:
         """Build (or fetch) ``kernels/<stage>.cl`` specialised by ``defines``."""

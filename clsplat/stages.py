@@ -488,6 +488,16 @@ def tile_ranges(offsets: DeviceArray, n_cameras: int, tiles_y: int, tiles_x: int
 CHANNEL_CHUNK = 32  # channels per compositing launch at most (gsplat's channel_chunk default)
 
 
+def _planned_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: int,
+                    geom_grads: int = 0, color_grad: bool = False,
+                    backward: bool = False) -> tuple[int, int, int, int]:
+    """:func:`composite_layout`, worked out once per shape and config (the render plan,
+    :meth:`Runtime.plan`)."""
+    return rt.plan(("composite_layout", cfg, tile_size, channels, geom_grads, color_grad, backward),
+                   lambda: composite_layout(rt, cfg, tile_size, channels, geom_grads, color_grad,
+                                            backward))
+
+
 def composite_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: int,
                      geom_grads: int = 0, color_grad: bool = False,
                      backward: bool = False) -> tuple[int, int, int, int]:
@@ -496,16 +506,9 @@ def composite_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: i
     Sized for :attr:`Runtime.local_mem` (at most 48 KiB, what GPUs offer). ``geom_grads``
     geometry gradient values (backward only) and, with ``color_grad``, one colour gradient
     per channel of a chunk are staged per item and sample in local memory too, in ``waves``
-    waves of items (see kernels/composite_bwd.cl). Worked out once per shape and config (the
-    render plan, :meth:`Runtime.plan`).
+    waves of items (see kernels/composite_bwd.cl). The renders take it from the render plan
+    (:func:`_planned_layout`).
     """
-    return rt.plan(("composite_layout", cfg, tile_size, channels, geom_grads, color_grad, backward),
-                   lambda: _composite_layout(rt, cfg, tile_size, channels, geom_grads, color_grad,
-                                             backward))
-
-
-def _composite_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: int,
-                      geom_grads: int, color_grad: bool, backward: bool) -> tuple[int, int, int, int]:
     # 8 floats or 4 doubles fill one 256-bit AVX register; PoCL rejects wider double vectors
     # on CPUs without AVX-512 (no kernel is produced).
     real = 8 if cfg.precision == "float64" else 4
@@ -587,13 +590,17 @@ def inline_exp_exact(rt: Runtime, cfg: RenderConfig, defines: dict) -> bool:
 
 def _composite_kernel(rt: Runtime, cfg: RenderConfig, stage: str, defines: dict, group: int,
                       tile_size: int) -> cl.Kernel:
-    """The compositing kernel for ``defines``, checked against the device's group and local
-    memory limits once per shape and config (the render plan, :meth:`Runtime.plan`)."""
-    return rt.plan(("composite_kernel", stage, cfg, tuple(sorted(defines.items())), group, tile_size),
-                   lambda: _build_composite_kernel(rt, cfg, stage, defines, group, tile_size))
+    """The compositing kernel for ``defines``, looked up once per shape and config (the render
+    plan, :meth:`Runtime.plan`; the inline-exp probe's answer is part of the key) and checked
+    against the device's group and local memory limits (:meth:`Runtime.check_group_once`)."""
+    k = rt.plan(("composite_kernel", stage, cfg, tuple(sorted(defines.items())), rt.inline_exp_exact),
+                lambda: _build_composite_kernel(rt, cfg, stage, defines, tile_size))
+    rt.check_group_once(k, stage, group, f" (tile_size {tile_size}, {defines['PIX']} pixel(s) per "
+                        "item; use a smaller tile_size or a larger RenderConfig.pix)")
+    return k
 
 
-def _build_composite_kernel(rt: Runtime, cfg: RenderConfig, stage: str, defines: dict, group: int,
+def _build_composite_kernel(rt: Runtime, cfg: RenderConfig, stage: str, defines: dict,
                             tile_size: int) -> cl.Kernel:
     name = stage if stage == "composite_bwd" else "composite_fwd"
     if composite_tuned(rt, cfg):
@@ -608,10 +615,7 @@ def _build_composite_kernel(rt: Runtime, cfg: RenderConfig, stage: str, defines:
                 defines = defines | {"CLS_INLINE_EXP": 0}
     else:  # the same kernel source, built without the CPU-specific staging (CLS_TUNED=0)
         defines = defines | {"CLS_TUNED": 0}
-    k = rt.kernel(stage, name, defines, cfg.fast_math)
-    rt.check_group(k, stage, group, f" (tile_size {tile_size}, {defines['PIX']} pixel(s) per "
-                   "item; use a smaller tile_size or a larger RenderConfig.pix)")
-    return k
+    return rt.kernel(stage, name, defines, cfg.fast_math)
 
 
 def composite(rt: Runtime, cfg: RenderConfig, means2d: DeviceArray, conics: DeviceArray,
@@ -633,7 +637,7 @@ def composite(rt: Runtime, cfg: RenderConfig, means2d: DeviceArray, conics: Devi
     C = means2d.tensor.shape[0]
     CH = feats.tensor.shape[-1]
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
-    pix, batch, chunk, _ = composite_layout(rt, cfg, tile_size, CH)
+    pix, batch, chunk, _ = _planned_layout(rt, cfg, tile_size, CH)
     out = rt.empty((C, height, width, CH), cfg.dtype)
     T = rt.empty((C, height, width), cfg.dtype)
     last = rt.empty((C, height, width), torch.int32) if save_last else None
@@ -692,8 +696,8 @@ def composite_bwd(rt: Runtime, cfg: RenderConfig, fwd: dict, v_out: DeviceArray,
     M = fwd["keys"].tensor.numel()
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
     geom_cols = (8 if absgrad else 6) * geom
-    pix, batch, chunk, waves = composite_layout(rt, cfg, tile_size, CH, geom_grads=geom_cols,
-                                         color_grad=color, backward=True)
+    pix, batch, chunk, waves = _planned_layout(rt, cfg, tile_size, CH, geom_grads=geom_cols,
+                                               color_grad=color, backward=True)
     rt.check_memory(M * G * (8 if cfg.precision == "float64" else 4),
                     f"means, scales: the backward's gradient slots ({M} intersections x {G} values)")
     offs = isect_offsets(rt, fwd["rects"])
