@@ -117,3 +117,21 @@ def test_object_report_on_the_generated_street(tmp_path):
     assert rep["static_per_class"]["car"]["tracks"] >= 1 and rep["static_per_class"]["car"]["psnr"] == math.inf
     assert set(rep["per_track"]) == {"1", "2"}                   # the moving tracks alone
     assert rep["worst"][0] == 1 and rep["sheet"] == "w.png" and (tmp_path / "w.png").is_file()
+
+
+def test_a_runs_metrics_carry_the_objects_section(autosplat_tiny_run):
+    """``clsplat train autosplat`` writes the section: the car class pools the same pixels as
+    ``all.psnr_objects`` on the built-in street (every mover a car), and the parked cars beside."""
+    import json
+    m = json.loads((autosplat_tiny_run / "metrics.json").read_text())
+    o = m["objects"]
+    assert set(o["per_class"]) == set(OBJECT_CLASSES) and o["frames"] == m["protocol"]["test_frames"]
+    car = o["per_class"]["car"]
+    if m["all"]["psnr_objects"] is None:
+        assert car["pixels"] == 0 and car["psnr"] is None
+    else:
+        assert car["psnr"] == pytest.approx(m["all"]["psnr_objects"], abs=1e-6)
+    assert o["per_class"]["pedestrian"]["pixels"] == 0 and "car" in o["static_per_class"]
+    assert (o["sheet"] is None) == (not o["worst"])
+    if o["sheet"]:
+        assert (autosplat_tiny_run / o["sheet"]).is_file()
