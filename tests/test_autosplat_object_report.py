@@ -96,6 +96,25 @@ def test_the_worst_tracks_sheet_ranks_by_psnr(tmp_path):
     assert not (tmp_path / "x.png").exists()
 
 
+def test_track_masks_are_the_foreground_masks_of_each_track():
+    """Box pixels (no instance masks) and instance pixels: track by track, the masks equal
+    ``foreground_mask`` of that track alone, and tracks without a pixel are left out."""
+    from dataclasses import replace
+
+    from clsplat.data.scene import DrivingSequence
+    from clsplat.models.autosplat.background import foreground_mask
+    seq = generate_sequence(height=36, width=64, num_frames=1, lidar=False, world="busy", seed=1)
+    cams = list(seq.camera_names)
+    boxes_only = DrivingSequence(seq.cameras, [replace(f, instances={}) for f in seq.frames], seq.name, seq.metadata)
+    tracks = sorted({b.track_id for b in seq.frames[0].boxes})
+    for s in (seq, boxes_only):
+        masks = track_masks(s, 0, cams, tracks + [999])
+        assert 999 not in masks and len(masks) >= 10
+        for t in tracks:
+            want = foreground_mask(s, 0, cams, {t})
+            assert np.array_equal(masks[t], want) if t in masks else not want.any()
+
+
 def test_object_report_on_the_generated_street(tmp_path):
     """On generated frames the masks are the instance masks; a render equal to the truth scores
     inf everywhere, and a darkened car pixel set lowers the car class alone."""

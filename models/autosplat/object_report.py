@@ -35,7 +35,7 @@ import torch
 from clsplat.data.scene import DrivingSequence
 from clsplat.image_metrics import ssim_map
 
-from .background import foreground_mask
+from .background import _box_pixel_rect
 from .init import moving_track_ids
 
 __all__ = ["OBJECT_CLASSES", "WORST", "MIN_TRACK_PIXELS", "SHEET_NAME", "object_class", "track_masks",
@@ -70,16 +70,55 @@ def object_class(label: str) -> str:
 
 def track_masks(seq: DrivingSequence, frame: int, cameras: Sequence[str], tracks: Sequence[int]) -> dict[int, np.ndarray]:
     """``{track: [C, H, W] bool}``: each track's pixels at ``frame`` in ``cameras`` (instance masks
-    where the frame has them, else the box's pixels); tracks without a box there are left out."""
+    where the frame has them, else the pixels whose centre ray hits the track's box, as
+    :func:`.background.foreground_mask` computes them, with each camera's rays made once for all
+    boxes); tracks without a pixel are left out. The cameras must share one image size."""
     f = seq.frames[frame]
-    present = {b.track_id for b in f.boxes}
-    out = {}
-    for t in tracks:
-        if t not in present and not all(c in f.instances for c in cameras):
-            continue
-        m = foreground_mask(seq, frame, list(cameras), {int(t)})
+    want = {int(t) for t in tracks}
+    boxes = [b for b in f.boxes if b.track_id in want]
+    sizes = {(seq.camera(c).height, seq.camera(c).width) for c in cameras}
+    if len(sizes) != 1:
+        raise ValueError(f"cameras: expected one image size, got {sorted(sizes)}")
+    H, W = sizes.pop()
+    out: dict[int, np.ndarray] = {}
+
+    def put(t: int, k: int, m: np.ndarray) -> None:
         if m.any():
-            out[int(t)] = m
+            out.setdefault(t, np.zeros((len(cameras), H, W), bool))[k] |= m
+
+    for k, c in enumerate(cameras):
+        if c in f.instances:
+            inst = f.instances[c]
+            for t in np.unique(inst[inst > 0]):
+                if int(t) in want:
+                    put(int(t), k, inst == t)
+            continue
+        if not boxes:
+            continue
+        cam = seq.camera(c)
+        T = seq.cam_to_world(frame, c)
+        u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+        d = np.stack([(u - cam.K[0, 2]) / cam.K[0, 0], (v - cam.K[1, 2]) / cam.K[1, 1], np.ones_like(u)], -1)
+        d = d @ T[:3, :3].T
+        o = T[:3, 3]
+        w2c = np.linalg.inv(T)
+        for b in boxes:
+            rect = _box_pixel_rect(b, w2c, cam.K, W, H)
+            if rect is None:
+                continue
+            y0, y1, x0, x1 = rect
+            B = np.linalg.inv(b.box_to_world)
+            ol = B[:3, :3] @ o + B[:3, 3]
+            dl = np.ascontiguousarray(d[y0:y1, x0:x1]) @ B[:3, :3].T
+            half = b.size / 2
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t1 = (-half - ol) / dl
+                t2 = (half - ol) / dl
+            tn = np.nanmax(np.minimum(t1, t2), -1)
+            tf = np.nanmin(np.maximum(t1, t2), -1)
+            m = np.zeros((H, W), bool)
+            m[y0:y1, x0:x1] = (tn <= tf) & (tf > 0)
+            put(b.track_id, k, m)
     return out
 
 
