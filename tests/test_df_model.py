@@ -412,3 +412,25 @@ def test_flow_head_starts_at_no_motion_and_learns_from_the_photometric_terms(sam
     assert float(m.pose_net.odometry.out.weight.grad.abs().sum()) > 0
     with pytest.raises(ValueError, match="pose_corr_head"):
         TINY.replace(pose_corr_head="mlp")
+
+
+def test_pose_road_anchor_trains_the_pose_on_the_road_with_the_prior_and_the_depth_on_its_own(sample):
+    """pose_road_anchor: the pose network's gradient comes from ``reproj_pose`` (road pixels, ground
+    prior depth) alone, which gives the depth network none; ``reproj`` trains the depth only."""
+    torch.manual_seed(0)
+    m = DrivingForward(TINY.replace(pose_road_anchor=True, ground_prior_cap=20.0, pose_zero_init=True,
+                                    pose_translation_scale=1.0))
+    terms = m.training_losses(sample["images"], sample["images"], sample["Ks"], sample["cam_to_ego"])
+    assert "reproj_pose" in terms and torch.isfinite(terms["reproj_pose"])
+    terms["reproj_pose"].backward(retain_graph=True)
+    assert _without_grad(m, "pose_net.decoder.pose_2") == []
+    assert len(_without_grad(m, "depth_net")) == len(list(m.depth_net.parameters()))
+    m.zero_grad()
+    terms["loss"].backward(retain_graph=True)
+    pose_grad = m.pose_net.decoder.pose_2.weight.grad.clone()
+    m.zero_grad()
+    (terms["loss"] - terms["reproj_pose"]).backward()
+    assert m.pose_net.decoder.pose_2.weight.grad is None or float(m.pose_net.decoder.pose_2.weight.grad.abs().sum()) == 0
+    assert float(pose_grad.abs().sum()) > 0 and _without_grad(m, "depth_net") == []
+    with pytest.raises(ValueError, match="pose_road_anchor"):
+        TINY.replace(pose_road_anchor=True)                    # tiny has no ground prior

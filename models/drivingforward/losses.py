@@ -75,7 +75,8 @@ def brightness_normalise(warped: Tensor, target: Tensor, valid: Tensor, eps: flo
 
 
 def temporal_loss(target: Tensor, sources: list[Tensor], depth: Tensor, Ks: Tensor, T_to_src: list[Tensor],
-                  noise: Tensor | None = None, automask: bool = True, margin: float = 0.0) -> Tensor:
+                  noise: Tensor | None = None, automask: bool = True, margin: float = 0.0,
+                  mask: Tensor | None = None) -> Tensor:
     """Auto-masked minimum reprojection loss.
 
     Args:
@@ -88,8 +89,9 @@ def temporal_loss(target: Tensor, sources: list[Tensor], depth: Tensor, Ks: Tens
         margin: added to the identity errors: the unwarped frame masks a pixel only when it beats
             every warp by more than this (0: monodepth2's mask, which also drops a pixel whose
             warp is merely no better than no warp, e.g. a wrong warp over uniform asphalt).
+        mask: ``[V, 1, H, W]``: only these pixels count (None: all).
     Returns:
-        scalar, mean over cameras and pixels.
+        scalar, mean over cameras and (masked) pixels.
     """
     reproj, ident = [], []
     for k, (src, T) in enumerate(zip(sources, T_to_src)):
@@ -101,11 +103,13 @@ def temporal_loss(target: Tensor, sources: list[Tensor], depth: Tensor, Ks: Tens
         idt = photometric_error(src, target)
         ident.append(idt + margin + (noise[:, k:k + 1] if noise is not None else 0.0))
     err = torch.cat(ident + reproj, 1).min(dim=1).values
-    if automask:
+    if automask and mask is None:
         return err.mean()
     # without the identity errors a pixel no source sees keeps _INVALID: it takes no part, and a
     # frame no source sees at all costs 0 (not the NaN of an empty mean)
     seen = err < _INVALID
+    if mask is not None:
+        seen = seen & (mask[:, 0] > 0)
     return torch.where(seen, err, torch.zeros_like(err)).sum() / seen.sum().clamp_min(1)
 
 

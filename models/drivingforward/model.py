@@ -22,7 +22,7 @@ from torch import Tensor, nn
 
 from ..common.gaussians import GaussianSet
 from ..common.geometry import check_rigid, invert_rigid
-from .depth import DepthNetwork
+from .depth import DepthNetwork, ground_prior_depth
 from .fusion import scale_intrinsics
 from .gaussian import GaussianNetwork, pixels_to_gaussians
 from .losses import render_loss, smoothness_loss, spatial_loss, spatio_temporal_loss, temporal_loss
@@ -216,7 +216,7 @@ class DrivingForward(nn.Module):
         Returns:
             ``loss`` (weighted total) and the terms ``reproj, smooth, spatial, spatio_temporal, render,
             mse`` (``spatial`` and ``spatio_temporal`` only where their weight is above 0; ``lpips``
-            when on), and the logged-only ``diag_depth_median`` and
+            when on; ``reproj_pose`` with ``pose_road_anchor``), and the logged-only ``diag_depth_median`` and
             ``diag_translation`` (metres, pose network t -> t+1), no gradient.
         """
         p = self.preset
@@ -246,7 +246,17 @@ class DrivingForward(nn.Module):
         d_t = depth.detach() if warm else depth
         # the auto-mask for the preset's first automask_steps steps (all of them by default)
         automask = p.automask_steps is None or (step is not None and step < p.automask_steps)
+        anchor = p.pose_road_anchor and p.pose_source == "network"
+        if anchor:
+            # the pose learns from the road alone, warped with the ground prior (calibration), so
+            # its scale is the rig's; the depth's temporal terms see the motion as a constant
+            prior = ground_prior_depth(Ks, E, p.height, p.width, p.ground_prior_cap)
+            road = (prior < p.ground_prior_cap).to(prior.dtype)
+            pose_term = temporal_loss(tgt, srcs, prior, Ks, Tc, noise, automask, p.automask_margin, road)
+            Tc, M = [t.detach() for t in Tc], [m.detach() for m in M]
         terms = self.photometric_terms(tgt, srcs, depth, d_t, Ks, E, Tc, M, noise, automask)
+        if anchor:
+            terms["reproj_pose"] = pose_term
         terms["smooth"] = smoothness_loss(depth, tgt, p.smooth_order)
         inv_E = invert_rigid(E)
         # the render's view of the motion: a constant when the preset says so (no render gradient
@@ -271,7 +281,7 @@ class DrivingForward(nn.Module):
         terms.update(r)
         terms["diag_depth_median"] = depth.detach().median()   # logged, not optimised: shows a collapse
         terms["diag_translation"] = T_next.detach()[:3, 3].norm()
-        loss = terms["reproj"] + p.w_smooth * terms["smooth"]
+        loss = terms["reproj"] + terms.get("reproj_pose", 0.0) + p.w_smooth * terms["smooth"]
         for k, w in (("spatial", p.w_spatial), ("spatio_temporal", p.w_spatio_temporal)):
             if k in terms:                      # a term of weight 0 was not computed
                 loss = loss + w * terms[k]

@@ -82,6 +82,11 @@ class DFPreset(Preset):
         pose_corr_head: the per-camera head of the "camera" modes: "conv" (two stride-2 convs on the
             cue, mean, linear) or "flow" (a linear map of six statistics of the cue's soft-argmax
             flow: mean dx, dy and expansion over the lower and upper image halves).
+        pose_road_anchor: the pose network learns from its own temporal term, computed on the road
+            pixels only (where the ground prior is below ``ground_prior_cap``) with the ground
+            prior's depth: the rig's calibration gives the motion its metric scale. The depth's
+            temporal terms and the render then see the motion as a constant. (Issue 32: with the pose learning
+            from the predicted depth, the pose and the depth drift to a common wrong scale.)
         min_depth, max_depth, focal_ref: depth = 1/(1/max + (1/min - 1/max) sigma) * fx / focal_ref.
         gs_encoder_channels, gs_decoder_channels, gs_head_channels: Gaussian network widths.
         sh_degree, sh_damping, sh_damping_decay: SH degree predicted and rendered; degree l >= 1 is
@@ -158,6 +163,7 @@ class DFPreset(Preset):
     pose_corr_level: int = 4
     pose_corr_mode: str = "bev"
     pose_corr_head: str = "conv"
+    pose_road_anchor: bool = False
     min_depth: float = 1.5
     max_depth: float = 80.0
     focal_ref: float = 300.0
@@ -231,6 +237,9 @@ class DFPreset(Preset):
         if self.pose_corr_mode not in ("bev", "camera", "camera_only"):
             raise ValueError(f"preset {self.name}: pose_corr_mode must be 'bev', 'camera' or 'camera_only', "
                              f"got {self.pose_corr_mode!r}")
+        if not isinstance(self.pose_road_anchor, bool) or (self.pose_road_anchor and self.ground_prior_cap is None):
+            raise ValueError(f"preset {self.name}: pose_road_anchor must be True or False and needs ground_prior_cap, "
+                             f"got {self.pose_road_anchor!r} with ground_prior_cap {self.ground_prior_cap!r}")
         if self.pose_corr_head not in ("conv", "flow"):
             raise ValueError(f"preset {self.name}: pose_corr_head must be 'conv' or 'flow', got {self.pose_corr_head!r}")
         if self.pose_corr_mode == "camera_only" and (self.pose_corr_radius == 0 or self.pose_translation_init is not None):
