@@ -25,6 +25,7 @@ def scene(n=4, d=3, dtype=torch.float32, W=16, H=12):
 
 
 # --- crash, hang, out of memory -------------------------------------------------------------
+@pytest.mark.slow   # an extreme width: 4096 channels through every compositing build
 def test_4096_channels_render_instead_of_crashing():
     """D = 4096 overflowed composite_bwd's local buffer and segfaulted; now channels are chunked."""
     s = scene(n=2, d=4096, W=8, H=8)

@@ -41,8 +41,8 @@ def _grads(fn, scene: dict, **kw):
     return img.detach(), {k: x.grad for k, x in xs.items()}
 
 
-@pytest.mark.parametrize("D,dtype,absgrad", [(4096, F64, False), (40, torch.float32, True),
-                                             (17, F64, True)])
+@pytest.mark.parametrize("D,dtype,absgrad", [pytest.param(4096, F64, False, marks=pytest.mark.slow),  # extreme width
+                                             (40, torch.float32, True), (17, F64, True)])
 def test_wide_features_match_reference(D, dtype, absgrad):
     """Past the old local-memory overflow (float64 from ~17 channels with absgrad, float32
     from ~40) and up to D = 4096, which segfaulted: images and gradients match the float64
@@ -57,6 +57,7 @@ def test_wide_features_match_reference(D, dtype, absgrad):
         assert float((g[k].double() - want_g[k]).abs().max()) <= tol * max(scale, 1.0), k
 
 
+@pytest.mark.slow   # builds and runs every chunk width up to 4096 channels
 def test_channel_chunks_are_bitwise_independent_of_width():
     """The first channels of a 70-channel render are bitwise those of a 3-channel render:
     chunks make the same decisions as one launch."""
@@ -69,7 +70,7 @@ def test_channel_chunks_are_bitwise_independent_of_width():
 
 
 @pytest.mark.parametrize("precision", ["float32", "float64"])
-@pytest.mark.parametrize("CH", [3, 40, 4096])
+@pytest.mark.parametrize("CH", [3, pytest.param(40, marks=pytest.mark.slow), pytest.param(4096, marks=pytest.mark.slow)])
 def test_compositing_kernels_fit_48k_local_memory(rt, precision, CH):
     cfg = RenderConfig(precision=precision)
     for tile in (8, 16, 32):

@@ -32,7 +32,7 @@ def test_the_new_worlds_are_drawn_like_straight():
         generate_sequence(SyntheticConfig(world="crowded", num_frames=1, lidar=False))
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("seed", [0, pytest.param(1, marks=pytest.mark.slow), pytest.param(2, marks=pytest.mark.slow)])
 def test_one_car_overtakes_close_beside_the_ego(seed):
     seq = _gen("overtake", seed, frames=16)
     assert moving_track_ids(seq, 0.5) == {1}
@@ -108,7 +108,7 @@ def test_the_pedestrian_is_symmetric_and_inside_its_box():
     assert sorted(ys) == sorted(-y for y in ys)             # left-right symmetric in its frame
 
 
-@pytest.mark.parametrize("name", ["overtake", "busy"])
+@pytest.mark.parametrize("name", ["overtake", pytest.param("busy", marks=pytest.mark.slow)])  # busy: 20+ movers
 def test_data_specs_exact_and_noisy(name):
     assert f"synthetic:{name}" in SYNTHETIC_SPECS and f"synthetic:{name}-noisy" in SYNTHETIC_SPECS
     exact = load_sequence(f"synthetic:{name}", ["CAM_FRONT"], (0, 2), 0.1, seed=1)
