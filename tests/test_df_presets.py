@@ -6,6 +6,7 @@ import numpy as np
 
 import pytest
 
+import clsplat.models.drivingforward  # noqa: F401  (registers the family's presets)
 from clsplat.models.common.presets import get_preset
 
 # the fields by which the small presets shrink the problem (sizes), and the recipe departures of

@@ -7,6 +7,7 @@ import json
 import pytest
 
 from clsplat.cli import console
+import clsplat.models.registry  # noqa: F401  (every family, with its presets)
 from clsplat.models import FAMILIES
 from clsplat.models.common.presets import preset_names
 from clsplat.models.common.report import METRICS_SCHEMA, check_report
