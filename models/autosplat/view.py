@@ -1,9 +1,7 @@
-"""AutoSplat in the viewer: the scene of a model at a
-frame (recording cameras and images, ego trajectory, LiDAR, boxes, a time slider that places the
-moving objects and their residual SH), also served live by ``clsplat train autosplat --view``."""
+"""AutoSplat in the viewer: the scene of a model at a frame (recording cameras and images, ego
+trajectory, LiDAR, boxes, a time slider that places the moving objects and their residual SH), for
+a checkpoint (``AutoSplatCommands.checkpoint_scene``) and live for ``clsplat train autosplat --view``."""
 from __future__ import annotations
-
-from pathlib import Path
 
 import numpy as np
 import torch
