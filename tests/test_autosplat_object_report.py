@@ -138,6 +138,7 @@ def test_object_report_on_the_generated_street(tmp_path):
     assert rep["worst"][0] == 1 and rep["sheet"] == "w.png" and (tmp_path / "w.png").is_file()
 
 
+@pytest.mark.slow   # reads the session's trained tiny run (conftest autosplat_tiny_run)
 def test_a_runs_metrics_carry_the_objects_section(autosplat_tiny_run):
     """``clsplat train autosplat`` writes the section: the car class pools the same pixels as
     ``all.psnr_objects`` on the built-in street (every mover a car), and the parked cars beside."""
