@@ -89,6 +89,35 @@ def _box_pixel_rect(box, w2c: np.ndarray, K: np.ndarray, width: int, height: int
     return y0, y1, x0, x1
 
 
+def box_hit_masks(cam, cam_to_world: np.ndarray, boxes, width: int, height: int):
+    """For each box that projects into the image, ``(box, mask [height, width] bool)``: the
+    pixels whose ray (through the pixel centre, from camera ``cam`` at pose ``cam_to_world``)
+    hits the box (a slab test in the box's frame, inside its projected rectangle only)."""
+    T = cam_to_world
+    u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    d = np.stack([(u - cam.K[0, 2]) / cam.K[0, 0], (v - cam.K[1, 2]) / cam.K[1, 1], np.ones_like(u)], -1)
+    d = d @ T[:3, :3].T
+    o = T[:3, 3]
+    w2c = np.linalg.inv(T)
+    for b in boxes:
+        rect = _box_pixel_rect(b, w2c, cam.K, width, height)
+        if rect is None:
+            continue
+        y0, y1, x0, x1 = rect
+        B = np.linalg.inv(b.box_to_world)
+        ol = B[:3, :3] @ o + B[:3, 3]
+        dl = np.ascontiguousarray(d[y0:y1, x0:x1]) @ B[:3, :3].T
+        half = b.size / 2
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1 = (-half - ol) / dl
+            t2 = (half - ol) / dl
+        tn = np.nanmax(np.minimum(t1, t2), -1)
+        tf = np.nanmin(np.maximum(t1, t2), -1)
+        m = np.zeros((height, width), bool)
+        m[y0:y1, x0:x1] = (tn <= tf) & (tf > 0)
+        yield b, m
+
+
 def foreground_mask(seq: DrivingSequence, frame: int, cameras: list[str],
                     tracks: set[int] | None = None) -> np.ndarray:
     """``[C, H, W]`` bool: pixels of the tracked objects ``tracks`` (None: every track) at
@@ -105,25 +134,7 @@ def foreground_mask(seq: DrivingSequence, frame: int, cameras: list[str],
         m = np.zeros((cam.height, cam.width), bool)
         if boxes:
             T = seq.cam_to_world(frame, c)
-            u, v = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
-            d = np.stack([(u - cam.K[0, 2]) / cam.K[0, 0], (v - cam.K[1, 2]) / cam.K[1, 1], np.ones_like(u)], -1)
-            d = d @ T[:3, :3].T
-            o = T[:3, 3]
-            w2c = np.linalg.inv(T)
-            for b in boxes:
-                rect = _box_pixel_rect(b, w2c, cam.K, cam.width, cam.height)
-                if rect is None:
-                    continue
-                y0, y1, x0, x1 = rect
-                B = np.linalg.inv(b.box_to_world)
-                ol = B[:3, :3] @ o + B[:3, 3]
-                dl = np.ascontiguousarray(d[y0:y1, x0:x1]) @ B[:3, :3].T
-                half = b.size / 2
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    t1 = (-half - ol) / dl
-                    t2 = (half - ol) / dl
-                tn = np.nanmax(np.minimum(t1, t2), -1)
-                tf = np.nanmin(np.maximum(t1, t2), -1)
-                m[y0:y1, x0:x1] |= (tn <= tf) & (tf > 0)
+            for _, hit in box_hit_masks(cam, T, boxes, cam.width, cam.height):
+                m |= hit
         out.append(m)
     return np.stack(out)

@@ -35,7 +35,7 @@ import torch
 from clsplat.data.scene import DrivingSequence
 from clsplat.image_metrics import ssim_map
 
-from .background import _box_pixel_rect
+from .background import box_hit_masks
 from .init import moving_track_ids
 
 __all__ = ["OBJECT_CLASSES", "WORST", "MIN_TRACK_PIXELS", "SHEET_NAME", "object_class", "track_masks",
@@ -97,28 +97,8 @@ def track_masks(seq: DrivingSequence, frame: int, cameras: Sequence[str], tracks
             continue
         cam = seq.camera(c)
         T = seq.cam_to_world(frame, c)
-        u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
-        d = np.stack([(u - cam.K[0, 2]) / cam.K[0, 0], (v - cam.K[1, 2]) / cam.K[1, 1], np.ones_like(u)], -1)
-        d = d @ T[:3, :3].T
-        o = T[:3, 3]
-        w2c = np.linalg.inv(T)
-        for b in boxes:
-            rect = _box_pixel_rect(b, w2c, cam.K, W, H)
-            if rect is None:
-                continue
-            y0, y1, x0, x1 = rect
-            B = np.linalg.inv(b.box_to_world)
-            ol = B[:3, :3] @ o + B[:3, 3]
-            dl = np.ascontiguousarray(d[y0:y1, x0:x1]) @ B[:3, :3].T
-            half = b.size / 2
-            with np.errstate(divide="ignore", invalid="ignore"):
-                t1 = (-half - ol) / dl
-                t2 = (half - ol) / dl
-            tn = np.nanmax(np.minimum(t1, t2), -1)
-            tf = np.nanmin(np.maximum(t1, t2), -1)
-            m = np.zeros((H, W), bool)
-            m[y0:y1, x0:x1] = (tn <= tf) & (tf > 0)
-            put(b.track_id, k, m)
+        for b, hit in box_hit_masks(cam, T, boxes, W, H):
+            put(b.track_id, k, hit)
     return out
 
 
