@@ -117,6 +117,13 @@ class DFPreset(Preset):
         near_plane, far_plane: renderer clipping.
         lr, batch_size, steps: Adam learning rate, global batch and default step count.
         pose_lr: Adam learning rate of the pose network (None: ``lr``, as in the paper).
+        pose_lr_half_life: None (the paper): the pose network's rate is constant (after the warm-up).
+            N > 0: it halves every N steps, 0.5 ** (step / N), so that a head whose Adam step is large
+            near the answer settles there. (Issue 32: the flow head at pose_translation_scale 1000
+            learns the motion in ~50 steps and then overshoots; off in every preset.)
+        pose_grad_clip: None (the paper): no clip of the pose network's own. A value: the pose
+            network's gradient (its parameters alone) is clipped to this total L2 norm before the
+            Adam step, so a spike enters Adam's moments at this size. (Issue 32; off in every preset.)
         grad_clip: total gradient-norm clip (None: off, as in the paper).
         lr_warmup: the learning rates rise linearly from 1/lr_warmup of their value to all of it
             over the first lr_warmup steps; 0: off, as in the paper.
@@ -190,6 +197,8 @@ class DFPreset(Preset):
     far_plane: float = 80.0
     lr: float = 1e-4
     pose_lr: float | None = None
+    pose_lr_half_life: int | None = None
+    pose_grad_clip: float | None = None
     grad_clip: float | None = None
     warmup_steps: int = 0
     lr_warmup: int = 0
@@ -269,6 +278,12 @@ class DFPreset(Preset):
             v = getattr(self, name)
             if v is not None and not v > 0:
                 raise ValueError(f"preset {self.name}: {name} must be None or > 0, got {v}")
+        h = self.pose_lr_half_life
+        if h is not None and (isinstance(h, bool) or not isinstance(h, int) or h < 1):
+            raise ValueError(f"preset {self.name}: pose_lr_half_life must be None or an int >= 1 (steps), got {h!r}")
+        c = self.pose_grad_clip
+        if c is not None and (isinstance(c, bool) or not isinstance(c, (int, float)) or not 0 < c < float("inf")):
+            raise ValueError(f"preset {self.name}: pose_grad_clip must be None or a finite number > 0, got {c!r}")
 
 
 PAPER = register("drivingforward", DFPreset(name="paper", height=352, width=640, steps=100000))

@@ -1,29 +1,66 @@
 """DrivingForward's training parts, as ``clsplat train drivingforward`` puts them together: the
-optimiser (the pose network at its own rate), the learning-rate warm-up, the per-sample loss of
-the shared loop, and the validation learning curve (:class:`ValCurve`)."""
+optimiser (the pose network at its own rate, its gradient optionally clipped on its own:
+``pose_grad_clip``), the learning-rate schedule (the warm-up, and the pose network's exponential
+decay ``pose_lr_half_life``), the per-sample loss of the shared loop, and the validation learning
+curve (:class:`ValCurve`)."""
 from __future__ import annotations
 
 import torch
 
-__all__ = ["make_optimizer", "make_scheduler", "make_sample_loss", "ValCurve"]
+__all__ = ["make_optimizer", "make_scheduler", "lr_factors", "PoseClippedAdam", "make_sample_loss", "ValCurve"]
+
+
+class PoseClippedAdam(torch.optim.Adam):
+    """Adam whose pose-network group (``param_groups[1]``) has its gradient's total L2 norm clipped
+    to ``pose_grad_clip`` before every step (the shared loop's ``grad_clip`` clips all parameters
+    together, where the depth and Gaussian networks' gradients set the norm). Under Adam this bounds
+    what enters the moments (a spike of gradient norm 100 enters as ``pose_grad_clip``), not the size
+    of a step: a steady gradient of any norm still moves each weight by about the learning rate."""
+
+    def __init__(self, groups: list[dict], lr: float, pose_grad_clip: float) -> None:
+        super().__init__(groups, lr=lr)
+        self.pose_grad_clip = float(pose_grad_clip)
+
+    @torch.no_grad()
+    def step(self, closure=None):
+        grads = [q for q in self.param_groups[1]["params"] if q.grad is not None]
+        if grads:
+            torch.nn.utils.clip_grad_norm_(grads, self.pose_grad_clip)
+        return super().step(closure)
 
 
 def make_optimizer(model, preset) -> torch.optim.Adam:
-    """Adam at ``preset.lr``; the pose network at ``preset.pose_lr`` when the preset sets one."""
+    """Adam at ``preset.lr``; the pose network (group 1) at ``preset.pose_lr`` when the preset sets
+    one, with its gradient clipped to ``preset.pose_grad_clip`` (:class:`PoseClippedAdam`) when set."""
     pose = list(model.pose_net.parameters())
     ids = {id(q) for q in pose}
     rest = [q for q in model.parameters() if id(q) not in ids]
     groups = [{"params": rest}, {"params": pose, "lr": preset.pose_lr or preset.lr}]
+    clip = getattr(preset, "pose_grad_clip", None)
+    if clip is not None:
+        return PoseClippedAdam(groups, preset.lr, clip)
     return torch.optim.Adam(groups, lr=preset.lr)
 
 
-def make_scheduler(opt: torch.optim.Optimizer, preset) -> torch.optim.lr_scheduler.LambdaLR | None:
-    """The linear learning-rate warm-up of ``preset.lr_warmup`` (None when it is 0): step s
-    (from 0) runs at (s + 1) / lr_warmup of every group's rate until the ramp reaches 1."""
+def lr_factors(preset, step: int) -> tuple[float, float]:
+    """The multipliers of (the other networks', the pose network's) learning rates at ``step``
+    (from 0): the linear warm-up of ``preset.lr_warmup`` on both, min(1, (step + 1) / lr_warmup), and
+    on the pose network's alone 0.5 ** (step / pose_lr_half_life) when ``pose_lr_half_life`` is set."""
     n = preset.lr_warmup
-    if n == 0:
+    warm = min(1.0, (step + 1) / n) if n else 1.0
+    h = getattr(preset, "pose_lr_half_life", None)
+    return warm, warm * (0.5 ** (step / h) if h else 1.0)
+
+
+def make_scheduler(opt: torch.optim.Optimizer, preset) -> torch.optim.lr_scheduler.LambdaLR | None:
+    """The learning-rate schedule of :func:`lr_factors` as a per-group ``LambdaLR`` over
+    :func:`make_optimizer`'s two groups (None when it is constant: no ``lr_warmup``, no
+    ``pose_lr_half_life``). Its state (the step) travels in the checkpoint, so a resumed run
+    continues the decay where it stopped."""
+    if preset.lr_warmup == 0 and getattr(preset, "pose_lr_half_life", None) is None:
         return None
-    return torch.optim.lr_scheduler.LambdaLR(opt, lambda s: min(1.0, (s + 1) / n))
+    return torch.optim.lr_scheduler.LambdaLR(opt, [lambda s: lr_factors(preset, s)[0],
+                                                   lambda s: lr_factors(preset, s)[1]])
 
 
 def make_sample_loss(source, preset, seed: int, cameras=None, lpips=None):
