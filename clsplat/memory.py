@@ -23,17 +23,25 @@ __all__ = ["available_host_memory", "address_space_in_use", "host_allowance", "c
            "fmt_bytes"]
 
 
+def _proc_kib(path: str, key: str) -> int | None:
+    """The ``key: N kB`` line of a Linux ``/proc`` file, in bytes; None where there is none."""
+    try:
+        with open(path) as f:
+            for line in f:
+                if line.startswith(key):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
 def available_host_memory() -> int:
     """Bytes of host memory available now (Linux ``MemAvailable``; elsewhere the physical
     total). Every device array is backed by a host tensor, so allocations are checked against
     it before they are made, never left to fail in the allocator."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
+    available = _proc_kib("/proc/meminfo", "MemAvailable:")
+    if available is not None:
+        return available
     try:
         return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     except (ValueError, OSError, AttributeError):
@@ -42,14 +50,7 @@ def available_host_memory() -> int:
 
 def address_space_in_use() -> int:
     """Bytes of virtual address space this process has mapped (Linux ``VmSize``; 0 elsewhere)."""
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmSize:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return 0
+    return _proc_kib("/proc/self/status", "VmSize:") or 0
 
 
 def _address_space_limit() -> int | None:
