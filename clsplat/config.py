@@ -44,6 +44,12 @@ class RenderConfig:
                   inline, extent tests a word of samples at a time; CPU default) or "baseline"
                   (the same files with CLS_TUNED=0, the kernels before issue 21 item 5; GPU
                   default). None: by device. Both give the same images and gradients.
+    backward_impl: "pixel" (kernels/composite_bwd.cl: a work-item per row segment of pixels, the
+                  group summing each Gaussian's per-item partials in local memory) or "gaussian"
+                  (kernels/composite_bwd_gauss.cl: a work-item per tile walks its Gaussians and
+                  sums each one's gradient over the tile's pixels in registers; issue 35). None:
+                  by device (see :func:`clsplat.stages.backward_gaussian`). Both write the same
+                  per-intersection slots, equal to rounding; each is bitwise reproducible.
     """
 
     precision: str | None = None
@@ -58,6 +64,7 @@ class RenderConfig:
     sort_impl: str = "depth"
     sort_chunks: int | None = None
     composite_impl: str | None = None
+    backward_impl: str | None = None
 
     def __post_init__(self) -> None:
         for name in ("pix", "sort_local", "sort_chunks"):
@@ -90,6 +97,8 @@ class RenderConfig:
             raise ValueError(f"sort_chunks: must be >= 1, got {self.sort_chunks}")
         if self.composite_impl not in (None, "tuned", "baseline"):
             raise ValueError(f"composite_impl: expected 'tuned' or 'baseline', got {self.composite_impl!r}")
+        if self.backward_impl not in (None, "pixel", "gaussian"):
+            raise ValueError(f"backward_impl: expected 'pixel' or 'gaussian', got {self.backward_impl!r}")
         if self.sort_local is not None and (self.sort_local < 2 or self.sort_local & (self.sort_local - 1)):
             raise ValueError(f"sort_local: must be a power of two >= 2, got {self.sort_local}")
 

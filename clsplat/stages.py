@@ -602,8 +602,19 @@ def _composite_kernel(rt: Runtime, cfg: RenderConfig, stage: str, defines: dict,
 
 def _build_composite_kernel(rt: Runtime, cfg: RenderConfig, stage: str, defines: dict,
                             tile_size: int) -> cl.Kernel:
-    name = stage if stage == "composite_bwd" else "composite_fwd"
-    if composite_tuned(rt, cfg):
+    name = "composite_fwd" if stage == "composite" else stage
+    if stage == "composite_bwd_gauss":
+        # One build for every device (no CLS_TUNED staging); on PoCL's CPU device the inline
+        # maths, with the library's exp where the probe finds the inline one differs, so that
+        # it replays the forward's exp bit for bit whichever forward build ran.
+        defines = defines | {"CLS_POCL_CPU": rt.is_pocl_cpu}
+        if rt.is_pocl_cpu and defines["PIX"] > 1 and cfg.precision == "float32":
+            pix, batch, chunk, _ = _planned_layout(rt, cfg, tile_size, defines["CHANNELS"])
+            fwd = cfg.defines(tile_size) | {"PIX": pix, "BATCH": batch, "CHANNELS": defines["CHANNELS"],
+                                            "CCHUNK": chunk, "SAVE_LAST": False, "CLS_POCL_CPU": True}
+            if not inline_exp_exact(rt, cfg, fwd):
+                defines = defines | {"CLS_INLINE_EXP": 0}
+    elif composite_tuned(rt, cfg):
         defines = defines | {"CLS_POCL_CPU": rt.is_pocl_cpu}
         if rt.is_pocl_cpu and defines["PIX"] > 1 and cfg.precision == "float32":
             # the forward's own program holds the probe (no extra build); the backward, which
@@ -670,6 +681,38 @@ def slot_width(channels: int, geom: bool, color: bool, absgrad: bool) -> int:
     return (8 if absgrad else 6) * geom + channels * color
 
 
+def backward_gaussian(rt: Runtime, cfg: RenderConfig) -> bool:
+    """Whether the backward of compositing runs ``kernels/composite_bwd_gauss.cl`` (a work-item
+    per tile, each Gaussian's sum over the tile's pixels in registers) rather than
+    ``composite_bwd.cl`` (a work-item per row segment, sums over items in local memory):
+    ``RenderConfig.backward_impl``; None: :data:`BACKWARD_IMPL_CPU` on CPUs, "pixel" elsewhere
+    (a work-item per tile leaves a GPU nearly idle)."""
+    return (cfg.backward_impl or (BACKWARD_IMPL_CPU if rt.is_cpu else "pixel")) == "gaussian"
+
+
+#: the CPU's default ``backward_impl`` (issue 35: bench/notes/engine_cpu_speed.md, "per-Gaussian
+#: backward")
+BACKWARD_IMPL_CPU = "pixel"
+
+
+def gauss_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: int) -> tuple[int, int]:
+    """(pixels per segment, channels per launch) of ``kernels/composite_bwd_gauss.cl``: the
+    forward's pixels per work-item (so that its exp is the forward's), and as many channels
+    (at most :data:`CHANNEL_CHUNK`) as let the per-pixel state (T, B, last, v_T T_final and
+    one v_out per channel, plus an int per segment) fit :attr:`Runtime.local_mem`."""
+    pix = _planned_layout(rt, cfg, tile_size, channels)[0]
+    real = 8 if cfg.precision == "float64" else 4
+    per_chunk = lambda ch: tile_size * tile_size * (4 + ch) * real + tile_size * tile_size // pix * 4  # noqa: E731
+    chunk = min(channels, CHANNEL_CHUNK)
+    while per_chunk(chunk) > rt.local_mem and chunk > 1:
+        chunk = -(-chunk // 2)
+    if per_chunk(chunk) > rt.local_mem:
+        raise ValueError(f"tile_size: {tile_size}x{tile_size} tiles need {per_chunk(chunk)} bytes of "
+                         f"local memory for the per-Gaussian backward, over the {rt.local_mem} "
+                         "available; use a smaller tile_size or RenderConfig(backward_impl='pixel')")
+    return pix, chunk
+
+
 def isect_offsets(rt: Runtime, rects: DeviceArray) -> DeviceArray:
     """[C*N] first gradient slot of each pair: exclusive prefix of its tile count."""
     r = rects.host().reshape(-1, 4).numpy()  # numpy: a few us against ~40 for torch's ops
@@ -696,24 +739,33 @@ def composite_bwd(rt: Runtime, cfg: RenderConfig, fwd: dict, v_out: DeviceArray,
     M = fwd["keys"].tensor.numel()
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
     geom_cols = (8 if absgrad else 6) * geom
-    pix, batch, chunk, waves = _planned_layout(rt, cfg, tile_size, CH, geom_grads=geom_cols,
-                                               color_grad=color, backward=True)
+    gauss = backward_gaussian(rt, cfg)
+    if gauss:
+        pix, chunk = rt.plan(("gauss_layout", cfg, tile_size, CH), lambda: gauss_layout(rt, cfg, tile_size, CH))
+        batch, waves, group, n_items = 0, 1, 1, C * tiles_x * tiles_y
+    else:
+        pix, batch, chunk, waves = _planned_layout(rt, cfg, tile_size, CH, geom_grads=geom_cols,
+                                                   color_grad=color, backward=True)
+        group = tile_size * tile_size // pix
+        n_items = C * tiles_x * tiles_y * group
     rt.check_memory(M * G * (8 if cfg.precision == "float64" else 4),
                     f"means, scales: the backward's gradient slots ({M} intersections x {G} values)")
     offs = isect_offsets(rt, fwd["rects"])
     slots = (alloc or rt.empty)((M, G), cfg.dtype)
-    group = tile_size * tile_size // pix
     f = fwd
     # The first launch computes the geometry gradients (and colour chunk 0); each further
     # launch only the colour gradients of its chunk of channels.
     for ch0 in range(0, CH if color else 1, chunk):
         defines = cfg.defines(tile_size) | {
-            "PIX": pix, "BATCH": batch, "CHANNELS": CH, "CCHUNK": chunk,
+            "PIX": pix, "CHANNELS": CH, "CCHUNK": chunk,
             "GEOM_GRAD": geom and ch0 == 0, "COLOR_GRAD": color, "ABSGRAD": absgrad,
-            "BWD_DIVIDE": divide, "SLOT_G": G, "SLOT_COLOR0": geom_cols, "WAVES": waves}
-        k = _composite_kernel(rt, cfg, "composite_bwd", defines, group, tile_size)
+            "BWD_DIVIDE": divide, "SLOT_G": G, "SLOT_COLOR0": geom_cols}
+        if not gauss:
+            defines |= {"BATCH": batch, "WAVES": waves}
+        stage = "composite_bwd_gauss" if gauss else "composite_bwd"
+        k = _composite_kernel(rt, cfg, stage, defines, group, tile_size)
         _record(events, "composite_bwd", rt.enqueue(
-            k, C * tiles_x * tiles_y * group, group, np.int32(width), np.int32(height),
+            k, n_items, group, np.int32(width), np.int32(height),
             np.int32(tiles_x), np.int32(tiles_x * tiles_y), np.int32(N), np.int32(ch0),
             f["offsets"].buffer, f["keys"].buffer, f["rects"].buffer, offs.buffer,
             f["means2d"].buffer, f["conics"].buffer, f["opacities"].buffer, f["extents"].buffer,
