@@ -191,19 +191,23 @@ class Densifier:
         preset: an ``AutoSplatPreset`` (thresholds, schedule, ``max_gaussians``).
         sizes: set key (``background``, ``object<k>``) -> its number of Gaussians.
         sky: the label whose background Gaussians never grow (the sky dome keeps its layout).
+        object_caps: ``object<k>`` -> the Gaussians that object set may grow to (issue 36's
+            per-track budget, :class:`.objects.ObjectBudget`); a set not named: 4 x ``object_points``.
     """
 
-    def __init__(self, preset, sizes: dict[str, int], sky: int) -> None:
+    def __init__(self, preset, sizes: dict[str, int], sky: int, object_caps: dict[str, int] | None = None) -> None:
         self.preset, self.sky = preset, sky
+        self.object_caps = dict(object_caps or {})
         self.stats = {k: GradStats(n) for k, n in sizes.items()}
 
     def cap(self, key: str, stage: str, n: int) -> int:
-        """The size set ``key`` may grow to in ``stage``: objects 4x their initial points; the
+        """The size set ``key`` may grow to in ``stage``: an object its cap (``object_caps``, by
+        default 4x ``object_points``: 4x its initial template points), never below its size; the
         background ``max_gaussians``, of which phase 1 (road and sky alone) may fill only
         ``phase1_budget_share``."""
         p = self.preset
         if key != "background":
-            return max(4 * p.object_points, n)
+            return max(self.object_caps.get(key, 4 * p.object_points), n)
         return int(p.max_gaussians * p.phase1_budget_share) if stage == "bg_phase1" else p.max_gaussians
 
     def accumulate(self, renders: list, trained: list[str], world: int, width: int, height: int) -> None:

@@ -13,10 +13,18 @@ Every map is an involution.
 Dynamic appearance: :class:`ResidualSH` maps (Fourier time embedding, Fourier position
 embedding in box-normalised coordinates) to per-Gaussian SH residuals ``[M, K, 3]``; the last
 layer starts at zero, so residuals start at zero; an L1 penalty keeps them sparse.
+
+The object budget (issue 36): :func:`track_box_pixels` counts, per decomposed track and training
+frame, the pixels whose rays hit the track's **box** (what a user gives: tracked boxes, not instance
+masks), and :func:`object_budget` turns the counts and the preset's budget fields into the
+foreground stage's iterations and each track's initial points and Gaussian cap
+(:class:`ObjectBudget`); with the budget fields at their defaults it is today's fixed budget and
+counts nothing.
 """
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
@@ -28,7 +36,8 @@ from clsplat.data.scene import DrivingSequence, invert_transform
 from .init import project_to_pixels
 
 __all__ = ["car_template", "box_surface_template", "sh_mirror_signs", "mirror_means", "mirror_quats",
-           "mirror_sh", "ResidualSH", "object_points_and_colours"]
+           "mirror_sh", "ResidualSH", "object_points_and_colours", "track_box_pixels", "ObjectBudget",
+           "object_budget", "fixed_object_budget", "budget_scales"]
 
 
 def _box_surface(n: int, centre, half, rng: np.random.Generator, skip_bottom: bool = True) -> np.ndarray:
@@ -182,3 +191,98 @@ def object_points_and_colours(seq: DrivingSequence, track_id: int, frame_ids: Se
             cnt[vis] += 1
     colours = np.where(cnt[:, None] > 0, acc / np.maximum(cnt, 1)[:, None], 0.5)
     return pts.astype(np.float32), colours.astype(np.float32)
+
+
+def track_box_pixels(seq: DrivingSequence, track_ids: Sequence[int], frame_ids: Sequence[int],
+                     cameras: Sequence[str]) -> np.ndarray:
+    """``[T, F, C]`` int64: how many pixels of camera ``cameras[c]`` at frame ``frame_ids[f]`` have a
+    centre ray that hits track ``track_ids[t]``'s box (:func:`.background.box_hit_masks` at the
+    cameras' own resolution; 0 where the track has no box or its box is out of view). Boxes only,
+    never instance masks: the count is what a user's tracked boxes say, also when the data carries
+    masks; occlusion is not taken into account."""
+    from .background import box_hit_masks
+    row = {int(t): k for k, t in enumerate(track_ids)}
+    out = np.zeros((len(track_ids), len(frame_ids), len(cameras)), np.int64)
+    if not row:
+        return out
+    for j, i in enumerate(frame_ids):
+        boxes = [b for b in seq.frames[i].boxes if b.track_id in row]
+        if not boxes:
+            continue
+        for c, name in enumerate(cameras):
+            cam = seq.camera(name)
+            for b, hit in box_hit_masks(cam, seq.cam_to_world(i, name), boxes, cam.width, cam.height):
+                out[row[b.track_id], j, c] = int(hit.sum())
+    return out
+
+
+@dataclass(frozen=True)
+class ObjectBudget:
+    """The foreground budget of one run (:func:`object_budget`).
+
+    fg_steps: the foreground stage's iterations. object_points ``[T]``: each track's template points
+    (and at most as many LiDAR points) at initialisation. object_caps ``[T]``: the Gaussians each
+    track's set may grow to. visible_tracks: tracks whose box covers at least one pixel of a
+    training view (None when nothing was counted: the budget fields are off). object_area: the box
+    pixels of every track summed over the training views, in images (a sum of ``H * W``); None when
+    nothing was counted. seconds: the time the count took.
+    """
+
+    fg_steps: int
+    object_points: tuple[int, ...]
+    object_caps: tuple[int, ...]
+    visible_tracks: int | None = None
+    object_area: float | None = None
+    seconds: float = 0.0
+
+    def to_dict(self) -> dict:
+        return {"fg_steps": self.fg_steps, "object_points": list(self.object_points),
+                "object_caps": list(self.object_caps), "visible_tracks": self.visible_tracks,
+                "object_area": self.object_area, "seconds": self.seconds}
+
+
+def budget_scales(preset) -> bool:
+    """Whether ``preset`` scales the object budget with the scene (any budget field on)."""
+    return bool(preset.fg_steps_per_track or preset.fg_steps_per_area or preset.object_points_per_pixel)
+
+
+def object_budget(preset, pixels: np.ndarray, image_pixels: int) -> ObjectBudget:
+    """The scaled foreground budget (the preset's budget fields on, :func:`budget_scales`; else
+    :func:`fixed_object_budget`) from the tracks' box pixels ``pixels [T, F, C]`` over the training
+    views (:func:`track_box_pixels`) and the pixels of one image ``image_pixels`` (``H * W``).
+
+    With ``n`` the tracks visible in a training view and ``A`` their box pixels summed over
+    the training views in images, the foreground stage gets
+    ``fg_steps + ceil(fg_steps_per_track * n + fg_steps_per_area * A)`` iterations, at most
+    ``fg_steps_max`` (a cap on the added part: never fewer than ``fg_steps``), and 0 when ``n == 0``
+    (an empty street pays nothing). With ``object_points_per_pixel`` > 0, track
+    ``t`` starts from ``clip(ceil(object_points_per_pixel * P_t), object_points_min, object_points)``
+    template points, ``P_t`` the most pixels its box covers in one training view, and may grow to
+    four times that (a pedestrian far away gets few Gaussians, a truck beside the ego the preset's
+    full count); otherwise every track gets ``object_points`` as before.
+    """
+    p = preset
+    T = pixels.shape[0]
+    per_view = pixels.reshape(T, int(np.prod(pixels.shape[1:])))
+    visible = int((per_view.max(1, initial=0) > 0).sum())
+    area = float(per_view.sum()) / float(image_pixels)
+    if visible == 0:
+        fg = 0
+    else:
+        extra = math.ceil(p.fg_steps_per_track * visible + p.fg_steps_per_area * area - 1e-9)
+        fg = max(p.fg_steps, min(p.fg_steps_max, p.fg_steps + max(extra, 0)))
+    if p.object_points_per_pixel > 0:
+        most = per_view.max(1, initial=0)
+        pts = [int(min(p.object_points, max(p.object_points_min, math.ceil(p.object_points_per_pixel * m))))
+               for m in most]
+    else:
+        pts = [p.object_points] * T
+    return ObjectBudget(fg, tuple(pts), tuple(4 * n for n in pts), visible, area)
+
+
+def fixed_object_budget(preset, n_tracks: int) -> ObjectBudget:
+    """The budget before issue 36 (the budget fields off): ``fg_steps`` iterations when there is a
+    track, every track ``object_points`` points and ``4 * object_points`` Gaussians."""
+    p = preset
+    return ObjectBudget(p.fg_steps if n_tracks else 0, (p.object_points,) * n_tracks,
+                        (4 * p.object_points,) * n_tracks)

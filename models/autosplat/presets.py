@@ -64,6 +64,19 @@ class AutoSplatPreset(Preset):
     # flat too
     road_classes: tuple[str, ...] = ("road",)
     object_points: int = 400
+    # issue 36: a foreground budget that follows the scene (:func:`.objects.object_budget`), from the
+    # tracked boxes' pixels over the training views (boxes, not instance masks: what a user gives).
+    # The foreground stage runs fg_steps + ceil(fg_steps_per_track * n + fg_steps_per_area * A)
+    # iterations, n the tracks whose box shows in a training view, A their box pixels summed over the
+    # training views in images; the added part stops at fg_steps_max (never below fg_steps); 0 when
+    # no track shows. object_points_per_pixel > 0: each track starts from object_points_per_pixel
+    # times the most pixels its box covers in one view (clipped to object_points_min..object_points)
+    # and grows to 4x that. All 0 (the default): the fixed budget before issue 36, nothing counted.
+    fg_steps_per_track: float = 0.0
+    fg_steps_per_area: float = 0.0
+    fg_steps_max: int = 100000
+    object_points_per_pixel: float = 0.0
+    object_points_min: int = 16
     # optimisation (Adam; learning rates per parameter kind)
     lr_means: float = 2e-3            # metres; decays x0.1 exponentially over the run
     lr_scales: float = 1e-2
@@ -123,7 +136,17 @@ class AutoSplatPreset(Preset):
                 raise bad(f, "must be >= 0")
         if sum(self.stage_steps().values()) < 1:
             raise bad("fusion_steps", "the schedule has no iteration at all")
-        for f in ("densify_every", "max_bg_points", "max_gaussians", "object_points", "residual_width"):
+        for f in ("fg_steps_per_track", "fg_steps_per_area", "object_points_per_pixel"):
+            v = getattr(self, f)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < float("inf"):
+                raise bad(f, "expected a finite number >= 0")
+        for f in ("fg_steps_max", "object_points_min"):
+            if isinstance(getattr(self, f), bool) or not isinstance(getattr(self, f), int):
+                raise bad(f, "expected an integer")
+        if self.fg_steps_max < 0:
+            raise bad("fg_steps_max", "must be >= 0")
+        for f in ("densify_every", "max_bg_points", "max_gaussians", "object_points", "object_points_min",
+                  "residual_width"):
             if getattr(self, f) < 1:
                 raise bad(f, "must be >= 1")
         if not 0 <= self.lambda_dssim <= 1:
@@ -158,7 +181,9 @@ class AutoSplatPreset(Preset):
 def with_total_steps(preset: AutoSplatPreset, steps: int) -> AutoSplatPreset:
     """``preset`` with its four-stage schedule rescaled to ``steps`` iterations in all (``--steps``):
     each stage keeps its share (the last stage with any iterations takes the rounding), and
-    densification starts at the same fraction of a stage."""
+    densification starts at the same fraction of a stage. The foreground's scene terms
+    (``fg_steps_per_track``, ``fg_steps_per_area``, ``fg_steps_max``) are left as they are: they say
+    what the scene's objects need, not a share of the schedule."""
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
         raise ValueError(f"--steps: expected a positive number of iterations, got {steps!r}")
     stages = preset.stage_steps()

@@ -12,7 +12,10 @@ training frames, 1 by default; sample ``index`` draws its frame with a generator
 1. ``bg_phase1``: the road set and the sky set (and the sky colour).
 2. ``bg_phase2``: all background Gaussians.
 3. ``foreground``: objects (with mirror copies and residual SH) over the frozen background.
-   Skipped when the sequence has no tracks.
+   Skipped when the sequence has no tracks. Its length, and each object's initial points and
+   Gaussian cap, come from :func:`.objects.object_budget` (issue 36): fixed by the preset, or,
+   with the preset's budget fields on, following the number of tracks and their boxes' pixels
+   over the training views (0 iterations when no track's box shows).
 4. ``fusion``: everything, with the per-object per-frame pose corrections.
 
 Parameter groups outside a stage's set get no update (:meth:`Trainer.trainable_groups`: the loop
@@ -41,7 +44,8 @@ from .data import RunData
 from .loss import StepRenderer, stage_loss
 from .init import ROAD, SKY, init_background
 from .model import AutoSplatModel, Switches, collect_tracks
-from .objects import object_points_and_colours
+from .objects import (ObjectBudget, budget_scales, fixed_object_budget, object_budget, object_points_and_colours,
+                      track_box_pixels)
 from .presets import AutoSplatPreset
 
 __all__ = ["STAGES", "Trainer", "checkpoint_extra"]
@@ -88,8 +92,8 @@ class Trainer(LoopHooks):
             self.tracks = []
             steps["bg_phase2"] += steps["bg_phase1"]
             steps["bg_phase1"] = 0
-        if not self.tracks:
-            steps["foreground"] = 0  # nothing to reconstruct in the foreground stage
+        self.budget = self._object_budget()
+        steps["foreground"] = self.budget.fg_steps   # 0 without tracks: nothing to reconstruct
         self.steps = steps
         self.total = sum(steps.values())
         train_mask = np.zeros(len(data.seq.frames), bool)
@@ -97,12 +101,30 @@ class Trainer(LoopHooks):
         seed_everything(preset.seed)  # the residual MLPs' initial weights
         self.model = AutoSplatModel(data.seq, self.tracks, train_mask, preset.sh_degree, switches,
                                     preset.residual_width, preset.time_frequencies, preset.position_frequencies)
-        self.densifier = Densifier(preset, self.model.sizes(), SKY)
+        self.densifier = Densifier(preset, self.model.sizes(), SKY, self._object_caps())
         self.renderer = StepRenderer(data, device)
         self.stage_seconds = {s: 0.0 for s in STAGES}
         self.step = 0
         self.opt: torch.optim.Optimizer | None = None
         self.scheduler = None
+
+    # ------------------------------------------------------------------ the object budget
+    def _object_budget(self) -> ObjectBudget:
+        """The foreground budget of this run (:func:`.objects.object_budget`): with the preset's
+        budget fields on, from the decomposed tracks' box pixels over the training frames and the
+        selected cameras (counted once here; a resumed run counts them again, so checkpoints need
+        only the preset); else the preset's fixed budget, nothing counted."""
+        p, d = self.preset, self.data
+        if not (self.tracks and budget_scales(p)):
+            return fixed_object_budget(p, len(self.tracks))
+        t0 = time.perf_counter()
+        pixels = track_box_pixels(d.seq, [t.track_id for t in self.tracks], d.train_frames, d.cameras)
+        b = object_budget(p, pixels, d.width * d.height)
+        return ObjectBudget(b.fg_steps, b.object_points, b.object_caps, b.visible_tracks, b.object_area,
+                            time.perf_counter() - t0)
+
+    def _object_caps(self) -> dict[str, int]:
+        return {f"object{k}": c for k, c in enumerate(self.budget.object_caps)}
 
     # ------------------------------------------------------------------ initialisation
     def initialise(self) -> None:
@@ -130,7 +152,7 @@ class Trainer(LoopHooks):
             m.sky_color.copy_(torch.logit(torch.from_numpy(mean_sky).clamp(0.02, 0.98)))
         for k, tr in enumerate(self.tracks):
             pts, cols = object_points_and_colours(d.seq, tr.track_id, d.train_frames, d.cameras, p.template,
-                                                  p.object_points, rng)
+                                                  self.budget.object_points[k], rng)
             from .init import knn_mean_distance
             sc = knn_mean_distance(torch.from_numpy(pts)).clamp(0.01, 0.3)[:, None].repeat(1, 3)
             m.objects[k] = GaussianParams.from_points(pts, cols, sc.numpy(), p.sh_degree, opacity=0.7)
@@ -162,7 +184,7 @@ class Trainer(LoopHooks):
         add("sky", [m.sky_color], p.lr_sky)
         self.opt = torch.optim.Adam(groups, eps=1e-15)
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.opt, decays)
-        self.densifier = Densifier(p, m.sizes(), SKY)
+        self.densifier = Densifier(p, m.sizes(), SKY, self._object_caps())
 
     # ------------------------------------------------------------------ schedule
     def stage_of(self, step: int) -> tuple[str, int, int]:
@@ -232,9 +254,11 @@ class Trainer(LoopHooks):
 
     def state(self) -> dict:
         """AutoSplat's checkpoint ``extra``: set sizes, densification statistics, seconds per
-        stage, and the run's identity (switches, cameras, training frames, tracks, batch size)."""
+        stage, the run's identity (switches, cameras, training frames, tracks, batch size) and its
+        object budget (a record: a resumed run derives it again from the data and the preset)."""
         return {"sizes": self.model.sizes(), "stats": self.densifier.state(),
-                **self._identity(), "stage_seconds": dict(self.stage_seconds)}
+                **self._identity(), "stage_seconds": dict(self.stage_seconds),
+                "object_budget": self.budget.to_dict()}
 
     def load_state(self, extra: dict, path: Path) -> None:
         """Check the checkpoint is this run's, give every set its recorded size (in place: the
@@ -248,6 +272,10 @@ class Trainer(LoopHooks):
             if saved.get(key) != mine:
                 raise ValueError(f"checkpoint: {str(path)!r} was made with {key} {saved.get(key)!r}, this run has "
                                  f"{mine!r}; resume with the same arguments")
+        was = (ex.get("object_budget") or {}).get("fg_steps", self.budget.fg_steps)   # none before issue 36
+        if was != self.budget.fg_steps:
+            raise ValueError(f"checkpoint: {str(path)!r} was made with {was} foreground iterations, this run's "
+                             f"tracks give {self.budget.fg_steps}; resume with the same data and preset")
         self.model.resize_(ex["sizes"])
         self.densifier.load(self.model.sizes(), ex["stats"])
         self.stage_seconds.update(ex.get("stage_seconds", {}))

@@ -1,0 +1,140 @@
+"""AutoSplat's object budget (issue 36, deliverable 2): the foreground stage's iterations and each
+track's initial points and Gaussian cap follow the number of tracks and their boxes' pixels over the
+training views (:func:`clsplat.models.autosplat.objects.object_budget`), an empty street pays
+nothing, the cap holds, the preset fields are checked, and with the fields off nothing changes."""
+import json
+
+import numpy as np
+import pytest
+
+from clsplat.data.scene import DrivingSequence, Frame
+from clsplat.data.synthetic import generate_sequence
+from clsplat.models.autosplat.background import foreground_mask
+from clsplat.models.autosplat.data import prepare_data
+from clsplat.models.autosplat.densify import Densifier
+from clsplat.models.autosplat.model import Switches
+from clsplat.models.autosplat.objects import (fixed_object_budget, object_budget, track_box_pixels)
+from clsplat.models.autosplat.trainer import Trainer
+from clsplat.models.common.presets import get_preset
+
+TINY = get_preset("autosplat", "tiny")
+CAMS = ["CAM_FRONT", "CAM_BACK_LEFT"]
+SCALED = TINY.replace(fg_steps_per_track=10.0, fg_steps_per_area=4.0, fg_steps_max=1000)
+
+
+@pytest.fixture(scope="module")
+def street():
+    return generate_sequence(height=32, width=56, num_frames=4, seed=1, dt=0.2)
+
+
+def _without(seq: DrivingSequence, boxes: bool = True, instances: bool = True) -> DrivingSequence:
+    """``seq`` with its boxes and/or instance masks taken away."""
+    frames = [Frame(f.timestamp, f.ego_to_world, f.images, f.depths, f.semantics,
+                    {} if instances else f.instances,
+                    f.lidar, [] if boxes else f.boxes) for f in seq.frames]
+    return DrivingSequence(seq.cameras, frames, seq.name, dict(seq.metadata))
+
+
+def _pixels(counts: list[list[int]]) -> np.ndarray:
+    """``[T, F, 1]`` box pixels from per-track lists over frames."""
+    return np.asarray(counts, np.int64).reshape(len(counts), -1, 1)
+
+
+def test_the_foreground_budget_grows_with_the_tracks_and_their_area():
+    one = object_budget(SCALED, _pixels([[100, 0, 50]]), 1000)
+    three = object_budget(SCALED, _pixels([[100, 0, 50], [10, 10, 10], [0, 0, 5]]), 1000)
+    bigger = object_budget(SCALED, _pixels([[1000, 0, 500]]), 1000)
+    # 4 + ceil(10 * 1 + 4 * 0.15) = 15; with three tracks 4 + ceil(30 + 4 * 0.185) = 35
+    assert (one.fg_steps, three.fg_steps, bigger.fg_steps) == (15, 35, 20)
+    assert one.visible_tracks == 1 and three.visible_tracks == 3
+    assert one.object_area == pytest.approx(0.15) and bigger.object_area == pytest.approx(1.5)
+
+
+def test_an_empty_street_gets_no_foreground_iteration_and_no_object():
+    for b in (object_budget(SCALED, np.zeros((0, 3, 2), np.int64), 1000),   # no track
+              object_budget(SCALED, np.zeros((2, 3, 2), np.int64), 1000),   # tracks whose boxes never show
+              fixed_object_budget(TINY, 0)):
+        assert b.fg_steps == 0
+    assert object_budget(SCALED, np.zeros((0, 3, 2), np.int64), 1000).object_points == ()
+
+
+def test_the_cap_holds_and_never_cuts_below_the_preset_steps():
+    many = _pixels([[50, 50]] * 40)
+    assert object_budget(SCALED.replace(fg_steps_max=120), many, 1000).fg_steps == 120
+    assert object_budget(SCALED, many, 1000).fg_steps == 4 + 400 + 16
+    # a cap below fg_steps: the preset's own iterations still run (the cap limits what is added)
+    assert object_budget(SCALED.replace(fg_steps=50, fg_steps_max=10), many, 1000).fg_steps == 50
+
+
+def test_object_points_and_caps_follow_the_box_pixels():
+    p = TINY.replace(object_points_per_pixel=0.5, object_points_min=20)   # object_points 200
+    b = object_budget(p, _pixels([[10, 30], [0, 300], [1000, 2000], [0, 0]]), 10_000)
+    # the most pixels in one view x 0.5, clipped to 20..200
+    assert b.object_points == (20, 150, 200, 20)
+    assert b.object_caps == tuple(4 * n for n in b.object_points)
+    assert b.fg_steps == TINY.fg_steps   # no iteration term on: the preset's fg_steps
+    off = object_budget(TINY.replace(fg_steps_per_track=1.0), _pixels([[10, 30]]), 10_000)
+    assert off.object_points == (200,) and off.object_caps == (800,)
+    dens = Densifier(p, {"background": 5, "object0": 20, "object1": 150}, sky=0,
+                     object_caps={"object0": 80, "object1": 600})
+    assert (dens.cap("object0", "foreground", 20), dens.cap("object1", "fusion", 700),
+            dens.cap("object2", "fusion", 3)) == (80, 700, 800)
+
+
+@pytest.mark.parametrize("field,value", [
+    ("fg_steps_per_track", -1.0), ("fg_steps_per_track", float("nan")), ("fg_steps_per_area", float("inf")),
+    ("fg_steps_per_area", "2"), ("fg_steps_max", -1), ("fg_steps_max", 2.5), ("object_points_per_pixel", -0.1),
+    ("object_points_min", 0), ("object_points_min", True)])
+def test_bad_budget_fields_are_named(field, value):
+    with pytest.raises(ValueError) as e:
+        TINY.replace(**{field: value})
+    msg = str(e.value)
+    assert "\n" not in msg and f".{field}:" in msg
+
+
+def test_box_pixels_count_the_boxes_not_the_instance_masks(street):
+    d = prepare_data(street, CAMS, 4)
+    tracks = sorted({b.track_id for f in street.frames for b in f.boxes})
+    px = track_box_pixels(street, tracks, d.train_frames, CAMS)
+    assert px.shape == (len(tracks), len(d.train_frames), len(CAMS)) and px.sum() > 0
+    # the same counts with the instance masks gone: boxes only
+    assert np.array_equal(px, track_box_pixels(_without(street, boxes=False), tracks, d.train_frames, CAMS))
+    # each track's count is its box's pixels as foreground_mask gives them without instance masks
+    bare = _without(street, boxes=False)
+    for k, t in enumerate(tracks):
+        for j, i in enumerate(d.train_frames):
+            assert list(px[k, j]) == [int(m.sum()) for m in foreground_mask(bare, i, CAMS, {t})]
+
+
+def test_fields_off_count_nothing_and_keep_the_fixed_budget(street, tmp_path, monkeypatch):
+    import clsplat.models.autosplat.trainer as tr
+    monkeypatch.setattr(tr, "track_box_pixels", lambda *a, **k: pytest.fail("counted with the fields off"))
+    t = Trainer(prepare_data(street, CAMS, 4), TINY, Switches(), tmp_path, progress=False)
+    assert t.tracks and t.steps["foreground"] == TINY.fg_steps
+    assert t.budget == fixed_object_budget(TINY, len(t.tracks))
+
+
+def test_the_trainer_uses_the_scaled_budget(street, tmp_path):
+    p = SCALED.replace(object_points_per_pixel=0.05, object_points_min=8, fg_steps_max=30)
+    d = prepare_data(street, CAMS, 4)
+    t = Trainer(d, p, Switches(), tmp_path, progress=False)
+    px = track_box_pixels(street, [x.track_id for x in t.tracks], d.train_frames, CAMS)
+    want = object_budget(p, px, d.width * d.height)
+    assert (t.budget.fg_steps, t.budget.object_points) == (want.fg_steps, want.object_points)
+    assert t.steps["foreground"] == want.fg_steps > TINY.fg_steps
+    t.initialise()
+    # each object starts from its template points plus at most as many LiDAR points
+    for k, n in enumerate(want.object_points):
+        assert n <= len(t.model.objects[k]) <= 2 * n
+    assert t.densifier.object_caps == {f"object{k}": 4 * n for k, n in enumerate(want.object_points)}
+
+
+@pytest.mark.slow   # trains the tiny preset
+def test_an_empty_street_skips_the_foreground_stage(street, tmp_path):
+    d = prepare_data(_without(street), CAMS, 4)
+    t = Trainer(d, SCALED, Switches(), tmp_path, progress=False)
+    assert t.steps["foreground"] == 0 and not t.tracks and t.budget.object_points == ()
+    t.fit()
+    stages = [json.loads(x)["stage"] for x in (tmp_path / "log.jsonl").read_text().splitlines()]
+    assert "foreground" not in stages and len(stages) == t.total == sum(t.steps.values())
+    assert t.stage_seconds["foreground"] == 0 and list(t.model.sizes()) == ["background"]
