@@ -152,8 +152,13 @@ void composite_bwd_gauss(const int width, const int height, const int tiles_x, c
             f[ch] = ch0 + ch < CHANNELS ? feats[(size_t)cg * CHANNELS + ch0 + ch] : (REAL)0;
 
 #if GEOM_GRAD
-        VREAL acc_g[G_GEOM];
-        for (int j = 0; j < G_GEOM; ++j) acc_g[j] = (VREAL)0;
+        /* Moments of s = v_alpha raw (= -v_sigma) over the pixels, from which the sample's
+         * geometry gradients follow once (see the slot write below), and sum v_alpha g. */
+        VREAL m_x = (VREAL)0, m_y = (VREAL)0, m_xx = (VREAL)0, m_xy = (VREAL)0, m_yy = (VREAL)0;
+        VREAL m_o = (VREAL)0;
+#if ABSGRAD
+        VREAL m_ax = (VREAL)0, m_ay = (VREAL)0;
+#endif
 #endif
 #if COLOR_GRAD
         VREAL acc_c[CCHUNK];
@@ -167,7 +172,7 @@ void composite_bwd_gauss(const int width, const int height, const int tiles_x, c
         for (int row = rows.x; row < rows.y; ++row) {
             const REAL pyc = y_base + (REAL)row + (REAL)CLS_PIXEL_CENTRE;
             if (!(CLS_FABS(y - pyc) <= by)) continue; /* extent_bits' row test */
-            const REAL dy = y - pyc;
+            const REAL dy = y - pyc, dy2 = dy * dy;
             for (int sx = s_lo; sx < s_hi; ++sx) {
                 const int s = row * SEGS_PER_ROW + sx;
                 if (pos > (REAL)l_seg_last[s]) continue; /* past every lane's last contributor */
@@ -229,17 +234,20 @@ void composite_bwd_gauss(const int width, const int height, const int tiles_x, c
                 /* The clamp makes alpha constant: nothing flows to sigma or the opacity. */
                 const VMASK live = valid && raw < (REAL)ALPHA_MAX;
                 v_alpha = live ? v_alpha : (VREAL)0;
-                const VREAL v_sigma = -v_alpha * raw;
-                const VREAL vx = v_sigma * (ca * dx + cb * dy), vy = v_sigma * (cb * dx + cc * dy);
-                acc_g[0] += vx;
-                acc_g[1] += vy;
-                acc_g[2] += (REAL)0.5 * v_sigma * dx * dx;
-                acc_g[3] += v_sigma * dx * dy;
-                acc_g[4] += (REAL)0.5 * v_sigma * dy * dy;
-                acc_g[5] += v_alpha * g;
-#if ABSGRAD
-                acc_g[6] += CLS_FABS(vx);
-                acc_g[7] += CLS_FABS(vy);
+                /* d sigma / d (x, y) = (ca dx + cb dy, cb dx + cc dy) and d sigma / d conic =
+                 * (dx^2 / 2, dx dy, dy^2 / 2) are linear in dx, dx^2, dy, dy^2 and dx dy, and the
+                 * conic is the sample's: summing s times each moment costs 5 accumulations per
+                 * visit instead of forming the 5 gradients at every pixel (13 operations). */
+                const VREAL s_ = v_alpha * raw, t_ = s_ * dx;
+                m_x += t_;
+                m_xx += t_ * dx;
+                m_y += s_ * dy;
+                m_xy += t_ * dy;
+                m_yy += s_ * dy2;
+                m_o += v_alpha * g;
+#if ABSGRAD /* |d loss / d (x, y)| per pixel: no moment gives it */
+                m_ax += CLS_FABS(t_ * ca + s_ * (cb * dy));
+                m_ay += CLS_FABS(t_ * cb + s_ * (cc * dy));
 #endif
 #endif
 #if !BWD_DIVIDE
@@ -254,7 +262,19 @@ void composite_bwd_gauss(const int width, const int height, const int tiles_x, c
         const int4 r = vload4(cg, rects);
         __global REAL *slot = slots + (size_t)(isect_offsets[cg] + (ty - r.y) * (r.z - r.x) + (tx - r.x)) * SLOT_G;
 #if GEOM_GRAD
-        for (int j = 0; j < G_GEOM; ++j) slot[j] = VSUM(acc_g[j]);
+        {
+            const REAL sx = -VSUM(m_x), sy = -VSUM(m_y); /* sums of v_sigma dx, v_sigma dy */
+            slot[0] = ca * sx + cb * sy;
+            slot[1] = cb * sx + cc * sy;
+            slot[2] = (REAL)-0.5 * VSUM(m_xx);
+            slot[3] = -VSUM(m_xy);
+            slot[4] = (REAL)-0.5 * VSUM(m_yy);
+            slot[5] = VSUM(m_o);
+#if ABSGRAD
+            slot[6] = VSUM(m_ax);
+            slot[7] = VSUM(m_ay);
+#endif
+        }
 #endif
 #if COLOR_GRAD
         for (int ch = 0; ch < CCHUNK && ch0 + ch < CHANNELS; ++ch) slot[SLOT_COLOR0 + ch0 + ch] = VSUM(acc_c[ch]);
