@@ -1,0 +1,90 @@
+"""Issue 36, deliverable 2: what AutoSplat's scene-following object budget gives a street, and what
+an empty street pays (bench/notes/autosplat_moving_objects.md, "A budget that follows the scene").
+
+``budget``: per street and seed, the decomposed tracks, those whose box shows in a training view,
+their box pixels over the training views in images (``A``), the foreground iterations and the
+objects' initial points the preset (with ``--set``) derives from them, and the seconds the count
+took (:func:`clsplat.models.autosplat.objects.object_budget`; boxes only, never instance masks).
+
+``empty``: the ``demo`` preset on the built-in street without moving vehicles (the generator's
+``num_moving=0``: parked cars only, which stay in the background), trained with the budget fields
+off and on (``--set``); per run the iterations and seconds of each stage, and the object sets.
+
+    .venv/bin/python bench/experiments/autosplat_object_budget.py budget --data synthetic synthetic:busy \\
+        --seeds 0 1 2 --set fg_steps_per_track=40 --set fg_steps_per_area=10 --set fg_steps_max=240
+    .venv/bin/python bench/experiments/autosplat_object_budget.py empty --out /tmp/empty \\
+        --set fg_steps_per_track=40 --set fg_steps_per_area=10 --set fg_steps_max=240
+"""
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+
+def _preset(name: str, sets: list[str] | None):
+    import clsplat.models.autosplat  # noqa: F401  (registers the family's presets)
+    from clsplat.models.common.presets import apply_sets, get_preset
+    return apply_sets(get_preset("autosplat", name), sets)
+
+
+def budget(args) -> None:
+    from clsplat.models.autosplat.data import load_sequence, prepare_data
+    from clsplat.models.autosplat.model import collect_tracks
+    from clsplat.models.autosplat.objects import object_budget, track_box_pixels
+    p = _preset(args.preset, args.set)
+    print("| street | seed | tracks | visible | A (images) | fg iterations | object points (min / median / max) | count s |")
+    print("|---" * 8 + "|")
+    for spec in args.data:
+        for seed in args.seeds:
+            d = prepare_data(load_sequence(spec, None, None, p.scale, seed), None, p.holdout, p.dynamic_threshold,
+                             tuple(p.road_classes))
+            tracks = collect_tracks(d.seq, d.train_frames, p.dynamic_threshold)
+            t0 = time.perf_counter()
+            px = track_box_pixels(d.seq, [t.track_id for t in tracks], d.train_frames, d.cameras)
+            b = object_budget(p, px, d.width * d.height)
+            s = time.perf_counter() - t0
+            pts = sorted(b.object_points)
+            pt = f"{pts[0]} / {pts[len(pts) // 2]} / {pts[-1]}" if pts else "–"
+            print(f"| {spec} | {seed} | {len(tracks)} | {b.visible_tracks} | {b.object_area:.2f} | {b.fg_steps} | "
+                  f"{pt} | {s:.2f} |")
+
+
+def empty(args) -> None:
+    from clsplat.data.synthetic import SyntheticConfig, generate_sequence
+    from clsplat.models.autosplat.data import SYNTHETIC_DT, prepare_data
+    from clsplat.models.autosplat.model import Switches
+    from clsplat.models.autosplat.trainer import Trainer
+    from clsplat.models.common.train import set_threads
+    set_threads(args.threads, None)
+    base = _preset(args.preset, None)
+    seq = generate_sequence(SyntheticConfig(height=max(8, round(176 * base.scale)), width=max(8, round(320 * base.scale)),
+                                            num_frames=16, seed=args.seeds[0], dt=SYNTHETIC_DT, num_moving=0))
+    d = prepare_data(seq, None, base.holdout, base.dynamic_threshold, tuple(base.road_classes))
+    print("| budget | iterations per stage | object sets | count s | init s | seconds per stage (phase 1 / 2 / fg / fusion) | train s |")
+    print("|---" * 7 + "|")
+    for label, p in (("fixed (fields off)", base), ("scaled (" + ", ".join(args.set or []) + ")", _preset(args.preset, args.set))):
+        t0 = time.perf_counter()
+        t = Trainer(d, p, Switches(), Path(args.out) / label.split()[0], progress=False)
+        t.fit()
+        s = t.stage_seconds
+        print(f"| {label} | {' / '.join(str(v) for v in t.steps.values())} | {len(t.model.objects)} | "
+              f"{t.budget.seconds:.3f} | {s['init']:.1f} | {s['bg_phase1']:.1f} / {s['bg_phase2']:.1f} / "
+              f"{s['foreground']:.1f} / {s['fusion']:.1f} | {time.perf_counter() - t0:.1f} |", flush=True)
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("mode", choices=("budget", "empty"))
+    ap.add_argument("--data", nargs="+", default=["synthetic", "synthetic:busy"])
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0])
+    ap.add_argument("--preset", default="demo")
+    ap.add_argument("--set", action="append", default=None, metavar="FIELD=VALUE")
+    ap.add_argument("--out", default="/tmp/autosplat_object_budget")
+    ap.add_argument("--threads", type=int, default=1)
+    args = ap.parse_args(argv)
+    budget(args) if args.mode == "budget" else empty(args)
+
+
+if __name__ == "__main__":
+    main()
