@@ -186,7 +186,9 @@ void composite_bwd_gauss(const int width, const int height, const int tiles_x, c
                 const VREAL g = CLS_VEXP(-sigma);
                 const VREAL raw = op * g;
                 const VREAL alpha = CLS_FMIN((VREAL)(REAL)ALPHA_MAX, raw);
-                const VMASK valid = pos <= l_last[s] && sigma >= (REAL)0 && alpha >= (REAL)ALPHA_MIN;
+                /* Masks combine with & (all bits of a true lane are set, and a scalar's are 1):
+                 * && would make clang narrow and widen the vector masks at every use. */
+                const VMASK valid = (pos <= l_last[s]) & (sigma >= (REAL)0) & (alpha >= (REAL)ALPHA_MIN);
                 if (!CLS_VANY(valid)) continue;
                 touched = 1;
                 VREAL T = l_T[s];
@@ -232,7 +234,7 @@ void composite_bwd_gauss(const int width, const int height, const int tiles_x, c
 #endif
                 l_B[s] = B;
                 /* The clamp makes alpha constant: nothing flows to sigma or the opacity. */
-                const VMASK live = valid && raw < (REAL)ALPHA_MAX;
+                const VMASK live = valid & (raw < (REAL)ALPHA_MAX);
                 v_alpha = live ? v_alpha : (VREAL)0;
                 /* d sigma / d (x, y) = (ca dx + cb dy, cb dx + cc dy) and d sigma / d conic =
                  * (dx^2 / 2, dx dy, dy^2 / 2) are linear in dx, dx^2, dy, dy^2 and dx dy, and the
@@ -259,8 +261,10 @@ void composite_bwd_gauss(const int width, const int height, const int tiles_x, c
         if (!touched) continue; /* its slot stays zero */
         /* The slot of (pair, tile): the pair's first slot plus the tile's position in its
          * row-major tile rectangle, as in composite_bwd.cl. */
-        const int4 r = vload4(cg, rects);
-        __global REAL *slot = slots + (size_t)(isect_offsets[cg] + (ty - r.y) * (r.z - r.x) + (tx - r.x)) * SLOT_G;
+        /* (scalar loads: vload4 is an out-of-line call on PoCL's CPU device, 1/8 of this
+         * kernel's cycles on scene A) */
+        const int r_x0 = rects[4 * cg], r_y0 = rects[4 * cg + 1], r_x1 = rects[4 * cg + 2];
+        __global REAL *slot = slots + (size_t)(isect_offsets[cg] + (ty - r_y0) * (r_x1 - r_x0) + (tx - r_x0)) * SLOT_G;
 #if GEOM_GRAD
         {
             const REAL sx = -VSUM(m_x), sy = -VSUM(m_y); /* sums of v_sigma dx, v_sigma dy */
