@@ -244,6 +244,15 @@ inline ulong depth_key(REAL depth, uint cg) {
 
 inline uint key_id(ulong key) { return (uint)(key & 0xffffffffUL); }
 
+/* The backward's gradient slot of pair cg in tile (tx, ty): the pair's first slot plus the
+ * tile's position in its row-major tile rectangle (x0, y0, x1, y1), the order in which its
+ * tiles were counted. Scalar loads: vload4 is an out-of-line call on PoCL's CPU device (a
+ * tenth of the compositing backward's cycles on scene A). */
+inline int pair_slot(uint cg, int tx, int ty, __global const int *rects, __global const int *isect_offsets) {
+    const int x0 = rects[4 * cg], y0 = rects[4 * cg + 1], x1 = rects[4 * cg + 2];
+    return isect_offsets[cg] + (ty - y0) * (x1 - x0) + (tx - x0);
+}
+
 /* True when no pixel of a PIX-wide row segment can reach ALPHA_MIN: the nearest pixel is
  * beyond the sample's extent (from project). The margin keeps the test conservative against
  * rounding, so skipping never changes a result; forward and backward share this test, so

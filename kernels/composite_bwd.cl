@@ -198,10 +198,7 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
                 stage_sample_soa(i, cg, means2d, conics, opac_cg, extents, feats, l_x, l_y, l_ca, l_cb,
                                  l_cc, l_op, l_sm, l_bx, l_by, l_f, 0, (GEOM_GRAD && !WIDE) ? CCHUNK : 0);
                 l_cg[i] = cg;
-                /* The slot of (pair, tile): the pair's first slot plus the tile's position in
-                 * its row-major tile rectangle, the order in which its tiles were counted. */
-                const int4 r = vload4(cg, rects);
-                l_slot[i] = isect_offsets[cg] + (ty - r.y) * (r.z - r.x) + (tx - r.x);
+                l_slot[i] = pair_slot(cg, tx, ty, rects, isect_offsets); /* (common.h) */
             } else {
                 pad_sample_soa(i, l_x, l_y, l_bx, l_by);
             }
@@ -212,9 +209,7 @@ void composite_bwd(const int width, const int height, const int tiles_x, const i
             stage_sample(i, cg, means2d, conics, opac_cg, extents, feats, l_xy, l_conic, l_op,
                          l_ext, l_f, 0, (GEOM_GRAD && !WIDE) ? CCHUNK : 0);
             l_cg[i] = cg;
-            /* The slot of (pair, tile), as above. */
-            const int4 r = vload4(cg, rects);
-            l_slot[i] = isect_offsets[cg] + (ty - r.y) * (r.z - r.x) + (tx - r.x);
+            l_slot[i] = pair_slot(cg, tx, ty, rects, isect_offsets);
         }
 #endif
         barrier(CLK_LOCAL_MEM_FENCE);

@@ -259,12 +259,7 @@ void composite_bwd_gauss(const int width, const int height, const int tiles_x, c
             }
         }
         if (!touched) continue; /* its slot stays zero */
-        /* The slot of (pair, tile): the pair's first slot plus the tile's position in its
-         * row-major tile rectangle, as in composite_bwd.cl. */
-        /* (scalar loads: vload4 is an out-of-line call on PoCL's CPU device, 1/8 of this
-         * kernel's cycles on scene A) */
-        const int r_x0 = rects[4 * cg], r_y0 = rects[4 * cg + 1], r_x1 = rects[4 * cg + 2];
-        __global REAL *slot = slots + (size_t)(isect_offsets[cg] + (ty - r_y0) * (r_x1 - r_x0) + (tx - r_x0)) * SLOT_G;
+        __global REAL *slot = slots + (size_t)pair_slot(cg, tx, ty, rects, isect_offsets) * SLOT_G;
 #if GEOM_GRAD
         {
             const REAL sx = -VSUM(m_x), sy = -VSUM(m_y); /* sums of v_sigma dx, v_sigma dy */
