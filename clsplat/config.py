@@ -48,7 +48,8 @@ class RenderConfig:
                   group summing each Gaussian's per-item partials in local memory) or "gaussian"
                   (kernels/composite_bwd_gauss.cl: a work-item per tile walks its Gaussians and
                   sums each one's gradient over the tile's pixels in registers; issue 35). None:
-                  by device (see :func:`clsplat.stages.backward_gaussian`). Both write the same
+                  "gaussian" on PoCL's CPU device, "pixel" elsewhere
+                  (:func:`clsplat.stages.backward_gaussian`). Both write the same
                   per-intersection slots, equal to rounding; each is bitwise reproducible.
     """
 

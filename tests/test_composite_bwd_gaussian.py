@@ -168,7 +168,7 @@ def test_empty_tiles_one_gaussian_and_opaque_stacks():
 
 def test_default_by_device_and_bad_value():
     rt = get_runtime()
-    assert stages.backward_gaussian(rt, RenderConfig()) == (rt.is_cpu and stages.BACKWARD_IMPL_CPU == "gaussian")
+    assert stages.backward_gaussian(rt, RenderConfig()) == (rt.is_pocl_cpu and stages.BACKWARD_IMPL_CPU == "gaussian")
     assert stages.backward_gaussian(rt, RenderConfig(backward_impl="gaussian"))
     assert not stages.backward_gaussian(rt, RenderConfig(backward_impl="pixel"))
     with pytest.raises(ValueError, match="backward_impl"):
