@@ -138,3 +138,15 @@ def test_an_empty_street_skips_the_foreground_stage(street, tmp_path):
     stages = [json.loads(x)["stage"] for x in (tmp_path / "log.jsonl").read_text().splitlines()]
     assert "foreground" not in stages and len(stages) == t.total == sum(t.steps.values())
     assert t.stage_seconds["foreground"] == 0 and list(t.model.sizes()) == ["background"]
+
+
+def test_a_checkpoint_with_another_foreground_budget_is_refused(street, tmp_path):
+    t = Trainer(prepare_data(street, CAMS, 4), SCALED, Switches(), tmp_path, progress=False)
+    saved = t.state()
+    assert saved["object_budget"]["fg_steps"] == t.steps["foreground"]
+    saved["object_budget"] = {**saved["object_budget"], "fg_steps": t.steps["foreground"] + 1}
+    with pytest.raises(ValueError, match="foreground iterations") as e:
+        t.load_state(saved, tmp_path / "checkpoint.pt")
+    assert "\n" not in str(e.value)
+    del saved["object_budget"]   # a checkpoint from before issue 36: the budget is derived again
+    t.load_state(saved, tmp_path / "checkpoint.pt")
