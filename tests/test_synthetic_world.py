@@ -277,3 +277,19 @@ def test_a_given_world_stands_then_pulls_away():
     assert [speed_bin(w.ego_speed(f.timestamp)) for f in seq.frames][-1] == "0.5-5"
     with pytest.raises(ValueError, match="world_params"):
         generate_sequence(height=8, width=8, num_frames=1, world_params=draw_world(0, "classic"))
+
+
+@pytest.mark.parametrize("world", ["classic", "varied"])
+def test_depth_only_traces_the_same_depth_and_poses_without_shading(world):
+    """``depth_only`` (what the image-blind controls read) gives the full render's depth maps and
+    ego poses bit for bit, and images, semantics and instances that are zero, not a shaded guess."""
+    kw = dict(seed=4, num_frames=2, height=24, width=40, lidar=False, world=world, supersample=2)
+    full = generate_sequence(SyntheticConfig(**kw))
+    depth = generate_sequence(SyntheticConfig(**kw, depth_only=True))
+    for fa, fb in zip(full.frames, depth.frames):
+        assert np.array_equal(fa.ego_to_world, fb.ego_to_world)
+        for n in CAMERA_NAMES:
+            assert np.array_equal(fa.depths[n], fb.depths[n])
+            assert not fb.images[n].any() and not fb.semantics[n].any() and not fb.instances[n].any()
+    with pytest.raises(ValueError, match="depth_only"):
+        SyntheticConfig(depth_only="yes").validate()

@@ -154,7 +154,8 @@ class DataSource:
     # ------------------------------------------------------------------ the one entry point
     def sequence(self, index: int, *, num_frames: int, height: int, width: int, split: str = "train",
                  cameras: Sequence[str] | None = None, lidar: bool = False, dt: float | None = None,
-                 t0: float | None = None, supersample: int | None = None) -> DrivingSequence:
+                 t0: float | None = None, supersample: int | None = None,
+                 depth_only: bool = False) -> DrivingSequence:
         """Window ``index`` of ``split``: ``num_frames`` consecutive frames at ``height x width``.
 
         Args:
@@ -166,6 +167,8 @@ class DataSource:
             lidar: synthetic only: simulate LiDAR (real data carries what the files hold).
             dt, t0, supersample: synthetic only: frame interval, time of the first frame and rays
                 per pixel side (default: the SyntheticConfig's).
+            depth_only: synthetic only: trace the depth maps alone, the images black
+                (``SyntheticConfig.depth_only``: for image-blind controls); real data is read whole.
         Returns:
             a :class:`DrivingSequence` whose cameras are ``height x width``.
         """
@@ -186,6 +189,8 @@ class DataSource:
                 fields["t0"] = t0
             if supersample is not None:
                 fields["supersample"] = supersample
+            if depth_only:
+                fields["depth_only"] = True
             cfg = SyntheticConfig(**fields)
             return self._cache.sequence(cfg) if self._cache is not None else generate_sequence(cfg)
         full = self.full_sequence()

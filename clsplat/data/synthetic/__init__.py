@@ -177,7 +177,7 @@ def generate_sequence(config: SyntheticConfig | None = None, world_params: World
             else world.ego_pose(t)
         imgs, deps, sems, insts = {}, {}, {}, {}
         for c in cams:
-            r = render_view(scene, c, E, t, cfg.supersample)
+            r = render_view(scene, c, E, t, cfg.supersample, shade=not cfg.depth_only)
             imgs[c.name], deps[c.name], sems[c.name], insts[c.name] = r.rgb, r.depth, r.semantic, r.instance
         lid = scene.lidar(E, t) if cfg.lidar else None
         frames.append(Frame(t, E, imgs, deps, sems, insts, lid, scene.boxes(t)))

@@ -82,6 +82,9 @@ class SyntheticConfig:
             one car overtaking close beside the ego) and ``"busy"`` (drawn like straight, 20 and
             more movers: platoons of cars and trucks in both driving lanes, pedestrians on both
             sidewalks). See :mod:`clsplat.data.synthetic.world`.
+        depth_only: trace the depth maps only, no shading: images, semantics and instances are
+            zero (what an image-blind control reads: a window's depth and ego poses, at about
+            half the cost of a full frame).
     """
 
     height: int = 176
@@ -108,6 +111,7 @@ class SyntheticConfig:
     shadow: bool = False
     fine_texture: float = 0.0
     world: str = "classic"
+    depth_only: bool = False
 
     def validate(self) -> None:
         """Raise ValueError naming the first bad field."""
@@ -141,6 +145,8 @@ class SyntheticConfig:
                                  f"got {self.cameras!r}")
         if not (isinstance(self.t0, (int, float)) and math.isfinite(self.t0) and self.t0 >= 0):
             raise ValueError(f"SyntheticConfig.t0 must be a non-negative number, got {self.t0!r}")
+        if not isinstance(self.depth_only, bool):
+            raise ValueError(f"SyntheticConfig.depth_only must be a bool, got {self.depth_only!r}")
         if not (isinstance(self.fine_texture, (int, float)) and not isinstance(self.fine_texture, bool)
                 and 0.0 <= self.fine_texture <= 1.0):
             raise ValueError(f"SyntheticConfig.fine_texture must be a number in [0, 1], got {self.fine_texture!r}")

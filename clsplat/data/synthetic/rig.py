@@ -40,12 +40,14 @@ def ego_pose(t: float, speed: float = 8.0, lane_change: bool = True, lane_change
 
 
 def render_view(scene: StreetScene, camera: Camera, ego_to_world, t: float, supersample: int = 1,
-                lighting: bool = True) -> RenderOutput:
-    """Render ``camera`` (mounted by its ``cam_to_ego``) with the ego at ``ego_to_world`` and time ``t``."""
+                lighting: bool = True, shade: bool = True) -> RenderOutput:
+    """Render ``camera`` (mounted by its ``cam_to_ego``) with the ego at ``ego_to_world`` and time ``t``
+    (``shade=False``: the depth alone, :meth:`StreetScene.render`)."""
     if not isinstance(camera, Camera):
         raise ValueError(f"camera must be a Camera, got {type(camera).__name__}")
     E = np.asarray(ego_to_world, dtype=np.float64)
     if E.shape != (4, 4):
         raise ValueError(f"ego_to_world must have shape [4, 4], got {list(E.shape)}")
-    return scene.render(camera.K, E @ camera.cam_to_ego, camera.width, camera.height, t, supersample, lighting)
+    return scene.render(camera.K, E @ camera.cam_to_ego, camera.width, camera.height, t, supersample, lighting,
+                        shade)
 

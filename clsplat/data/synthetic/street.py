@@ -16,6 +16,9 @@ from .config import (_AMBIENT, _SUN, BRAKE_PERIOD, FOOTBRIDGE_HALF, FOOTBRIDGE_X
 from .textures import _box_albedo, _ground_albedo, _signal_lamps, _sky
 from .world import BUSY_LANE_VEHICLES, BUSY_PEDESTRIANS, STRAIGHT_WORLDS, WorldParams
 
+#: the eight corners of a unit box, the order every box's projection uses
+_CORNERS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
+
 class StreetScene:
     """A procedural street; deterministic from ``seed``.
 
@@ -402,8 +405,8 @@ class StreetScene:
             origin: ``[3]`` world ray origin.
             dirs: ``[H, W, 3]`` world directions (any length; returned ``s`` is in units of it).
             t: scene time (vehicle poses).
-            rects: optional callable ``box -> (y0, y1, x0, x1) or None`` restricting the rays
-                tested against that box (``None`` = box cannot be hit).
+            rects: optional per-primitive ``(y0, y1, x0, x1)`` or None (:meth:`_pixel_rects`),
+                restricting the rays tested against each box (``None``: the box cannot be hit).
             prims: primitives (default :meth:`primitives` at ``t``).
         Returns:
             ``(s, pid)``: ``[H, W]`` hit parameter (inf = none) and primitive index
@@ -428,7 +431,7 @@ class StreetScene:
             if rects is None:
                 r = (0, Hh, 0, Ww)
             else:
-                r = rects(b)
+                r = rects[i]
                 if r is None:
                     continue
             y0, y1, x0, x1 = r
@@ -544,9 +547,43 @@ class StreetScene:
         return (np.clip(rgb, 0, 1).reshape(shape + (3,)), sem.reshape(shape), inst.reshape(shape),
                 alb.reshape(shape + (3,)), emis.reshape(shape), changing.reshape(shape))
 
+    @staticmethod
+    def _pixel_rects(prims: list[_Box], K: np.ndarray, w2c: np.ndarray, width: int,
+                     height: int) -> list[tuple[int, int, int, int] | None]:
+        """Per primitive, the pixel rectangle ``(y0, y1, x0, x1)`` its projected corners cover (one
+        pixel of margin), the whole image when a corner is within 5 cm of the camera plane, None
+        when the box is behind the camera or off the image. All boxes at once: most of a view's
+        boxes are culled here, and one box at a time this cost more than the tracing."""
+        if not prims:
+            return []
+        half = np.stack([b.half for b in prims])                       # [P, 3]
+        Tb = np.stack([b.T for b in prims])                            # [P, 4, 4]
+        pw = (_CORNERS[None] * half[:, None, :]) @ Tb[:, :3, :3].transpose(0, 2, 1) + Tb[:, None, :3, 3]
+        pc = pw @ w2c[:3, :3].T + w2c[:3, 3]                           # [P, 8, 3] camera frame
+        z = pc[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = K[0, 0] * pc[..., 0] / z + K[0, 2]
+            v = K[1, 1] * pc[..., 1] / z + K[1, 2]
+        out: list[tuple[int, int, int, int] | None] = []
+        behind, near = np.all(z <= 0, axis=1), np.any(z <= 0.05, axis=1)
+        umin, umax, vmin, vmax = u.min(1), u.max(1), v.min(1), v.max(1)
+        for i in range(len(prims)):
+            if behind[i]:
+                out.append(None)
+                continue
+            if near[i]:
+                out.append((0, height, 0, width))
+                continue
+            x0 = max(int(math.floor(umin[i])) - 1, 0)
+            x1 = min(int(math.ceil(umax[i])) + 1, width)
+            y0 = max(int(math.floor(vmin[i])) - 1, 0)
+            y1 = min(int(math.ceil(vmax[i])) + 1, height)
+            out.append(None if x0 >= x1 or y0 >= y1 else (y0, y1, x0, x1))
+        return out
+
     # ----------------------------------------------------------------------------------
     def render(self, K, cam_to_world, width: int, height: int, t: float, supersample: int = 1,
-               lighting: bool = True) -> RenderOutput:
+               lighting: bool = True, shade: bool = True) -> RenderOutput:
         """Render a pinhole view.
 
         Args:
@@ -554,6 +591,8 @@ class StreetScene:
             width, height: image size.  t: scene time in seconds.
             supersample: ``s``, RGB averaged over ``s x s`` sub-pixel rays.
             lighting: False renders unlit albedo (used by symmetry tests).
+            shade: False traces the depth alone (rgb, semantic and instance zero, ``changing``
+                None; ``supersample`` then has nothing to average).
         """
         K = np.asarray(K, dtype=np.float64)
         T = np.asarray(cam_to_world, dtype=np.float64)
@@ -566,26 +605,7 @@ class StreetScene:
                 raise ValueError(f"{name} must be a positive int, got {v!r}")
         prims = self.primitives(t)
         origin = T[:3, 3].copy()
-        w2c = invert_transform(T)
-        corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
-
-        def rects(b: _Box):
-            pw = (corners * b.half) @ b.T[:3, :3].T + b.T[:3, 3]
-            pc = pw @ w2c[:3, :3].T + w2c[:3, 3]
-            z = pc[:, 2]
-            if np.all(z <= 0):
-                return None
-            if np.any(z <= 0.05):
-                return (0, height, 0, width)
-            u = K[0, 0] * pc[:, 0] / z + K[0, 2]
-            v = K[1, 1] * pc[:, 1] / z + K[1, 2]
-            x0 = max(int(math.floor(u.min())) - 1, 0)
-            x1 = min(int(math.ceil(u.max())) + 1, width)
-            y0 = max(int(math.floor(v.min())) - 1, 0)
-            y1 = min(int(math.ceil(v.max())) + 1, height)
-            if x0 >= x1 or y0 >= y1:
-                return None
-            return (y0, y1, x0, x1)
+        rects = self._pixel_rects(prims, K, invert_transform(T), width, height)
 
         def dirs_at(offx: float, offy: float) -> np.ndarray:
             u, v = np.meshgrid(np.arange(width) + offx, np.arange(height) + offy)
@@ -594,6 +614,10 @@ class StreetScene:
 
         d = dirs_at(0.5, 0.5)
         s, pid = self.trace(origin, d, t, rects, prims)
+        depth = np.where(pid == -2, np.inf, s).astype(np.float32)
+        if not shade:
+            return RenderOutput(np.zeros((height, width, 3), np.float32), depth, np.zeros((height, width), np.uint8),
+                                np.zeros((height, width), np.int32))
         rgb, sem, inst, _, _, changing = self.shade(origin, d, s, pid, t, prims, lighting)
         if supersample > 1:
             acc = np.zeros_like(rgb)
@@ -603,7 +627,6 @@ class StreetScene:
                     sj, pj = self.trace(origin, dj, t, rects, prims)
                     acc += self.shade(origin, dj, sj, pj, t, prims, lighting)[0]
             rgb = acc / supersample**2
-        depth = np.where(pid == -2, np.inf, s).astype(np.float32)
         return RenderOutput(rgb.astype(np.float32), depth, sem.astype(np.uint8), inst.astype(np.int32), changing)
 
     def lidar(self, ego_to_world, t: float, n_beams: int = 32, az_step_deg: float = 0.5,
@@ -626,7 +649,11 @@ class StreetScene:
         dw = dl @ E[:3, :3].T
         origin = E[:3, :3] @ LIDAR_MOUNT + E[:3, 3]
         prims = self.primitives(t)
-        s, pid = self.trace(origin, dw, t, None, prims)
+        # a box whose nearest point is out of range can neither return a point nor hide one
+        # (the directions are unit, so ``s`` is the range): most of a long street's boxes
+        far = [float(np.linalg.norm(b.T[:3, 3] - origin)) - float(np.linalg.norm(b.half)) > max_range for b in prims]
+        everywhere = (0, dw.shape[0], 0, dw.shape[1])
+        s, pid = self.trace(origin, dw, t, [None if f else everywhere for f in far], prims)
         _, sem, _, alb, em, _ = self.shade(origin, dw, s, pid, t, prims, lighting=False)
         keep = (pid != -2) & (s < max_range)
         pts = LIDAR_MOUNT + s[keep, None] * dl[keep]
