@@ -41,7 +41,9 @@
 #define WIDE (CHANNELS > CCHUNK)
 /* Samples ahead whose parameters are prefetched (PoCL's CPU device): the next sample's loads
  * are random Gaussians, a cache miss each, and a sample costs a few hundred cycles. */
+#ifndef PREFETCH_AHEAD /* (a -D for side-by-side timings) */
 #define PREFETCH_AHEAD 4
+#endif
 
 /* First and one-past-last index i in [0, n) with |c - (base + i + CLS_PIXEL_CENTRE)| <= bound
  * possible, widened by one each way (the exact test is made per index); bound >= 0. */
@@ -129,14 +131,29 @@ void composite_bwd_gauss(const int width, const int height, const int tiles_x, c
 #else
         const int i = ii;
 #endif
-#if CLS_PREFETCH && !BWD_DIVIDE
-        if (i + PREFETCH_AHEAD < n_used)
-            prefetch_sample(key_id(keys[start + i + PREFETCH_AHEAD]), means2d, conics, opac_cg, extents,
-                            feats, ch0, CCHUNK);
+#if CLS_PREFETCH
+        /* The parameters of a sample PREFETCH_AHEAD ahead in the walk, and the rectangle and
+         * first slot of its pair (the slot write's loads; a cache miss each, a fifth of this
+         * kernel's cycles on scene A without them). */
+        {
+            const int ia = BWD_DIVIDE ? i - PREFETCH_AHEAD : i + PREFETCH_AHEAD;
+            if (ia >= 0 && ia < n_used) {
+                const uint ca_ = key_id(keys[start + ia]);
+                prefetch_sample(ca_, means2d, conics, opac_cg, extents, feats, ch0, CCHUNK);
+                __builtin_prefetch(rects + 4 * ca_);
+                __builtin_prefetch(isect_offsets + ca_);
+            }
+        }
 #endif
         const uint cg = key_id(keys[start + i]);
         const REAL ey = extents[2 * cg + 1];
         if (ey < 0) continue; /* no pixel reaches ALPHA_MIN (outside_extent's first test) */
+        __global REAL *slot = slots + (size_t)pair_slot(cg, tx, ty, rects, isect_offsets) * SLOT_G;
+#if CLS_PREFETCH
+        /* its slot, written after the visits below: fetched for writing meanwhile */
+        __builtin_prefetch(slot, 1);
+        __builtin_prefetch(slot + SLOT_G - 1, 1);
+#endif
         const REAL x = means2d[2 * cg], y = means2d[2 * cg + 1];
         const REAL bx = extent_bound(extents[2 * cg]), by = extent_bound(ey);
         const REAL ca = conics[3 * cg], cb = conics[3 * cg + 1], cc = conics[3 * cg + 2];
@@ -259,7 +276,6 @@ void composite_bwd_gauss(const int width, const int height, const int tiles_x, c
             }
         }
         if (!touched) continue; /* its slot stays zero */
-        __global REAL *slot = slots + (size_t)pair_slot(cg, tx, ty, rects, isect_offsets) * SLOT_G;
 #if GEOM_GRAD
         {
             const REAL sx = -VSUM(m_x), sy = -VSUM(m_y); /* sums of v_sigma dx, v_sigma dy */
