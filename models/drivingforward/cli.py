@@ -130,9 +130,10 @@ class DrivingForwardCommands(Family):
                        help="input frames as offsets from t in {-1, 0, 1} (default SF: 0; MF: -1 1)")
         p.add_argument("--target", type=int, default=None, help="rendered frame offset (default SF: 1; MF: 0)")
         p.add_argument("--no-oracle", action="store_true", help="skip the oracle-depth baseline")
-        p.add_argument("--layout-windows", type=int, default=32,
+        p.add_argument("--layout-windows", type=int, default=None,
                        help="training windows behind the image-blind controls (the layout baseline, a per-pixel "
-                            "median true depth, and the constant motion, their mean camera motion; 0: skip them)")
+                            "median true depth, and the constant motion, their mean camera motion; 0: skip them; "
+                            "default: the preset's layout_windows, 32 in small)")
         p.add_argument("--supersample", type=positive_int, default=None,
                        help="synthetic only: rays per pixel side of the held-out images (default: the "
                             "checkpoint's preset), to score models trained on different images on the same ones")

@@ -29,13 +29,15 @@ __all__ = ["DEFAULT_WORLD", "load_triplet", "colour_jitter", "gt_ego_motion", "c
 
 
 def load_triplet(source: DataSource, index: int, preset, split: str = "train",
-                 cameras: Sequence[str] | None = None) -> dict[str, Tensor]:
+                 cameras: Sequence[str] | None = None, depth_only: bool = False) -> dict[str, Tensor]:
     """Frames t-1, t, t+1 of window ``index`` as tensors.
 
     Args:
         source: a :class:`DataSource` (synthetic: a new street per index).
         index: window / street index; preset: gives the image size and the frame interval.
         split: "train", "val" or "test"; cameras: camera names (default: all, rig order).
+        depth_only: what an image-blind control reads: no ``images`` in the result, and a
+            synthetic street traces its depth maps alone (:meth:`DataSource.sequence`).
     Returns:
         ``images [3, V, 3, H, W]``, ``Ks [V, 3, 3]``, ``cam_to_ego [V, 4, 4]``, ``depths [3, V, H, W]``
         (when the data has depth maps; inf = sky), else ``lidar_depth [V, H, W]`` at t when it has
@@ -43,14 +45,17 @@ def load_triplet(source: DataSource, index: int, preset, split: str = "train",
         ``ego_to_world [3, 4, 4]``, ``timestamps [3]`` (seconds, float64), ``names`` (list of camera
         names).
     """
-    kw = {"dt": preset.scenes_dt, "supersample": preset.supersample} if source.synthetic_streets else {}
+    kw = {"dt": preset.scenes_dt, "supersample": preset.supersample, "depth_only": depth_only} \
+        if source.synthetic_streets else {}
     seq = source.sequence(index, num_frames=3, height=preset.height, width=preset.width, split=split,
                           cameras=cameras, **kw)
     frames = [to_torch_frame(seq, f) for f in range(3)]
-    out = {"images": torch.stack([f["images"] for f in frames]), "Ks": frames[1]["Ks"],
+    out = {"Ks": frames[1]["Ks"],
            "cam_to_ego": frames[1]["cam_to_ego"], "viewmats": torch.stack([f["viewmats"] for f in frames]),
            "ego_to_world": torch.stack([f["ego_to_world"] for f in frames]), "names": list(seq.camera_names),
            "timestamps": torch.tensor([float(f.timestamp) for f in seq.frames[:3]], dtype=torch.float64)}
+    if not depth_only:
+        out["images"] = torch.stack([f["images"] for f in frames])
     if all("depths" in f for f in frames):
         out["depths"] = torch.stack([f["depths"] for f in frames])
     elif seq.frames[1].lidar is not None:

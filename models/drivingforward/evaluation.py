@@ -135,7 +135,7 @@ def training_controls(source, preset, windows: int, cameras: Sequence[str] | Non
     _check_layout_windows(windows)
     maps, moves, no_depth = [], [], not layout
     for i in range(windows):
-        s = load_triplet(source, i, preset, split="train", cameras=cameras)
+        s = load_triplet(source, i, preset, split="train", cameras=cameras, depth_only=True)
         moves.append(camera0_motion(s))
         if no_depth:
             continue
@@ -180,7 +180,7 @@ def _pose_summary(records: list[dict], prefix: str) -> dict:
 def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | None = None,
                    frames: Sequence[int] | None = None, target: int | None = None, lpips=None,
                    out_dir: str | Path | None = None, oracle: bool = True, progress: bool = False,
-                   step: int = 0, supersample: int | None = None, layout: int = 32, split: str = "test") -> dict:
+                   step: int = 0, supersample: int | None = None, layout: int | None = None, split: str = "test") -> dict:
     """Novel-view, depth and pose metrics on held-out windows ``0 .. num_scenes-1`` of ``split``.
 
     Args:
@@ -192,7 +192,7 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
         oracle: also run the oracle-depth baseline (needs depth in the data).
         step: the training steps behind the model (recorded).
         layout: training windows behind the image-blind controls (:func:`training_controls`: the
-            layout depth and the constant motion); 0: not run.
+            layout depth and the constant motion; default: the preset's ``layout_windows``); 0: not run.
         split: "val" (where preset fields are chosen) or "test" (reported once per recipe).
         supersample: synthetic streets only: rays per pixel side of the held-out images (default:
             the model's preset, i.e. the images it trained on); depth ground truth is the centre
@@ -206,10 +206,12 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
     """
     from clsplat.io.contact_sheet import make_contact_sheet
 
+    p = model.preset
+    if layout is None:
+        layout = p.layout_windows
     _check_layout_windows(layout)        # before any window is loaded, with depth in the data or not
     if split not in ("val", "test"):
         raise ValueError(f"--eval-split: expected 'val' or 'test', got {split!r}")
-    p = model.preset
     model.eval()
     if supersample is not None:
         if isinstance(supersample, bool) or not isinstance(supersample, int) or supersample < 1:
