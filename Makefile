@@ -17,8 +17,10 @@ $(STAMP): setup.cfg pyproject.toml constraints.txt
 demo: $(STAMP)
 	$(VENV)/bin/clsplat demo --out $(OUT)
 
+# on every core (pytest-xdist): one group per test module, the modules that read one session-trained
+# run in one group (tests/conftest.py), the groups with the most slow tests first
 test: $(STAMP)
-	POCL_MAX_WORK_GROUP_SIZE=256 $(VENV)/bin/pytest -q --durations=15 tests
+	POCL_MAX_WORK_GROUP_SIZE=256 $(VENV)/bin/pytest -q -n auto --dist loadgroup --durations=15 tests
 
 # the edit-test loop: everything but what trains, spawns interpreters, simulates or drives a browser,
 # on every core (pytest-xdist; the quick tier spawns nothing, tests/test_tiers.py sees to it)

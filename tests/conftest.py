@@ -92,24 +92,28 @@ def single_camera(width: int = 64, height: int = 48, fov: float = 60.0, dtype=F6
 
 
 def torchrun_two(tmp_path, family: str, args: list[str], timeout: int = 600) -> tuple[dict, dict]:
-    """Train ``family`` with ``args`` once in this process into ``tmp_path/one`` and once under
-    ``torchrun --nproc_per_node 2`` into ``tmp_path/two`` (one thread per process); the two
-    checkpoints, after asserting that both runs succeeded and the second ran two processes."""
+    """Train ``family`` with ``args`` in one fresh process into ``tmp_path/one`` and under
+    ``torchrun --nproc_per_node 2`` into ``tmp_path/two`` (one thread per process, the same
+    environment); the two checkpoints, after asserting that both runs succeeded and the second ran
+    two processes. The one-process run is not this interpreter's: torch state an earlier test left
+    here changed DrivingForward's gradients by ~1e-6 of their size, which two fresh processes never
+    showed (a fresh one-process run and the two-process run agree bit for bit)."""
     import socket
     import subprocess
     import sys
 
-    from clsplat.cli import console
-
-    assert console(["train", family, *args, "--out", str(tmp_path / "one")]) == 0
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     script = tmp_path / f"{family}_train.py"
     script.write_text(f"import sys; from clsplat.cli import console; sys.exit(console(['train', '{family}', *sys.argv[1:]]))")
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    r = subprocess.run([sys.executable, str(script), *args, "--out", str(tmp_path / "one")],
+                       capture_output=True, text=True, timeout=timeout, env=env)
+    assert r.returncode == 0, r.stderr[-3000:]
     r = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
                         str(port), str(script), *args, "--out", str(tmp_path / "two")],
-                       capture_output=True, text=True, timeout=timeout, env={**os.environ, "OMP_NUM_THREADS": "1"})
+                       capture_output=True, text=True, timeout=timeout, env=env)
     assert r.returncode == 0, r.stderr[-3000:]
     assert "2 process(es)" in r.stdout
     return (torch.load(tmp_path / "one" / "checkpoint.pt", weights_only=True),
@@ -287,3 +291,36 @@ def full_disk_on(monkeypatch):
         monkeypatch.setattr(Figure, "savefig", full_disk)
 
     return arm
+
+
+#: session fixtures that train a model: every module that takes one runs on the same xdist worker
+SHARED_RUNS = ("df_tiny_run", "autosplat_tiny_run")
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    """Under pytest-xdist's ``--dist loadgroup`` (``make test``, ``make check``): one group per test
+    module, so that a module's fixtures are built once, on one worker; the modules that take the
+    same session-trained run (:data:`SHARED_RUNS`) share a group, so that run is trained once. The
+    groups holding the most ``slow`` tests go first, so that the longest work does not start last
+    and leave the other worker idle."""
+    if not config.pluginmanager.hasplugin("xdist") or config.getoption("dist", "no") != "loadgroup":
+        return
+    parent: dict[str, str] = {}
+
+    def find(key: str) -> str:
+        while parent.setdefault(key, key) != key:
+            key = parent[key]
+        return key
+
+    for item in items:    # union each module with the shared runs its tests take
+        module = item.nodeid.split("::")[0]
+        for run in SHARED_RUNS:
+            if run in getattr(item, "fixturenames", ()):
+                parent[find(module)] = find(run)
+    groups: dict[str, list] = {}
+    for item in items:
+        groups.setdefault(find(item.nodeid.split("::")[0]), []).append(item)
+    order = sorted(groups, key=lambda g: -sum(1 for i in groups[g] if i.get_closest_marker("slow")))
+    items[:] = [item for g in order for item in groups[g]]
+    for item in items:
+        item.add_marker(pytest.mark.xdist_group(find(item.nodeid.split("::")[0]).replace("/", ".")))

@@ -93,3 +93,41 @@ def test_quick():
     assert spawning_tests_without_the_marker(f) == ["test_x.py::test_by_fixture", "test_x.py::test_direct"]
     f.write_text("import pytest\npytestmark = [pytest.mark.oclgrind, pytest.mark.slow]\n" + f.read_text())
     assert spawning_tests_without_the_marker(f) == []
+
+
+def test_make_test_groups_each_module_and_each_shared_run_on_one_worker():
+    """``make test`` runs ``--dist loadgroup``: conftest's hook gives every test of a module one
+    xdist group (its module fixtures are built once) and merges the modules that take the same
+    session-trained run (it is trained once), slow groups first."""
+    import importlib.util
+    import types
+
+    spec = importlib.util.spec_from_file_location("tiers_conftest", TESTS / "conftest.py")
+    conftest = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(conftest)
+
+    class Item:
+        def __init__(self, nodeid, fixtures=(), slow=False):
+            self.nodeid, self.fixturenames, self.slow, self.marks = nodeid, list(fixtures), slow, []
+
+        def get_closest_marker(self, name):
+            return object() if name == "slow" and self.slow else None
+
+        def add_marker(self, mark):
+            self.marks.append(mark)
+
+    config = types.SimpleNamespace(pluginmanager=types.SimpleNamespace(hasplugin=lambda name: True),
+                                   getoption=lambda name, default=None: "loadgroup")
+    items = [Item("tests/test_a.py::t1"), Item("tests/test_a.py::t2"),
+             Item("tests/test_b.py::t1", ["df_tiny_run"], slow=True), Item("tests/test_c.py::t1"),
+             Item("tests/test_d.py::t1", ["df_tiny_run"]), Item("tests/test_d.py::t2")]
+    conftest.pytest_collection_modifyitems(config, items)
+    group = {i.nodeid: i.marks[0].args[0] for i in items}
+    assert group["tests/test_a.py::t1"] == group["tests/test_a.py::t2"] != group["tests/test_c.py::t1"]
+    assert group["tests/test_b.py::t1"] == group["tests/test_d.py::t1"] == group["tests/test_d.py::t2"]
+    assert items[0].nodeid.startswith(("tests/test_b.py", "tests/test_d.py"))     # the slow group first
+    assert len({i.nodeid for i in items}) == 6
+    plain = [Item("tests/test_a.py::t1")]
+    conftest.pytest_collection_modifyitems(types.SimpleNamespace(
+        pluginmanager=config.pluginmanager, getoption=lambda name, default=None: "no"), plain)
+    assert plain[0].marks == []                       # without --dist loadgroup nothing changes
