@@ -6,12 +6,18 @@ their box pixels over the training views in images (``A``), the foreground itera
 objects' initial points the preset (with ``--set``) derives from them, and the seconds the count
 took (:func:`clsplat.models.autosplat.objects.object_budget`; boxes only, never instance masks).
 
+``table``: per run folder (``clsplat train autosplat ... --out RUN``), held-out PSNR of the whole
+image, of the moving objects pooled and per class (car / pedestrian / other), the gap from the
+image to each class, object Gaussians, iterations per stage (from ``log.jsonl``), seconds per stage
+and the wall seconds.
+
 ``empty``: the ``demo`` preset on the built-in street without moving vehicles (the generator's
 ``num_moving=0``: parked cars only, which stay in the background), trained with the budget fields
 off and on (``--set``); per run the iterations and seconds of each stage, and the object sets.
 
     .venv/bin/python bench/experiments/autosplat_object_budget.py budget --data synthetic synthetic:busy \\
         --seeds 0 1 2 --set fg_steps_per_track=40 --set fg_steps_per_area=10 --set fg_steps_max=240
+    .venv/bin/python bench/experiments/autosplat_object_budget.py table /work/runs/i36b_busy_*
     .venv/bin/python bench/experiments/autosplat_object_budget.py empty --out /tmp/empty \\
         --set fg_steps_per_track=40 --set fg_steps_per_area=10 --set fg_steps_max=240
 """
@@ -50,6 +56,27 @@ def budget(args) -> None:
                   f"{pt} | {s:.2f} |")
 
 
+def table(args) -> None:
+    import json
+    from collections import Counter
+    print("| run | iterations (phase 1 / 2 / fg / fusion) | held-out PSNR | objects | car | pedestrian | other "
+          "| image − car | image − pedestrian | object Gaussians | seconds (phase 1 / 2 / fg / fusion) | wall s |")
+    print("|---" * 12 + "|")
+    f = lambda x: "–" if x is None else f"{x:.2f}"  # noqa: E731
+    for run in args.runs:
+        m = json.loads((Path(run) / "metrics.json").read_text())
+        n = Counter(json.loads(x)["stage"] for x in (Path(run) / "log.jsonl").read_text().splitlines())
+        pc = (m.get("objects") or {}).get("per_class", {})
+        cls = {c: pc[c]["psnr"] if c in pc and pc[c]["pixels"] else None for c in ("car", "pedestrian", "other")}
+        img, s = m["all"]["psnr"], m["seconds_per_stage"]
+        gap = {c: None if v is None else img - v for c, v in cls.items()}
+        stages = ("bg_phase1", "bg_phase2", "foreground", "fusion")
+        print(f"| {Path(run).name} | {' / '.join(str(n.get(k, 0)) for k in stages)} | {img:.2f} | "
+              f"{f(m['all'].get('psnr_objects'))} | {f(cls['car'])} | {f(cls['pedestrian'])} | {f(cls['other'])} | "
+              f"{f(gap['car'])} | {f(gap['pedestrian'])} | {m['gaussians']['objects']} | "
+              f"{' / '.join(f'{s.get(k, 0):.0f}' for k in stages)} | {m['wall_seconds']:.0f} |")
+
+
 def empty(args) -> None:
     from clsplat.data.synthetic import SyntheticConfig, generate_sequence
     from clsplat.models.autosplat.data import SYNTHETIC_DT, prepare_data
@@ -75,7 +102,8 @@ def empty(args) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("mode", choices=("budget", "empty"))
+    ap.add_argument("mode", choices=("budget", "table", "empty"))
+    ap.add_argument("runs", nargs="*", help="run folders (table)")
     ap.add_argument("--data", nargs="+", default=["synthetic", "synthetic:busy"])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
     ap.add_argument("--preset", default="demo")
@@ -83,7 +111,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--out", default="/tmp/autosplat_object_budget")
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args(argv)
-    budget(args) if args.mode == "budget" else empty(args)
+    {"budget": budget, "table": table, "empty": empty}[args.mode](args)
 
 
 if __name__ == "__main__":
