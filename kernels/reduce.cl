@@ -24,8 +24,8 @@ __kernel void reduce_slots(const int CN,
 {
     const int cg = get_global_id(0);
     if (cg >= CN) return;
-    const int4 r = vload4(cg, rects);
-    const int n = (r.z - r.x) * (r.w - r.y);
+    /* scalar loads: vload4 is an out-of-line call on PoCL's CPU device (common.h: pair_slot) */
+    const int n = (rects[4 * cg + 2] - rects[4 * cg]) * (rects[4 * cg + 3] - rects[4 * cg + 1]);
     __global const REAL *s = slots + (size_t)isect_offsets[cg] * G;
     /* One column at a time, summed in tile order: no private array, so any G fits. */
     for (int j = 0; j < G; ++j) {
