@@ -170,6 +170,65 @@ def table(out: Path, seeds: list[int], baseline: str = "full") -> str:
     return text
 
 
+#: the compact table of issue 33 (``--issue33``): (column, path into metrics.json)
+ISSUE33_COLUMNS: list[tuple[str, tuple]] = [
+    ("3 m lane change PSNR", ("lane_change", "3m", "psnr")),
+    ("3 m PSNR, unseen px", ("lane_change", "3m", "psnr_unseen")),
+    ("far-side objects PSNR", ("far_side", "psnr_objects")),
+    ("far-side objects PSNR, unseen px", ("far_side", "psnr_objects_unseen")),
+    ("held-out PSNR", ("all", "psnr")),
+]
+ISSUE33_SHARES: list[tuple[str, tuple]] = [
+    ("1 m", ("lane_change", "1m", "unseen_share", "overall")),
+    ("2 m", ("lane_change", "2m", "unseen_share", "overall")),
+    ("3 m", ("lane_change", "3m", "unseen_share", "overall")),
+    ("far-side object pixels", ("far_side", "unseen_share", "overall")),
+]
+
+
+def issue33(out: Path, seeds: list[int]) -> str:
+    """Markdown of issue 33's comparison: per seed and mean ± sd, full minus plain 3DGS and full
+    minus each row with one switch off (that constraint's own share), then each view set's
+    ``unseen_share`` per seed (a property of the street and the views, the same for every row;
+    read from the full model's runs). Also writes ``issue33.json``: those figures per row and seed."""
+    folder = {r: out / r.replace(", ", "_").replace(" ", "_") for r in ROWS}
+    runs = {r: {s: json.loads((folder[r] / f"seed{s}" / "metrics.json").read_text())
+                for s in seeds if (folder[r] / f"seed{s}" / "metrics.json").is_file()} for r in ROWS}
+    full = runs["full"]
+    lines = ["| comparison (full - row, same seed) | seeds | " + " | ".join(c for c, _ in ISSUE33_COLUMNS) + " |",
+             "|---|---|" + "---|" * len(ISSUE33_COLUMNS)]
+    lines.append(f"| full model, PSNR | {' / '.join(str(s) for s in sorted(full))} | " + " | ".join(
+        " / ".join(f"{get(full[s], p):.2f}" for s in sorted(full) if get(full[s], p) is not None)
+        for _, p in ISSUE33_COLUMNS) + " |")
+    for r in ["plain", "no-decompose", "no-flatness", "no-symmetry", "no-residual-sh", "no-pose-correction"]:
+        common = sorted(set(runs[r]) & set(full))
+        if not common:
+            continue
+        cells = []
+        for _, p in ISSUE33_COLUMNS:
+            d = [get(full[s], p) - get(runs[r][s], p) for s in common
+                 if get(full[s], p) is not None and get(runs[r][s], p) is not None]
+            txt = " / ".join(f"{x:+.2f}" for x in d)
+            if len(d) > 1:
+                txt += f" (**{np.mean(d):+.2f} ± {np.std(d, ddof=1):.2f}**)"
+            cells.append(txt or "-")
+        lines.append(f"| full - {r} | {' / '.join(str(s) for s in common)} | " + " | ".join(cells) + " |")
+    lines += ["", "| unseen_share (pixels no training camera saw) | " + " | ".join(f"seed {s}" for s in sorted(full))
+              + " |", "|---|" + "---|" * len(full)]
+    for name, p in ISSUE33_SHARES:
+        lines.append(f"| {name} | " + " | ".join("-" if get(full[s], p) is None else f"{100 * get(full[s], p):.1f} %"
+                                                for s in sorted(full)) + " |")
+    lines.append("| far-side object pixels counted | " + " | ".join(
+        str(sum(v["pixels"] for v in full[s]["far_side"]["unseen_share"]["per_view"])) for s in sorted(full)) + " |")
+    text = "\n".join(lines) + "\n"
+    (out / "issue33.md").write_text(text)
+    summary = {"psnr": {r: {str(s): {c: get(m, p) for c, p in ISSUE33_COLUMNS} for s, m in sorted(by_seed.items())}
+                        for r, by_seed in runs.items() if by_seed},
+               "unseen_share": {str(s): {c: get(m, p) for c, p in ISSUE33_SHARES} for s, m in sorted(full.items())}}
+    (out / "issue33.json").write_text(json.dumps(summary, indent=1) + "\n")
+    return text
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", default="bench/out/autosplat_views")
@@ -184,6 +243,9 @@ def main() -> None:
                          "where the ego keeps its lane and traffic passes on its left, exact boxes, no appearance "
                          "set; the seed picks the street; use another --out)")
     ap.add_argument("--table-only", action="store_true", help="only rewrite views.md from the finished runs")
+    ap.add_argument("--issue33", action="store_true",
+                    help="print (and write issue33.md) issue 33's compact table: full minus plain and minus each "
+                         "switch off, per seed, with every view set's unseen_share")
     ap.add_argument("--baseline", default="full", choices=list(ROWS),
                     help="the row the paired differences are taken from (default: the full model)")
     a = ap.parse_args()
@@ -195,6 +257,8 @@ def main() -> None:
                 run(out, row, seed, a.preset, a.threads, a.data)
                 table(out, a.seeds)
     print(table(out, a.seeds, a.baseline))
+    if a.issue33:
+        print(issue33(out, a.seeds))
 
 
 if __name__ == "__main__":
