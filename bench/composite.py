@@ -57,7 +57,9 @@ def _outputs(rt: Runtime, cfg: RenderConfig, scene: dict, p: dict, w, wa) -> lis
 
 def compare_scene(scene: dict, rt: Runtime, limits: dict, repeats: int) -> dict:
     """Both implementations on one scene, interleaved rounds (see the module docstring)."""
-    cfgs = {impl: RenderConfig(composite_impl=impl) for impl in IMPLS}
+    # the per-pixel backward (composite_bwd.cl), whose builds these are; the per-Gaussian one,
+    # PoCL's CPU default since issue 35, has one build for both
+    cfgs = {impl: RenderConfig(composite_impl=impl, backward_impl="pixel") for impl in IMPLS}
     x = ST._inputs(scene, cfgs["tuned"])
     p = BW._leaves(scene, cfgs["tuned"])
     w, wa = BW._weights(scene, cfgs["tuned"], 3)
