@@ -150,3 +150,19 @@ def test_a_checkpoint_with_another_foreground_budget_is_refused(street, tmp_path
     assert "\n" not in str(e.value)
     del saved["object_budget"]   # a checkpoint from before issue 36: the budget is derived again
     t.load_state(saved, tmp_path / "checkpoint.pt")
+
+
+@pytest.mark.slow   # trains the tiny preset twice
+def test_a_scaled_budget_trains_as_the_fixed_one_of_the_same_length(street, tmp_path):
+    """The budget changes the foreground stage's length and nothing else: a run whose tracks give it
+    8 foreground iterations ends bitwise where ``fg_steps=8`` ends."""
+    import torch
+    d = prepare_data(street, CAMS, 4)
+    runs = []
+    for k, p in enumerate((TINY.replace(fg_steps_per_track=100.0, fg_steps_max=8), TINY.replace(fg_steps=8))):
+        t = Trainer(d, p, Switches(), tmp_path / str(k), progress=False)
+        assert t.steps["foreground"] == 8
+        t.fit()
+        runs.append(t.model.state_dict())
+    assert runs[0].keys() == runs[1].keys()
+    assert all(torch.equal(runs[0][k], runs[1][k]) for k in runs[0])
