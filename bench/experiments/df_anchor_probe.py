@@ -9,6 +9,7 @@ pose network. No network is involved: the depth is the rig's ground prior. A sec
 ``s`` near -1 would let a head that starts backwards stay there.
 
     .venv/bin/python bench/experiments/df_anchor_probe.py --data synthetic-cache:/work/cache/df --seed 1 --count 8
+    (add --no-automask for the term without the unwarped frames in its minimum)
 """
 from __future__ import annotations
 
@@ -23,6 +24,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--first", type=int, default=0)
     p.add_argument("--count", type=int, default=8)
     p.add_argument("--scales", type=float, nargs="+", default=[-1.5, -1.0, -0.5, 0.0, 0.5, 1.0, 1.5])
+    p.add_argument("--no-automask", action="store_true",
+                   help="the minimum over the warped frames only (the model's automask_steps=0)")
     a = p.parse_args(argv)
 
     import torch
@@ -54,7 +57,8 @@ def main(argv: list[str] | None = None) -> int:
             vals = []
             for s in a.scales:
                 Tc = [torch.linalg.inv(E) @ scaled(m, s) @ E for m in (M[0], M[2])]
-                vals.append(float(temporal_loss(tgt, srcs, prior, Ks, Tc, noise, True, preset.automask_margin, road)))
+                vals.append(float(temporal_loss(tgt, srcs, prior, Ks, Tc, noise, not a.no_automask,
+                                                 preset.automask_margin, road)))
             move = float((smp["ego_to_world"][2, :3, 3] - smp["ego_to_world"][1, :3, 3]).norm())
             best = a.scales[min(range(len(vals)), key=vals.__getitem__)]
             print(f"window {i}, {move:.2f}: " + " ".join(f"{v:.4f}" for v in vals) + f"   (min at s = {best:+g})", flush=True)
