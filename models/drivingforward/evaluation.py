@@ -206,10 +206,9 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
     """
     from clsplat.io.contact_sheet import make_contact_sheet
 
+    _check_layout_windows(model.preset.layout_windows if layout is None else layout)   # before any window is loaded
     p = model.preset
-    if layout is None:
-        layout = p.layout_windows
-    _check_layout_windows(layout)        # before any window is loaded, with depth in the data or not
+    layout = p.layout_windows if layout is None else layout
     if split not in ("val", "test"):
         raise ValueError(f"--eval-split: expected 'val' or 'test', got {split!r}")
     model.eval()
