@@ -200,7 +200,8 @@ def issue33(out: Path, seeds: list[int]) -> str:
     lines.append(f"| full model, PSNR | {' / '.join(str(s) for s in sorted(full))} | " + " | ".join(
         " / ".join(f"{get(full[s], p):.2f}" for s in sorted(full) if get(full[s], p) is not None)
         for _, p in ISSUE33_COLUMNS) + " |")
-    for r in ["plain", "no-decompose", "no-flatness", "no-symmetry", "no-residual-sh", "no-pose-correction"]:
+    for r in ["plain", "no-decompose", "no-flatness", "no-symmetry", "no-residual-sh", "no-pose-correction",
+              "plain, flat road start"]:
         common = sorted(set(runs[r]) & set(full))
         if not common:
             continue
