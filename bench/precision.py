@@ -23,6 +23,7 @@ import clsplat
 from clsplat.config import RenderConfig
 
 from . import scenes as S
+from .figure import save_figure
 
 __all__ = ["knob_points", "run", "autograd_available", "gradients", "pareto_front"]
 
@@ -246,9 +247,7 @@ def plot(rows_by_scene: dict, path: Path) -> None:
         ax.set_title(name, fontsize=9)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 def markdown(res: dict) -> str:

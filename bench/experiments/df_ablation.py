@@ -62,6 +62,8 @@ def figure(runs: list[Path], png: Path, window: int = 10) -> None:
     import matplotlib.pyplot as plt
     import numpy as np
 
+    from clsplat.bench.figure import save_figure
+
     keys = [("diag_depth_median", "training median depth (m)"), ("diag_translation", "pose t->t+1 translation (m)"),
             ("loss", "total loss"), ("spatial", "spatial loss")]
     fig, axes = plt.subplots(2, 2, figsize=(12, 7))
@@ -79,10 +81,7 @@ def figure(runs: list[Path], png: Path, window: int = 10) -> None:
     axes[0, 0].set_yscale("log")
     axes[0, 0].legend(fontsize=7)
     fig.suptitle(f"DrivingForward small, random initialisation (running mean of {window})")
-    fig.tight_layout()
-    png.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(png, dpi=100)
-    plt.close(fig)
+    save_figure(fig, png, dpi=100)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -82,6 +82,8 @@ def plot_curves(runs: list[tuple[str, str]], png: str) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    from clsplat.bench.figure import save_figure
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.4), dpi=110)
     panels = (("abs_rel", "depth AbsRel"), ("scale_ratio", "scale ratio (median gt / median pred)"),
               ("pose_t_err_m", "pose translation error (m, mean)"))
@@ -100,9 +102,7 @@ def plot_curves(runs: list[tuple[str, str]], png: str) -> None:
         ax.grid(alpha=0.3)
     handles = [plt.Line2D([], [], color=f"C{k}", marker=".", label=name) for k, (name, _) in enumerate(runs)]
     axes[0].legend(handles=handles, fontsize=7)
-    fig.tight_layout()
-    fig.savefig(png)
-    plt.close(fig)
+    save_figure(fig, png)
 
 
 if __name__ == "__main__":

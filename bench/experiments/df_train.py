@@ -27,6 +27,8 @@ def curves(log: Path, png: Path, title: str, window: int = 10) -> None:
     import matplotlib.pyplot as plt
     import numpy as np
 
+    from clsplat.bench.figure import save_figure
+
     recs = [json.loads(line) for line in log.read_text().splitlines() if line.strip()]
     keys = ["loss", "reproj", "spatial", "spatio_temporal", "smooth", "mse"]
     fig, axes = plt.subplots(2, 3, figsize=(13, 7))
@@ -41,10 +43,7 @@ def curves(log: Path, png: Path, title: str, window: int = 10) -> None:
         ax.set_xlabel("step")
         ax.legend(fontsize=7)
     fig.suptitle(title)
-    fig.tight_layout()
-    png.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(png, dpi=110)
-    plt.close(fig)
+    save_figure(fig, png, dpi=110)
 
 
 def main(argv: list[str] | None = None) -> int:

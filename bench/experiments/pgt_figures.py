@@ -40,6 +40,8 @@ def plot_curves(run: Path, png: Path, window: int) -> Path | None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    from clsplat.bench.figure import save_figure
     fig, axes = plt.subplots(1, 2, figsize=(12, 4), dpi=110)
     panels = {"base": ("loss", "render", "depth", "chamfer"), "budget": ("loss", "render", "io")}
     for ax, stage in zip(axes, ("base", "budget")):
@@ -60,10 +62,7 @@ def plot_curves(run: Path, png: Path, window: int) -> Path | None:
             k.set_ylim(0, 1)
         ax.legend(fontsize=7, loc="upper right")
     fig.suptitle(f"PGT training curves ({run})")
-    fig.tight_layout()
-    png.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(png)
-    plt.close(fig)
+    save_figure(fig, png)
     return png
 
 
