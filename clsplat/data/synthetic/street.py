@@ -19,6 +19,7 @@ from .world import BUSY_LANE_VEHICLES, BUSY_PEDESTRIANS, STRAIGHT_WORLDS, WorldP
 #: the eight corners of a unit box, the order every box's projection uses
 _CORNERS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
 
+
 class StreetScene:
     """A procedural street; deterministic from ``seed``.
 
