@@ -135,7 +135,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--skip", type=int, default=2, help="steps left out of the medians (warm-up)")
     p.add_argument("--json", default=None, help="append the JSON line to this file")
     p.add_argument("--label", default="")
+    p.add_argument("--cpu-backward", choices=("pixel", "gaussian"), default=None,
+                   help="the compositing backward PoCL's CPU device runs by default (clsplat.stages."
+                        "BACKWARD_IMPL_CPU), to time a step with either (issue 35)")
     a = p.parse_args(argv[:cut])
+    if a.cpu_backward is not None:
+        import clsplat.stages
+        clsplat.stages.BACKWARD_IMPL_CPU = a.cpu_backward
     cmd = argv[cut + 1:]
     if len(cmd) < 2 or cmd[0] != "train":
         print("step_profile: expected `-- train FAMILY ...`", file=sys.stderr)
