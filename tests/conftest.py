@@ -127,6 +127,33 @@ def torchrun_two(tmp_path, family: str, args: list[str], timeout: int = 600) -> 
             torch.load(tmp_path / "two" / "checkpoint.pt", weights_only=True))
 
 
+#: the Gaussian parameters a rasterization call differentiates, in its argument order
+GRAD_PARAMS = ("means", "quats", "scales", "opacities", "colors")
+
+
+def weighted_loss_grads(fn, sc: dict, absgrad: bool = False, **kw) -> dict:
+    """``fn(means, quats, scales, opacities, colors, viewmats, Ks, W, H, **kw)`` on scene ``sc``
+    and the gradients of a fixed loss, sum(render * ramp(-1, 1)) + sum(alpha^2), which weights
+    every pixel and channel differently: ``render``, ``alpha``, each parameter's gradient, and
+    ``absgrad`` (``means2d.absgrad``) when asked for."""
+    leaves = {k: sc[k].clone().requires_grad_() for k in GRAD_PARAMS}
+    if absgrad:
+        kw["absgrad"] = True
+    r, a, meta = fn(*(leaves[k] for k in GRAD_PARAMS), sc["viewmats"], sc["Ks"], sc["W"], sc["H"], **kw)
+    w = torch.linspace(-1, 1, r.numel(), dtype=r.dtype).reshape(r.shape)
+    ((r * w).sum() + a.square().sum()).backward()
+    out = {"render": r.detach(), "alpha": a.detach()} | {k: v.grad for k, v in leaves.items()}
+    if absgrad:
+        out["absgrad"] = meta["means2d"].absgrad
+    return out
+
+
+@pytest.fixture(scope="session")
+def loss_grads():
+    """:func:`weighted_loss_grads`: images and gradients of one fixed loss, for comparing two renderers."""
+    return weighted_loss_grads
+
+
 @pytest.fixture(scope="session")
 def two_process_run():
     """:func:`torchrun_two`: a family's one-process run beside its ``torchrun`` two-process run."""

@@ -46,22 +46,15 @@ def _scene(n: int = 1500, channels: int | None = None, dtype=torch.float32, seed
                "sh_degree": None if channels is not None else 1})
 
 
-def _run(sc: dict, impl: str | None, *, fn=clsplat.rasterization, precision: str | None = None,
+def _run(grads, sc: dict, impl: str | None, *, fn=clsplat.rasterization, precision: str | None = None,
          pix: int | None = None, tile: int = 16, mode: str = "RGB", absgrad: bool = False,
          divide: bool = False, packed: bool = True) -> dict:
-    """Images and gradients of a fixed weighted loss; ``fn`` the reference when impl is None."""
-    leaves = {k: sc[k].clone().requires_grad_() for k in PARAMS}
+    """conftest's ``loss_grads`` with ``impl``'s backward; ``fn`` the reference when impl is None."""
     kw = dict(sh_degree=sc["sh_degree"], render_mode=mode, tile_size=tile)
     if impl is not None:
-        kw |= dict(config=RenderConfig(precision=precision, pix=pix, backward_impl=impl), absgrad=absgrad,
-                   bwd_divide=divide, packed=packed)
-    r, a, meta = fn(*(leaves[k] for k in PARAMS), sc["viewmats"], sc["Ks"], sc["W"], sc["H"], **kw)
-    w = torch.linspace(-1, 1, r.numel(), dtype=r.dtype).reshape(r.shape)
-    ((r * w).sum() + a.square().sum()).backward()
-    out = {"render": r.detach(), "alpha": a.detach()} | {k: v.grad for k, v in leaves.items()}
-    if absgrad:
-        out["absgrad"] = meta["means2d"].absgrad
-    return out
+        kw |= dict(config=RenderConfig(precision=precision, pix=pix, backward_impl=impl), bwd_divide=divide,
+                   packed=packed)
+    return grads(fn, sc, absgrad=absgrad, **kw)
 
 
 def _rel(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -89,11 +82,11 @@ _CASES = [
 
 
 @pytest.mark.parametrize("precision,pix,tile,channels,mode,absgrad,divide", _CASES)
-def test_gradients_equal_the_pixel_backward(precision, pix, tile, channels, mode, absgrad, divide):
+def test_gradients_equal_the_pixel_backward(precision, pix, tile, channels, mode, absgrad, divide, loss_grads):
     dtype = torch.float64 if precision == "float64" else torch.float32
     sc = _scene(channels=channels, dtype=dtype)
     kw = dict(precision=precision, pix=pix, tile=tile, mode=mode, absgrad=absgrad, divide=divide)
-    want, got = _run(sc, "pixel", **kw), _run(sc, "gaussian", **kw)
+    want, got = _run(loss_grads, sc, "pixel", **kw), _run(loss_grads, sc, "gaussian", **kw)
     assert float(want["alpha"].max()) > 0.99  # opaque pixels: early stops happen
     bound = REL64 if precision == "float64" else REL32
     for k, w in want.items():
@@ -105,11 +98,11 @@ def test_gradients_equal_the_pixel_backward(precision, pix, tile, channels, mode
             assert _rel(got[k], w) < bound, (k, _rel(got[k], w))
 
 
-def test_float64_matches_the_reference():
+def test_float64_matches_the_reference(loss_grads):
     """float64 kernels against clsplat/reference.py's torch autograd, to 1e-9."""
     sc = _scene(n=200, dtype=F64, W=40, H=30)
-    want = _run(sc, None, fn=ref.rasterization)
-    got = _run(sc, "gaussian", precision="float64")
+    want = _run(loss_grads, sc, None, fn=ref.rasterization)
+    got = _run(loss_grads, sc, "gaussian", precision="float64")
     for k in PARAMS:
         assert _rel(got[k], want[k]) < 1e-9, (k, _rel(got[k], want[k]))
 
@@ -127,30 +120,31 @@ def test_gradcheck_float64():
 
 
 @pytest.mark.parametrize("precision", ["float32", "float64"])
-def test_bitwise_reproducible_and_the_same_in_both_layouts(precision):
+def test_bitwise_reproducible_and_the_same_in_both_layouts(precision, loss_grads):
     """Repeated calls give the same bits; packed=True and packed=False run the same kernels."""
     dtype = torch.float64 if precision == "float64" else torch.float32
     sc = _scene(dtype=dtype)
-    first = {p: _run(sc, "gaussian", precision=precision, absgrad=True, packed=p) for p in (True, False)}
+    first = {p: _run(loss_grads, sc, "gaussian", precision=precision, absgrad=True, packed=p)
+             for p in (True, False)}
     for packed in (True, False, True):
-        again = _run(sc, "gaussian", precision=precision, absgrad=True, packed=packed)
+        again = _run(loss_grads, sc, "gaussian", precision=precision, absgrad=True, packed=packed)
         for k, v in first[packed].items():
             assert torch.equal(again[k], v), (packed, k)
             if k != "absgrad":  # (packed: [nnz, 2] over the visible pairs, else [C, N, 2])
                 assert torch.equal(first[not packed][k], v), (packed, k)
 
 
-def test_empty_tiles_one_gaussian_and_opaque_stacks():
+def test_empty_tiles_one_gaussian_and_opaque_stacks(loss_grads):
     # Gaussians crowded into the centre: most tiles have no list at all
     sc = _scene(n=300, spread=0.2, W=96, H=80)
-    want, got = _run(sc, "pixel"), _run(sc, "gaussian")
+    want, got = _run(loss_grads, sc, "pixel"), _run(loss_grads, sc, "gaussian")
     for k in PARAMS:
         assert _rel(got[k], want[k]) < REL32, k
     # one Gaussian, against the reference too
     sc = _scene(n=1, dtype=F64, W=32, H=32, seed=2)
     sc["scales"] = sc["scales"] * 20
-    got = _run(sc, "gaussian", precision="float64")
-    want = _run(sc, None, fn=ref.rasterization)
+    got = _run(loss_grads, sc, "gaussian", precision="float64")
+    want = _run(loss_grads, sc, None, fn=ref.rasterization)
     assert float(got["alpha"].max()) > 0.05
     for k in PARAMS:
         assert _rel(got[k], want[k]) < 1e-9, k
@@ -158,7 +152,7 @@ def test_empty_tiles_one_gaussian_and_opaque_stacks():
     sc = _scene(n=300, spread=0.03, opacity=(0.99, 0.999))
     sc["scales"] = sc["scales"] * 5
     for divide in (False, True):
-        want, got = _run(sc, "pixel", divide=divide), _run(sc, "gaussian", divide=divide)
+        want, got = _run(loss_grads, sc, "pixel", divide=divide), _run(loss_grads, sc, "gaussian", divide=divide)
         assert float(want["alpha"].max()) > 0.999
         hidden = got["colors"].abs().flatten(1).amax(1) == 0  # behind every pixel's stop
         assert int(hidden.sum()) > 10 and torch.equal(hidden, want["colors"].abs().flatten(1).amax(1) == 0)

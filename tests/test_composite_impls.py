@@ -12,7 +12,6 @@ from clsplat import stages
 from clsplat.config import RenderConfig
 from clsplat.runtime import get_runtime
 
-PARAMS = ("means", "quats", "scales", "opacities", "colors")
 
 
 def _scene(channels: int | None, dtype: torch.dtype, n: int = 1500) -> dict:
@@ -34,17 +33,9 @@ def _scene(channels: int | None, dtype: torch.dtype, n: int = 1500) -> dict:
                 "sh_degree": None if channels is not None else 1}
 
 
-def _run(sc: dict, cfg: RenderConfig, tile: int, mode: str, absgrad: bool, divide: bool) -> dict:
-    leaves = {k: sc[k].clone().requires_grad_() for k in PARAMS}
-    r, a, meta = clsplat.rasterization(*(leaves[k] for k in PARAMS), sc["viewmats"], sc["Ks"], sc["W"],
-                                       sc["H"], sh_degree=sc["sh_degree"], config=cfg, render_mode=mode,
-                                       absgrad=absgrad, tile_size=tile, bwd_divide=divide)
-    w = torch.linspace(-1, 1, r.numel(), dtype=r.dtype).reshape(r.shape)
-    ((r * w).sum() + a.square().sum()).backward()
-    out = {"render": r.detach(), "alpha": a.detach()} | {k: v.grad for k, v in leaves.items()}
-    if absgrad:
-        out["absgrad"] = meta["means2d"].absgrad
-    return out
+def _run(grads, sc: dict, cfg: RenderConfig, tile: int, mode: str, absgrad: bool, divide: bool) -> dict:
+    return grads(clsplat.rasterization, sc, absgrad=absgrad, sh_degree=sc["sh_degree"], config=cfg,
+                 render_mode=mode, tile_size=tile, bwd_divide=divide)
 
 
 # (precision, pix, tile, channels (None: SH degree 1), render mode, absgrad, bwd_divide)
@@ -63,11 +54,11 @@ _CASES = [
 
 
 @pytest.mark.parametrize("precision,pix,tile,channels,mode,absgrad,divide", _CASES)
-def test_tuned_equals_baseline_bitwise(precision, pix, tile, channels, mode, absgrad, divide):
+def test_tuned_equals_baseline_bitwise(precision, pix, tile, channels, mode, absgrad, divide, loss_grads):
     dtype = torch.float64 if precision == "float64" else torch.float32
     sc = _scene(channels, dtype)
     # (backward_impl="pixel": the per-Gaussian backward, PoCL's CPU default, has one build for both)
-    got = {impl: _run(sc, RenderConfig(precision=precision, pix=pix, composite_impl=impl,
+    got = {impl: _run(loss_grads, sc, RenderConfig(precision=precision, pix=pix, composite_impl=impl,
                                        backward_impl="pixel"), tile, mode,
                       absgrad, divide) for impl in ("baseline", "tuned")}
     assert float(got["baseline"]["alpha"].max()) > 0.99  # opaque pixels: early stops happen
@@ -87,17 +78,17 @@ def test_bad_impl_is_rejected():
         RenderConfig(composite_impl="fast")
 
 
-def test_the_library_exp_is_used_where_the_inline_one_differs(monkeypatch):
+def test_the_library_exp_is_used_where_the_inline_one_differs(monkeypatch, loss_grads):
     """On a device whose library exp the inline exp does not reproduce (another PoCL build or
     CPU variant), the probe's answer makes the tuned kernels call the library's exp: they still
     give the baseline's images and gradients bit for bit."""
     rt = get_runtime()
     sc = _scene(None, torch.float32, n=400)
-    want = _run(sc, RenderConfig(composite_impl="baseline"), 16, "RGB", False, False)
+    want = _run(loss_grads, sc, RenderConfig(composite_impl="baseline"), 16, "RGB", False, False)
     if rt.is_pocl_cpu:
         assert rt.inline_exp_exact is not None  # the probe ran with the first tuned render
     monkeypatch.setattr(rt, "inline_exp_exact", False)
-    got = _run(sc, RenderConfig(composite_impl="tuned"), 16, "RGB", False, False)
+    got = _run(loss_grads, sc, RenderConfig(composite_impl="tuned"), 16, "RGB", False, False)
     for k, v in want.items():
         assert torch.equal(got[k], v), k
 
