@@ -21,8 +21,9 @@ pytestmark = pytest.mark.slow   # the tests train the tiny preset (the module's 
 
 
 def _train(out, steps, *extra):
+    """A tiny run on one torch thread (conftest.DF_TINY_RUN's), so runs compare bit for bit."""
     return train(["--preset", "tiny", "--steps", str(steps), "--out", str(out), "--no-progress",
-                  "--checkpoint-every", "1", *extra])
+                  "--checkpoint-every", "1", "--threads", "1", *extra])
 
 
 @pytest.fixture(scope="module")
