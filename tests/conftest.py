@@ -192,7 +192,7 @@ def reference():
 
 #: the tiny AutoSplat run several files read (tests/test_autosplat_cli.py's ARGS, without --out)
 AUTOSPLAT_TINY_RUN = ["train", "autosplat", "--preset", "tiny", "--frames", "0:4", "--scale", "0.2", "--cameras",
-                      "CAM_FRONT", "CAM_BACK", "--no-progress"]
+                      "CAM_FRONT", "CAM_BACK", "--no-progress", "--threads", "1"]   # one thread: see DF_TINY_RUN
 
 
 @pytest.fixture(scope="session")

@@ -19,7 +19,7 @@ from clsplat.cli import console as main  # the console entry point: errors as on
 from clsplat.models.common.runfolder import RunFolder
 
 ARGS = ["train", "autosplat", "--preset", "tiny", "--frames", "0:4", "--scale", "0.2", "--cameras", "CAM_FRONT",
-        "CAM_BACK", "--no-progress"]
+        "CAM_BACK", "--no-progress", "--threads", "1"]    # conftest.AUTOSPLAT_TINY_RUN
 
 
 def files(folder: Path) -> dict[str, bytes]:
