@@ -434,3 +434,55 @@ def test_pose_road_anchor_trains_the_pose_on_the_road_with_the_prior_and_the_dep
     assert float(pose_grad.abs().sum()) > 0 and _without_grad(m, "depth_net") == []
     with pytest.raises(ValueError, match="pose_road_anchor"):
         TINY.replace(pose_road_anchor=True)                    # tiny has no ground prior
+
+
+@pytest.mark.parametrize("anchor", [True, False])
+def test_pose_sign_test_picks_the_branch_of_lower_loss(sample, anchor):
+    """pose_sign_test: a pose network started at the reversed true motion flips its translation's
+    sign at the first decision (the objective is lower with it negated) and then predicts the true
+    direction; one started at the true motion keeps its sign. The truth only sets up the case."""
+    M = gt_ego_motion(sample)
+    E = sample["cam_to_ego"]
+    t = (torch.linalg.inv(E[0]) @ M[2] @ E[0])[:3, 3]
+    kw = dict(pose_road_anchor=True, ground_prior_cap=20.0) if anchor else {}
+    for start, flips in ((-1.0, True), (1.0, False)):
+        torch.manual_seed(0)
+        m = DrivingForward(TINY.replace(pose_zero_init=True, pose_translation_init=tuple(float(x) * start for x in t),
+                                        pose_sign_test=4, pose_sign_test_window=1, **kw))
+        first = m.training_losses(sample["images"], sample["images"], sample["Ks"], E, step=0)
+        assert (float(first["diag_sign_delta"]) > 0) == flips          # L(t) - L(-t): > 0, negated is lower
+        second = m.training_losses(sample["images"], sample["images"], sample["Ks"], E, step=1)
+        assert float(second["diag_translation_sign"]) == (-1.0 if flips else 1.0)
+        assert float(second["diag_sign_delta"]) < 0                       # now the lower branch
+        T = m.pose_net(sample["images"][1], sample["images"][2], sample["Ks"], E).detach()
+        assert torch.allclose(T[:3, 3], t, atol=1e-5)
+
+
+def test_pose_sign_test_decides_once_per_window_within_its_steps(sample):
+    """The sign flips only at a window's end (steps w, 2w, .. <= pose_sign_test), once per step,
+    when the window's summed difference is above 0; the sign negates the translation exactly and
+    travels in the state dict; the fields' bad values name themselves."""
+    torch.manual_seed(0)
+    p = TINY.replace(pose_zero_init=True, pose_translation_init=(0.1, 0.0, -0.5), pose_sign_test=4,
+                     pose_sign_test_window=2)
+    net = DrivingForward(p).pose_net
+    args = (sample["images"][1], sample["images"][2], sample["Ks"], sample["cam_to_ego"])
+    before = net(*args).detach()
+    net.sign_test_accumulate(0.3)
+    assert not net.sign_test_decide(1)                       # not a window's end
+    net.sign_test_accumulate(-0.1)
+    assert net.sign_test_decide(2) and not net.sign_test_decide(2)   # once per step
+    after = net(*args).detach()
+    assert torch.equal(after[:3, :3], before[:3, :3]) and torch.allclose(after[:3, 3], -before[:3, 3])
+    net.sign_test_accumulate(-0.2)
+    assert not net.sign_test_decide(4)                       # the negated branch was not lower
+    net.sign_test_accumulate(5.0)
+    assert not net.sign_test_decide(6)                       # past pose_sign_test
+    state = net.state_dict()
+    assert float(state["translation_sign"]) == -1.0 and int(state["sign_test_last"]) == 4
+    assert "translation_sign" not in DrivingForward(TINY).pose_net.state_dict()   # off: no new state
+    for bad in (0, 1.5, True):
+        with pytest.raises(ValueError, match="pose_sign_test must"):
+            TINY.replace(pose_sign_test=bad)
+    with pytest.raises(ValueError, match="pose_sign_test_window"):
+        TINY.replace(pose_sign_test_window=0)

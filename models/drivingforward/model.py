@@ -26,7 +26,7 @@ from .depth import DepthNetwork, ground_prior_depth
 from .fusion import scale_intrinsics
 from .gaussian import GaussianNetwork, pixels_to_gaussians
 from .losses import render_loss, smoothness_loss, spatial_loss, spatio_temporal_loss, temporal_loss
-from .pose import PoseNetwork, ego_motion
+from .pose import PoseNetwork, ego_motion, negate_translation
 
 __all__ = ["DrivingForward"]
 
@@ -223,6 +223,7 @@ class DrivingForward(nn.Module):
         for f in range(3):
             self.check_views(raw[f], Ks, cam_to_ego, prefix=f"frame {f}: ")
         E = cam_to_ego
+        sign_test = p.pose_sign_test is not None and p.pose_source == "network" and step is not None
         if p.pose_source == "dataset":
             # given poses: the data's ego motion drives every warp; the pose network is not run
             if ego_motion_gt is None or len(ego_motion_gt) != 2 or any(
@@ -233,8 +234,10 @@ class DrivingForward(nn.Module):
             T_next = torch.linalg.inv(E[0]) @ M[1] @ E[0]
         else:
             # pose network: camera-0 motion t -> t-1 and t -> t+1, carried to every camera
-            T_prev = invert_rigid(self.pose_net(net[0], net[1], Ks, E))
-            T_next = self.pose_net(net[1], net[2], Ks, E)
+            if sign_test:       # a window that ended decides the translation's sign first
+                self.pose_net.sign_test_decide(step)
+            P = [self.pose_net(net[0], net[1], Ks, E), self.pose_net(net[1], net[2], Ks, E)]
+            T_prev, T_next = invert_rigid(P[0]), P[1]
             M = [ego_motion(T_prev, E[0]), ego_motion(T_next, E[0])]           # ego_t -> ego_s
         Tc = [torch.linalg.inv(E) @ m @ E for m in M]                          # pose.carry_pose
         d = self.depth_net(net[1], Ks, E)
@@ -254,7 +257,26 @@ class DrivingForward(nn.Module):
             road = (prior < p.ground_prior_cap).to(prior.dtype)
             pose_term = temporal_loss(tgt, srcs, prior, Ks, Tc, noise, automask, p.automask_margin, road)
             Tc, M = [t.detach() for t in Tc], [m.detach() for m in M]
+        if sign_test and step < p.pose_sign_test:
+            # the pose's own objective with the translations as predicted and negated, no gradient
+            with torch.no_grad():
+                Pn = [negate_translation(x.detach()) for x in P]
+                Mn = [ego_motion(invert_rigid(Pn[0]), E[0]), ego_motion(Pn[1], E[0])]
+                Tcn = [torch.linalg.inv(E) @ m @ E for m in Mn]
+                if anchor:
+                    here = pose_term.detach()
+                    there = temporal_loss(tgt, srcs, prior, Ks, Tcn, noise, automask, p.automask_margin, road)
+                else:
+                    dd = d_t.detach()
+                    here = temporal_loss(tgt, srcs, dd, Ks, [t.detach() for t in Tc], noise, automask,
+                                         p.automask_margin)
+                    there = temporal_loss(tgt, srcs, dd, Ks, Tcn, noise, automask, p.automask_margin)
+                self.pose_net.sign_test_accumulate(float(here - there))
         terms = self.photometric_terms(tgt, srcs, depth, d_t, Ks, E, Tc, M, noise, automask)
+        if sign_test:
+            if step < p.pose_sign_test:
+                terms["diag_sign_delta"] = (here - there).detach()
+            terms["diag_translation_sign"] = self.pose_net.translation_sign.detach().clone()
         if anchor:
             terms["reproj_pose"] = pose_term
         terms["smooth"] = smoothness_loss(depth, tgt, p.smooth_order)

@@ -29,6 +29,12 @@ Issue 32 departures, each a preset field, off unless set:
   ``pose_scale``). With Adam, a parameter moves about ``lr`` per step whatever its gradient's size,
   so the output moves about ``lr x scale`` per unit of input: at the paper's 0.01 and 1e-4, the
   decoder's bias moves the translation 1e-6 m per step.
+* ``pose_sign_test``: the translation output is multiplied by a sign buffer (+1 at the start,
+  saved in the checkpoint) that :meth:`PoseNetwork.sign_test_decide` flips when the pose's own
+  objective, summed over a window of steps, was lower with the translations negated
+  (:func:`negate_translation`; the model computes the difference). With the sign outside the
+  parameters, Adam's update (odd in its first moment, even in its second) runs the mirrored
+  trajectory of negating the weights and the first moments, so nothing in the optimiser changes.
 """
 from __future__ import annotations
 
@@ -42,7 +48,8 @@ from .fusion import VolumetricFusion, scale_intrinsics
 
 import torch.nn.functional as F
 
-__all__ = ["PoseDecoder", "PoseNetwork", "CameraOdometryHead", "FlowStatsHead", "flow_statistics", "carry_pose", "ego_motion", "local_correlation"]
+__all__ = ["PoseDecoder", "PoseNetwork", "CameraOdometryHead", "FlowStatsHead", "flow_statistics", "carry_pose", "ego_motion",
+           "local_correlation", "negate_translation"]
 
 
 def ego_motion(T0: Tensor, E0: Tensor) -> Tensor:
@@ -50,6 +57,15 @@ def ego_motion(T0: Tensor, E0: Tensor) -> Tensor:
     cam_to_ego ``E0 [4, 4]``: ``M = E0 T0 E0^-1`` (maps ego coordinates at the earlier instant to
     ego coordinates at the later one)."""
     return E0 @ T0 @ torch.linalg.inv(E0)
+
+
+def negate_translation(T: Tensor) -> Tensor:
+    """``[..., 4, 4]`` rigid transforms with the same rotation and the translation negated: what
+    the pose network outputs with its translation sign flipped (the output is ``se3_exp(rot, t)``
+    with t taken as the matrix's translation, clamped symmetrically)."""
+    out = T.clone()
+    out[..., :3, 3] = -T[..., :3, 3]
+    return out
 
 
 def carry_pose(T0: Tensor, cam_to_ego: Tensor) -> Tensor:
@@ -213,6 +229,34 @@ class PoseNetwork(nn.Module):
             with torch.no_grad():
                 t = torch.tensor(preset.pose_translation_init, dtype=self.decoder.pose_2.bias.dtype)
                 self.decoder.pose_2.bias[3:] = t / self.translation_scale
+        if preset.pose_sign_test is not None:
+            # the translation's sign, and the sign test's running sum and last decided step
+            self.register_buffer("translation_sign", torch.ones((), dtype=torch.float64))
+            self.register_buffer("sign_test_sum", torch.zeros((), dtype=torch.float64))
+            self.register_buffer("sign_test_last", torch.zeros((), dtype=torch.int64))
+
+    def sign_test_accumulate(self, delta: float) -> None:
+        """Add one sample's ``L(t) - L(-t)`` (the pose objective with the translations as predicted
+        minus with them negated; > 0: the negated branch is lower) to the window's sum."""
+        self.sign_test_sum += float(delta)
+
+    @torch.no_grad()
+    def sign_test_decide(self, step: int) -> bool:
+        """At the first call of a step ``0 < step <= pose_sign_test`` that ends a window of
+        ``pose_sign_test_window`` steps: flip the translation's sign if the window's summed
+        difference is above 0 (the negated branch had the lower loss), and start a new window.
+        Returns whether it flipped. With several processes (torchrun) each one would decide on its
+        own samples: the test is for one process."""
+        p = self.preset
+        w = p.pose_sign_test_window
+        if step <= 0 or step > p.pose_sign_test or step % w or int(self.sign_test_last) == step:
+            return False
+        self.sign_test_last.fill_(step)
+        flip = bool(self.sign_test_sum > 0)
+        if flip:
+            self.translation_sign.neg_()
+        self.sign_test_sum.zero_()
+        return flip
 
     @property
     def translation_scale(self) -> float:
@@ -250,5 +294,7 @@ class PoseNetwork(nn.Module):
                 t_c = self.odometry(cue)
             t = t + (R[0].T @ (R @ t_c.unsqueeze(-1)).squeeze(-1).T).T.mean(0)
         t = t * self.translation_scale
+        if p.pose_sign_test is not None:
+            t = t * float(self.translation_sign)
         m = p.max_translation
         return se3_exp(rot, t.clamp(-m, m))

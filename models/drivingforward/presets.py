@@ -124,6 +124,16 @@ class DFPreset(Preset):
         pose_grad_clip: None (the paper): no clip of the pose network's own. A value: the pose
             network's gradient (its parameters alone) is clipped to this total L2 norm before the
             Adam step, so a spike enters Adam's moments at this size. (Issue 32; off in every preset.)
+        pose_sign_test: None (the paper): off. K > 0: for the first K steps the pose network's own
+            photometric objective (the road term under ``pose_road_anchor``, else the reprojection
+            at full resolution) is also evaluated, without gradient, with the predicted translations
+            negated; every ``pose_sign_test_window`` steps, if the negated branch's loss was lower
+            summed over those steps, the pose network's translation output changes sign (a sign
+            buffer, saved in the checkpoint; under Adam this is the mirrored run exactly). From zero
+            motion the auto-masked objective falls in both directions, more steeply and deeper
+            towards the truth, so a head that first steps backwards can settle there; the test
+            picks the deeper branch with the objective alone. (Issue 32; off in every preset.)
+        pose_sign_test_window: the steps whose loss differences are summed for one decision.
         grad_clip: total gradient-norm clip (None: off, as in the paper).
         lr_warmup: the learning rates rise linearly from 1/lr_warmup of their value to all of it
             over the first lr_warmup steps; 0: off, as in the paper.
@@ -202,6 +212,8 @@ class DFPreset(Preset):
     pose_lr: float | None = None
     pose_lr_half_life: int | None = None
     pose_grad_clip: float | None = None
+    pose_sign_test: int | None = None
+    pose_sign_test_window: int = 10
     grad_clip: float | None = None
     warmup_steps: int = 0
     lr_warmup: int = 0
@@ -290,6 +302,12 @@ class DFPreset(Preset):
         c = self.pose_grad_clip
         if c is not None and (isinstance(c, bool) or not isinstance(c, (int, float)) or not 0 < c < float("inf")):
             raise ValueError(f"preset {self.name}: pose_grad_clip must be None or a finite number > 0, got {c!r}")
+        k = self.pose_sign_test
+        if k is not None and (isinstance(k, bool) or not isinstance(k, int) or k < 1):
+            raise ValueError(f"preset {self.name}: pose_sign_test must be None or an int >= 1 (steps), got {k!r}")
+        w = self.pose_sign_test_window
+        if isinstance(w, bool) or not isinstance(w, int) or w < 1:
+            raise ValueError(f"preset {self.name}: pose_sign_test_window must be an int >= 1 (steps), got {w!r}")
 
 
 PAPER = register("drivingforward", DFPreset(name="paper", height=352, width=640, steps=100000))
