@@ -3,6 +3,7 @@ registered as the ``bench`` command through the ``clsplat.commands`` entry point
 
     clsplat bench {stages,precision,stability,all,composite} [--out DIR] [--device DEV] [--quick] [--repeats N]
     clsplat bench percall [--scenes ...] [--repeats N] [--layout ...] [--profile] [--json FILE]
+    clsplat bench peers [--opensplat DIR] [--scenes ...] [--repeats N] [--out DIR]
 
 Each report writes ``<name>.json`` and ``<name>.md`` into ``--out`` (precision also a PNG);
 ``all`` runs the three and writes ``report.md`` with the device description and the command;
@@ -27,9 +28,13 @@ def main(argv: list[str] | None = None) -> int:
     if argv[:1] == ["percall"]:   # the per-call cost of rasterization(): its own options
         from . import percall
         return percall.main(argv[1:])
+    if argv[:1] == ["peers"]:     # other CPU renderers on identical inputs: its own options
+        from . import peers
+        return peers.main(argv[1:])
     p = ArgumentParser(prog="clsplat bench", description=__doc__.split("\n")[0],
-                       epilog="also: clsplat bench percall [...], the per-call cost of rasterization() "
-                              "(its own options: clsplat bench percall -h)")
+                       epilog="also: clsplat bench percall [...], the per-call cost of rasterization(), and "
+                              "clsplat bench peers [...], other CPU renderers on identical inputs "
+                              "(their own options: -h)")
     p.add_argument("report", choices=("stages", "precision", "stability", "all", "composite"))
     p.add_argument("--out", default="bench_out", help="output folder (created)")
     p.add_argument("--device", default=None, help="OpenCL device, e.g. 'pocl' or '0:0' (default CLSPLAT_DEVICE)")
