@@ -166,3 +166,124 @@ def test_a_scaled_budget_trains_as_the_fixed_one_of_the_same_length(street, tmp_
         runs.append(t.model.state_dict())
     assert runs[0].keys() == runs[1].keys()
     assert all(torch.equal(runs[0][k], runs[1][k]) for k in runs[0])
+
+
+# --- the box-pixel count inside each box's rectangle (issue 36 (b)) -----------------------------------
+
+def _rect_as_before(box, w2c, K, width, height):
+    """``_box_pixel_rect`` before the rectangle count (main at 9bb1ff4), verbatim: the whole image
+    for a box with a corner at or behind the camera plane."""
+    half = box.size / 2
+    corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * half
+    world = corners @ box.box_to_world[:3, :3].T + box.box_to_world[:3, 3]
+    pc = world @ w2c[:3, :3].T + w2c[:3, 3]
+    z = pc[:, 2]
+    if (z <= 0).all():
+        return None
+    if (z <= 1e-6).any():
+        return 0, height, 0, width
+    u = K[0, 0] * pc[:, 0] / z + K[0, 2]
+    v = K[1, 1] * pc[:, 1] / z + K[1, 2]
+    x0, x1 = max(0, int(np.floor(u.min() - 0.5)) - 1), min(width, int(np.ceil(u.max() - 0.5)) + 2)
+    y0, y1 = max(0, int(np.floor(v.min() - 0.5)) - 1), min(height, int(np.ceil(v.max() - 0.5)) + 2)
+    if x0 >= x1 or y0 >= y1:
+        return None
+    return y0, y1, x0, x1
+
+
+def _masks_as_before(cam, T, boxes, width, height):
+    """``box_hit_masks`` before the rectangle count (main at 9bb1ff4), verbatim: rays for the whole
+    image, a full-image mask per box."""
+    import warnings
+    u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    d = np.stack([(u - cam.K[0, 2]) / cam.K[0, 0], (v - cam.K[1, 2]) / cam.K[1, 1], np.ones_like(u)], -1)
+    d = d @ T[:3, :3].T
+    o = T[:3, 3]
+    w2c = np.linalg.inv(T)
+    for b in boxes:
+        r = _rect_as_before(b, w2c, cam.K, width, height)
+        if r is None:
+            continue
+        y0, y1, x0, x1 = r
+        B = np.linalg.inv(b.box_to_world)
+        ol = B[:3, :3] @ o + B[:3, 3]
+        dl = np.ascontiguousarray(d[y0:y1, x0:x1]) @ B[:3, :3].T
+        half = b.size / 2
+        with np.errstate(divide="ignore", invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)   # all-NaN slices, as before
+            t1 = (-half - ol) / dl
+            t2 = (half - ol) / dl
+            tn = np.nanmax(np.minimum(t1, t2), -1)
+            tf = np.nanmin(np.maximum(t1, t2), -1)
+        m = np.zeros((height, width), bool)
+        m[y0:y1, x0:x1] = (tn <= tf) & (tf > 0)
+        yield b, m
+
+
+def count_as_before(seq: DrivingSequence, track_ids, frame_ids, cameras) -> np.ndarray:
+    """``[T, F, C]``: ``track_box_pixels`` before the rectangle count (main at 9bb1ff4): each full-image
+    mask's pixels summed (also the reference of ``autosplat_object_budget.py count``)."""
+    row = {int(t): k for k, t in enumerate(track_ids)}
+    out = np.zeros((len(track_ids), len(frame_ids), len(cameras)), np.int64)
+    for j, i in enumerate(frame_ids):
+        boxes = [b for b in seq.frames[i].boxes if b.track_id in row]
+        for c, name in enumerate(cameras):
+            cam = seq.camera(name)
+            for b, hit in _masks_as_before(cam, seq.cam_to_world(i, name), boxes, cam.width, cam.height):
+                out[row[b.track_id], j, c] = int(hit.sum())
+    return out
+
+
+@pytest.mark.parametrize("spec", ["synthetic:busy", "synthetic:busy-noisy", "synthetic:overtake"])
+def test_the_rectangle_count_equals_the_full_image_masks(spec):
+    """The count inside each box's projected rectangle (boxes reaching behind the camera cut just in
+    front of it, rays made for the rectangle only) is the old full-image masks' sum, and the masks
+    are the old ones pixel for pixel: a busy street (41 boxes, exact and tracker-noise) and a car
+    overtaking beside the ego (boxes reaching behind the side cameras), six frames, six cameras."""
+    from clsplat.models.autosplat.background import box_hit_counts, box_hit_masks
+    from clsplat.models.autosplat.data import load_sequence
+    seq = load_sequence(spec, None, (0, 6), 0.25, seed=3)
+    cams = [c.name for c in seq.cameras]
+    tracks = sorted({b.track_id for f in seq.frames for b in f.boxes})
+    frames = list(range(len(seq.frames)))
+    new = track_box_pixels(seq, tracks, frames, cams)
+    assert new.sum() > 0 and (new > 0).sum() >= 2 * len(cams)
+    assert np.array_equal(new, count_as_before(seq, tracks, frames, cams))
+    near = 0
+    for i in frames:
+        for name in cams:
+            cam, T = seq.camera(name), seq.cam_to_world(i, name)
+            boxes = seq.frames[i].boxes
+            w2c = np.linalg.inv(T)
+            near += sum(_rect_as_before(b, w2c, cam.K, cam.width, cam.height) == (0, cam.height, 0, cam.width)
+                        for b in boxes)
+            old = {b.track_id: m for b, m in _masks_as_before(cam, T, boxes, cam.width, cam.height) if m.any()}
+            got = list(box_hit_masks(cam, T, boxes, cam.width, cam.height))
+            assert {b.track_id for b, m in got if m.any()} == set(old)
+            assert all(np.array_equal(m, old[b.track_id]) for b, m in got if m.any())
+            # box_hit_counts is the sum of box_hit_masks' mask for the same boxes
+            assert [(b.track_id, n) for b, n in box_hit_counts(cam, T, boxes, cam.width, cam.height)] == \
+                [(b.track_id, int(m.sum())) for b, m in got]
+    assert near > 0   # the case the new rectangle changes: a box reaching behind the camera plane
+
+
+def test_a_box_beside_and_behind_the_camera_keeps_every_pixel():
+    """Boxes that straddle the camera plane, close to the camera, at many poses: the cut rectangle
+    holds every pixel the whole-image test finds (and the camera inside a box sees the whole image)."""
+    from clsplat.data.scene import Box3D
+    from clsplat.models.autosplat.background import box_hit_masks
+    cam = generate_sequence(height=40, width=72, num_frames=1, seed=0).cameras[0]
+    rng = np.random.default_rng(0)
+    T = np.eye(4)
+    checked = 0
+    for _ in range(200):
+        c = rng.normal(size=3) * [2.0, 1.0, 1.5]
+        q = rng.normal(size=4)
+        b = Box3D(center=c, size=rng.uniform(0.3, 4.0, 3), quat=q / np.linalg.norm(q), track_id=1, label="car")
+        old = [m for _, m in _masks_as_before(cam, T, [b], cam.width, cam.height)]
+        new = [m for _, m in box_hit_masks(cam, T, [b], cam.width, cam.height)]
+        want = old[0] if old else np.zeros((cam.height, cam.width), bool)
+        have = new[0] if new else np.zeros((cam.height, cam.width), bool)
+        assert np.array_equal(want, have)
+        checked += int(want.any())
+    assert checked > 20

@@ -11,6 +11,12 @@ image, of the moving objects pooled and per class (car / pedestrian / other), th
 image to each class, object Gaussians, iterations per stage (from ``log.jsonl``), seconds per stage
 and the wall seconds.
 
+``count``: the box-pixel count (:func:`~clsplat.models.autosplat.objects.track_box_pixels`) against
+the one before it counted inside each box's rectangle (``count_as_before`` of
+tests/test_autosplat_budget.py: a full-image mask per box and view): both on each street and seed's
+decomposed tracks and training views, alternating, ``--repeats`` times in this one process; the
+medians, their ratio, and whether the counts are equal (they must be, element for element).
+
 ``empty``: the ``demo`` preset on the built-in street without moving vehicles (the generator's
 ``num_moving=0``: parked cars only, which stay in the background), trained with the budget fields
 off and on (``--set``); per run the iterations and seconds of each stage, and the object sets.
@@ -18,6 +24,7 @@ off and on (``--set``); per run the iterations and seconds of each stage, and th
     .venv/bin/python bench/experiments/autosplat_object_budget.py budget --data synthetic synthetic:busy \\
         --seeds 0 1 2 --set fg_steps_per_track=40 --set fg_steps_per_area=10 --set fg_steps_max=240
     .venv/bin/python bench/experiments/autosplat_object_budget.py table /work/runs/i36b_busy_*
+    .venv/bin/python bench/experiments/autosplat_object_budget.py count --data synthetic:busy --seeds 0 1 2 --set scale=1.5
     .venv/bin/python bench/experiments/autosplat_object_budget.py empty --out /tmp/empty \\
         --set fg_steps_per_track=40 --set fg_steps_per_area=10 --set fg_steps_max=240
 """
@@ -77,6 +84,39 @@ def table(args) -> None:
               f"{' / '.join(f'{s.get(k, 0):.0f}' for k in stages)} | {m['wall_seconds']:.0f} |")
 
 
+def count(args) -> None:
+    import importlib.util
+    import statistics
+    import numpy as np
+    from clsplat.models.autosplat.data import load_sequence, prepare_data
+    from clsplat.models.autosplat.model import collect_tracks
+    from clsplat.models.autosplat.objects import track_box_pixels
+    path = Path(__file__).resolve().parents[2] / "tests" / "test_autosplat_budget.py"
+    spec = importlib.util.spec_from_file_location("_budget_tests", path)
+    ref = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(ref)
+    p = _preset(args.preset, args.set)
+    print(f"| street | seed | H x W | tracks | views | before s (median of {args.repeats}) | now s | now / before | "
+          "box pixels | equal |")
+    print("|---" * 10 + "|")
+    for name in args.data:
+        for seed in args.seeds:
+            d = prepare_data(load_sequence(name, None, None, p.scale, seed), None, p.holdout, p.dynamic_threshold,
+                             tuple(p.road_classes))
+            ids = [t.track_id for t in collect_tracks(d.seq, d.train_frames, p.dynamic_threshold)]
+            times = {"before": [], "now": []}
+            out = {}
+            for _ in range(args.repeats):
+                for key, fn in (("before", ref.count_as_before), ("now", track_box_pixels)):
+                    t0 = time.perf_counter()
+                    out[key] = fn(d.seq, ids, d.train_frames, d.cameras)
+                    times[key].append(time.perf_counter() - t0)
+            a, b = statistics.median(times["before"]), statistics.median(times["now"])
+            print(f"| {name} | {seed} | {d.height} x {d.width} | {len(ids)} | {len(d.train_frames)} x {len(d.cameras)} | "
+                  f"{a:.3f} | {b:.3f} | {b / a:.3f} | {int(out['now'].sum())} | "
+                  f"{'yes' if np.array_equal(out['now'], out['before']) else 'NO'} |", flush=True)
+
+
 def empty(args) -> None:
     from clsplat.data.synthetic import SyntheticConfig, generate_sequence
     from clsplat.models.autosplat.data import SYNTHETIC_DT, prepare_data
@@ -102,7 +142,7 @@ def empty(args) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("mode", choices=("budget", "table", "empty"))
+    ap.add_argument("mode", choices=("budget", "table", "count", "empty"))
     ap.add_argument("runs", nargs="*", help="run folders (table)")
     ap.add_argument("--data", nargs="+", default=["synthetic", "synthetic:busy"])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
@@ -110,8 +150,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--set", action="append", default=None, metavar="FIELD=VALUE")
     ap.add_argument("--out", default="/tmp/autosplat_object_budget")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--repeats", type=int, default=3, help="count: timings of each (medians reported)")
     args = ap.parse_args(argv)
-    {"budget": budget, "table": table, "empty": empty}[args.mode](args)
+    {"budget": budget, "table": table, "count": count, "empty": empty}[args.mode](args)
 
 
 if __name__ == "__main__":

@@ -196,11 +196,12 @@ def object_points_and_colours(seq: DrivingSequence, track_id: int, frame_ids: Se
 def track_box_pixels(seq: DrivingSequence, track_ids: Sequence[int], frame_ids: Sequence[int],
                      cameras: Sequence[str]) -> np.ndarray:
     """``[T, F, C]`` int64: how many pixels of camera ``cameras[c]`` at frame ``frame_ids[f]`` have a
-    centre ray that hits track ``track_ids[t]``'s box (:func:`.background.box_hit_masks` at the
+    centre ray that hits track ``track_ids[t]``'s box (:func:`.background.box_hit_counts`: the pixels of
+    :func:`.background.box_hit_masks`' masks, counted inside each box's projected rectangle, at the
     cameras' own resolution; 0 where the track has no box or its box is out of view). Boxes only,
     never instance masks: the count is what a user's tracked boxes say, also when the data carries
     masks; occlusion is not taken into account."""
-    from .background import box_hit_masks
+    from .background import box_hit_counts
     row = {int(t): k for k, t in enumerate(track_ids)}
     out = np.zeros((len(track_ids), len(frame_ids), len(cameras)), np.int64)
     if not row:
@@ -209,10 +210,11 @@ def track_box_pixels(seq: DrivingSequence, track_ids: Sequence[int], frame_ids: 
         boxes = [b for b in seq.frames[i].boxes if b.track_id in row]
         if not boxes:
             continue
+        poses = [(T, np.linalg.inv(T)) for T in (b.box_to_world for b in boxes)]  # once per frame, not per camera
         for c, name in enumerate(cameras):
             cam = seq.camera(name)
-            for b, hit in box_hit_masks(cam, seq.cam_to_world(i, name), boxes, cam.width, cam.height):
-                out[row[b.track_id], j, c] = int(hit.sum())
+            for b, n in box_hit_counts(cam, seq.cam_to_world(i, name), boxes, cam.width, cam.height, poses):
+                out[row[b.track_id], j, c] = n
     return out
 
 
