@@ -11,6 +11,13 @@ image, of the moving objects pooled and per class (car / pedestrian / other), th
 image to each class, object Gaussians, iterations per stage (from ``log.jsonl``), seconds per stage
 and the wall seconds.
 
+``seeds``: run folders named ``PREFIX_<street>_<config>_s<seed>`` grouped by street and config: the
+mean and range (min..max) over seeds of the whole image's held-out PSNR, the moving objects' (pooled
+and per class), the gaps from the image to the pooled objects, the cars and the pedestrians, the
+object Gaussians, the foreground iterations and the mean seconds per stage; then, per street, each
+config against ``--base`` (default ``old``) paired by seed (mean, min..max of the differences) with
+the wall-time ratio per seed.
+
 ``count``: the box-pixel count (:func:`~clsplat.models.autosplat.objects.track_box_pixels`) against
 the one before it counted inside each box's rectangle (``count_as_before`` of
 tests/test_autosplat_budget.py: a full-image mask per box and view): both on each street and seed's
@@ -24,6 +31,7 @@ off and on (``--set``); per run the iterations and seconds of each stage, and th
     .venv/bin/python bench/experiments/autosplat_object_budget.py budget --data synthetic synthetic:busy \\
         --seeds 0 1 2 --set fg_steps_per_track=40 --set fg_steps_per_area=10 --set fg_steps_max=240
     .venv/bin/python bench/experiments/autosplat_object_budget.py table /work/runs/i36b_busy_*
+    .venv/bin/python bench/experiments/autosplat_object_budget.py seeds /work/runs/i36c_*_s[345]
     .venv/bin/python bench/experiments/autosplat_object_budget.py count --data synthetic:busy --seeds 0 1 2 --set scale=1.5
     .venv/bin/python bench/experiments/autosplat_object_budget.py empty --out /tmp/empty \\
         --set fg_steps_per_track=40 --set fg_steps_per_area=10 --set fg_steps_max=240
@@ -84,6 +92,65 @@ def table(args) -> None:
               f"{' / '.join(f'{s.get(k, 0):.0f}' for k in stages)} | {m['wall_seconds']:.0f} |")
 
 
+def _run(run: Path) -> dict:
+    """One run folder's figures (None where a class has no pixel)."""
+    import json
+    from collections import Counter
+    m = json.loads((run / "metrics.json").read_text())
+    n = Counter(json.loads(x)["stage"] for x in (run / "log.jsonl").read_text().splitlines())
+    pc = (m.get("objects") or {}).get("per_class", {})
+    cls = {c: pc[c]["psnr"] if c in pc and pc[c]["pixels"] else None for c in ("car", "pedestrian", "other")}
+    img, obj = m["all"]["psnr"], m["all"].get("psnr_objects")
+    return {"image": img, "objects": obj, **cls, "gap objects": None if obj is None else img - obj,
+            "gap car": None if cls["car"] is None else img - cls["car"],
+            "gap pedestrian": None if cls["pedestrian"] is None else img - cls["pedestrian"],
+            "object Gaussians": m["gaussians"]["objects"], "fg iterations": n.get("foreground", 0),
+            "seconds": m["seconds_per_stage"], "wall": m["wall_seconds"]}
+
+
+def seeds(args) -> None:
+    import re
+    import statistics
+    name = re.compile(r"^[^_]+_(?P<street>[^_]+)_(?P<config>.+)_s(?P<seed>\d+)$")
+    groups: dict[str, dict[str, dict[int, dict]]] = {}
+    for run in map(Path, args.runs):
+        g = name.match(run.name)
+        if g and (run / "metrics.json").is_file():
+            groups.setdefault(g["street"], {}).setdefault(g["config"], {})[int(g["seed"])] = _run(run)
+
+    def agg(v: list) -> str:
+        v = [x for x in v if x is not None]
+        return "–" if not v else f"{statistics.mean(v):.2f} ({min(v):.2f}..{max(v):.2f})" if len(v) > 1 else f"{v[0]:.2f}"
+
+    keys = ("image", "objects", "car", "pedestrian", "other", "gap objects", "gap car", "gap pedestrian")
+    stages = ("load", "init", "bg_phase1", "bg_phase2", "foreground", "fusion", "eval")
+    print("| street | config | seeds | " + " | ".join(keys) + " | object Gaussians | fg iterations | "
+          "seconds (load / init / phase 1 / phase 2 / fg / fusion / eval) | wall s |")
+    print("|---" * (len(keys) + 7) + "|")
+    for street, cfgs in sorted(groups.items()):
+        for cfg, runs in sorted(cfgs.items()):
+            rs = [runs[k] for k in sorted(runs)]
+            sec = " / ".join(f"{statistics.mean(r['seconds'].get(k, 0) for r in rs):.0f}" for k in stages)
+            print(f"| {street} | {cfg} | {','.join(map(str, sorted(runs)))} | "
+                  + " | ".join(agg([r[k] for r in rs]) for k in keys)
+                  + f" | {statistics.mean(r['object Gaussians'] for r in rs):.0f} | "
+                  f"{'/'.join(str(r['fg iterations']) for r in rs)} | {sec} | "
+                  f"{statistics.mean(r['wall'] for r in rs):.0f} |")
+    print(f"\n| street | config − {args.base} | seeds | " + " | ".join(keys[:5]) + " | wall ratio per seed |")
+    print("|---" * 9 + "|")
+    for street, cfgs in sorted(groups.items()):
+        base = cfgs.get(args.base, {})
+        for cfg, runs in sorted(cfgs.items()):
+            common = sorted(set(runs) & set(base))
+            if cfg == args.base or not common:
+                continue
+            diff = lambda k: agg([None if runs[s][k] is None or base[s][k] is None  # noqa: E731
+                                  else runs[s][k] - base[s][k] for s in common])
+            ratio = " / ".join(f"{runs[s]['wall'] / base[s]['wall']:.2f}" for s in common)
+            print(f"| {street} | {cfg} − {args.base} | {','.join(map(str, common))} | "
+                  + " | ".join(diff(k) for k in keys[:5]) + f" | {ratio} |")
+
+
 def count(args) -> None:
     import importlib.util
     import statistics
@@ -142,7 +209,7 @@ def empty(args) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("mode", choices=("budget", "table", "count", "empty"))
+    ap.add_argument("mode", choices=("budget", "table", "seeds", "count", "empty"))
     ap.add_argument("runs", nargs="*", help="run folders (table)")
     ap.add_argument("--data", nargs="+", default=["synthetic", "synthetic:busy"])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
@@ -150,9 +217,10 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--set", action="append", default=None, metavar="FIELD=VALUE")
     ap.add_argument("--out", default="/tmp/autosplat_object_budget")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--base", default="old", help="seeds: the config the others are paired against")
     ap.add_argument("--repeats", type=int, default=3, help="count: timings of each (medians reported)")
     args = ap.parse_args(argv)
-    {"budget": budget, "table": table, "count": count, "empty": empty}[args.mode](args)
+    {"budget": budget, "table": table, "seeds": seeds, "count": count, "empty": empty}[args.mode](args)
 
 
 if __name__ == "__main__":
