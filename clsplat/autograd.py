@@ -142,21 +142,21 @@ class ShFn(torch.autograd.Function):
         viewmats = _centre_viewmats(ctx.orig_viewmats)
         colors = stages.sh_colors(rt, s.cfg, arr(means), arr(viewmats), arr(coeffs), _array(s, radii),
                                   s.sh_degree, events=s.events).host()
-        ctx.save_for_backward(coeffs, means, viewmats, radii)
+        ctx.save_for_backward(coeffs, means, viewmats, radii, colors)
         ctx.s = s
         return colors
 
     @staticmethod
     def backward(ctx, v_colors):
         s = ctx.s
-        coeffs, means, viewmats, radii = ctx.saved_tensors
+        coeffs, means, viewmats, radii, colors = ctx.saved_tensors
         need_coeffs, need_means, need_view = ctx.needs_input_grad[:3]
         if not (need_coeffs or need_means or need_view):
             return None, None, None, None, None
         rt, arr = s.rt, s.rt.array
         v_coeffs, v_means, v_dirs = stages.sh_colors_bwd(
             rt, s.cfg, arr(means.detach()), arr(viewmats.detach()), arr(coeffs.detach()),
-            _array(s, radii), arr(v_colors.contiguous()), s.sh_degree, need_means, need_view,
+            _array(s, radii), arr(colors), arr(v_colors.contiguous()), s.sh_degree, need_means, need_view,
             events=s.events)
         v_view = None
         if need_view:  # direction = mean - centre, centre = inverse(viewmats)[:3, 3] as in

@@ -804,15 +804,17 @@ def reduce_slots(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, offs: Devic
 
 
 def sh_colors_bwd(rt: Runtime, cfg: RenderConfig, means: DeviceArray, viewmats: DeviceArray,
-                  coeffs: DeviceArray, radii: DeviceArray, v_colors: DeviceArray, sh_degree: int,
-                  means_grad: bool, dir_grad: bool = False,
+                  coeffs: DeviceArray, radii: DeviceArray, colors: DeviceArray, v_colors: DeviceArray,
+                  sh_degree: int, means_grad: bool, dir_grad: bool = False,
                   events: list | None = None) -> tuple[DeviceArray, DeviceArray, DeviceArray]:
-    """v_colors [C,N,3] -> (v_coeffs [N,K,3], v_means [N,3] through the view direction,
-    v_dirs [C,N,3] gradient of each unnormalised direction mean - camera centre)."""
+    """(the forward's colors [C,N,3], v_colors [C,N,3]) -> (v_coeffs [N,K,3], v_means [N,3]
+    through the view direction, v_dirs [C,N,3] gradient of each unnormalised direction
+    mean - camera centre)."""
     N = means.tensor.shape[0]
     C = viewmats.tensor.shape[0]
-    v_coeffs = rt.empty(tuple(coeffs.tensor.shape), cfg.dtype)
-    v_means = rt.empty((N, 3), cfg.dtype)
+    # the kernel writes every entry of v_coeffs, and of v_means when it takes that gradient
+    v_coeffs = rt.empty(tuple(coeffs.tensor.shape), cfg.dtype, zero=False)
+    v_means = rt.empty((N, 3), cfg.dtype, zero=not means_grad)
     v_dirs = rt.empty((C, N, 3) if dir_grad else (0,), cfg.dtype)
     defines = {"REAL_DOUBLE": cfg.precision == "float64", "SH_DEGREE": sh_degree,
                "SH_COEFFS": coeffs.tensor.shape[1], "MEANS_GRAD": means_grad,
@@ -820,7 +822,7 @@ def sh_colors_bwd(rt: Runtime, cfg: RenderConfig, means: DeviceArray, viewmats: 
     k = rt.kernel("sh_bwd", "sh_colors_bwd", defines, cfg.fast_math)
     _record(events, "sh_bwd", rt.launch(
         k, N, LOCAL_1D, np.int32(C), np.int32(N), means.buffer, viewmats.buffer, coeffs.buffer,
-        radii.buffer, v_colors.buffer, v_coeffs.buffer, v_means.buffer, v_dirs.buffer))
+        radii.buffer, colors.buffer, v_colors.buffer, v_coeffs.buffer, v_means.buffer, v_dirs.buffer))
     return v_coeffs, v_means, v_dirs
 
 

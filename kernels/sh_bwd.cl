@@ -73,6 +73,7 @@ __kernel void sh_colors_bwd(const int C, const int N,
                             __global const REAL *viewmats, /* [C, 4, 4] */
                             __global const REAL *coeffs,   /* [N, SH_COEFFS, 3] */
                             __global const int *radii,     /* [C, N, 2] */
+                            __global const REAL *colors,   /* [C, N, 3] the forward's */
                             __global const REAL *v_colors, /* [C, N, 3] */
                             __global REAL *v_coeffs,       /* [N, SH_COEFFS, 3] */
                             __global REAL *v_means,        /* [N, 3] */
@@ -93,12 +94,10 @@ __kernel void sh_colors_bwd(const int C, const int N,
         const REAL3 d = raw * inv_len;
         REAL b[SH_BASIS_LEN], vb[SH_BASIS_LEN];
         sh_basis(d, b);
+        /* the forward's colour max(x + 0.5, 0) is > 0 exactly where the clamp is inactive:
+         * reading it saves evaluating the SH sum again (the same mask, bit for bit) */
         REAL vc[3];
-        for (int ch = 0; ch < 3; ++ch) {
-            REAL x = 0;
-            for (int i = 0; i < SH_BASIS_LEN; ++i) x += b[i] * k[3 * i + ch];
-            vc[ch] = x + (REAL)0.5 > 0 ? v_colors[3 * cg + ch] : (REAL)0;
-        }
+        for (int ch = 0; ch < 3; ++ch) vc[ch] = colors[3 * cg + ch] > 0 ? v_colors[3 * cg + ch] : (REAL)0;
         for (int i = 0; i < SH_BASIS_LEN; ++i) {
             vb[i] = 0;
             for (int ch = 0; ch < 3; ++ch) {
