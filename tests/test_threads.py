@@ -1,5 +1,5 @@
-"""clsplat.threads: the OpenMP spin settings set once at import, before torch loads, and the
-default thread count from the cores other processes leave idle."""
+"""clsplat.threads: the OpenMP spin and torch allocator settings set once at import, before torch
+loads, and the default thread count from the cores other processes leave idle."""
 from __future__ import annotations
 
 import json
@@ -19,8 +19,11 @@ import clsplat, torch
 from clsplat.threads import thread_defaults_active
 grand = subprocess.run([sys.executable, "-c", "import os, json; print(json.dumps({k: os.environ.get(k) for k in %r}))"],
                        capture_output=True, text=True, check=True).stdout
+# torch's allocator with THP_MEM_ALLOC_ENABLE page-aligns allocations of 2 MB and more (else 64 B
+# past a page: glibc's chunk header)
+big = [torch.empty((3 << 20) + 4096 * i, dtype=torch.uint8) for i in range(4)]
 print(json.dumps({"env": {k: os.environ.get(k) for k in %r}, "active": thread_defaults_active(),
-                  "grandchild": json.loads(grand)}))
+                  "grandchild": json.loads(grand), "page_aligned": [t.data_ptr() %% 4096 == 0 for t in big]}))
 """ % (sorted(THREAD_DEFAULTS), sorted(THREAD_DEFAULTS))
 
 
@@ -39,6 +42,7 @@ def test_child_importing_clsplat_first_gets_the_defaults():
     assert got["env"] == THREAD_DEFAULTS
     assert got["grandchild"] == THREAD_DEFAULTS  # inherited by processes it starts
     assert got["active"] is True
+    assert all(got["page_aligned"])              # torch read the allocator setting: set before it loaded
 
 
 @pytest.mark.slow   # spawns an interpreter that imports torch
@@ -46,6 +50,7 @@ def test_opt_out_leaves_the_environment_alone():
     got = _child(**{OPT_OUT_ENV: "0"})
     assert got["env"] == {k: None for k in THREAD_DEFAULTS}
     assert got["active"] is False
+    assert not all(got["page_aligned"])          # torch's own 64-byte alignment
 
 
 @pytest.mark.slow   # spawns an interpreter that imports torch
@@ -67,9 +72,9 @@ def test_a_users_wait_policy_keeps_its_spin_count():
 
 
 def test_apply_sets_only_what_is_unset():
-    env = {"KMP_BLOCKTIME": "200"}
+    env = {"KMP_BLOCKTIME": "200", "THP_MEM_ALLOC_ENABLE": "0"}
     assert apply_thread_defaults(env) == {"GOMP_SPINCOUNT": THREAD_DEFAULTS["GOMP_SPINCOUNT"]}
-    assert env == {"KMP_BLOCKTIME": "200", "GOMP_SPINCOUNT": THREAD_DEFAULTS["GOMP_SPINCOUNT"]}
+    assert env == {"KMP_BLOCKTIME": "200", "THP_MEM_ALLOC_ENABLE": "0", "GOMP_SPINCOUNT": THREAD_DEFAULTS["GOMP_SPINCOUNT"]}
     assert apply_thread_defaults({OPT_OUT_ENV: "off"}) == {}
 
 
