@@ -14,9 +14,13 @@ and the wall seconds.
 ``seeds``: run folders named ``PREFIX_<street>_<config>_s<seed>`` grouped by street and config: the
 mean and range (min..max) over seeds of the whole image's held-out PSNR, the moving objects' (pooled
 and per class), the gaps from the image to the pooled objects, the cars and the pedestrians, the
-object Gaussians, the foreground iterations and the mean seconds per stage; then, per street, each
+object Gaussians, the foreground iterations, the mean seconds per stage (``metrics.json``: wall, so
+with the load and any pause of the process) and each training stage's iterations times its median
+step's seconds (``log.jsonl``: a paused step or a load spike does not count); then, per street, each
 config against ``--base`` (default ``old``) paired by seed (mean, min..max of the differences) with
-the wall-time ratio per seed.
+the ratios per seed of the wall time and of the median-step training time, the latter also with each
+run's time in units of its own phase 2 (the same work in both runs of a seed: a load gauge; not
+meaningful against plain 3DGS, whose phase 2 takes phase 1's iterations too).
 
 ``count``: the box-pixel count (:func:`~clsplat.models.autosplat.objects.track_box_pixels`) against
 the one before it counted inside each box's rectangle (``count_as_before`` of
@@ -96,8 +100,13 @@ def _run(run: Path) -> dict:
     """One run folder's figures (None where a class has no pixel)."""
     import json
     from collections import Counter
+    import statistics
     m = json.loads((run / "metrics.json").read_text())
-    n = Counter(json.loads(x)["stage"] for x in (run / "log.jsonl").read_text().splitlines())
+    log = [json.loads(x) for x in (run / "log.jsonl").read_text().splitlines()]
+    n = Counter(x["stage"] for x in log)
+    # per stage: iterations x the median step's seconds (a step during which the process was paused, or
+    # a load spike, does not count)
+    med = {k: n[k] * statistics.median(x["time_s"] for x in log if x["stage"] == k) for k in n}
     pc = (m.get("objects") or {}).get("per_class", {})
     cls = {c: pc[c]["psnr"] if c in pc and pc[c]["pixels"] else None for c in ("car", "pedestrian", "other")}
     img, obj = m["all"]["psnr"], m["all"].get("psnr_objects")
@@ -105,7 +114,8 @@ def _run(run: Path) -> dict:
             "gap car": None if cls["car"] is None else img - cls["car"],
             "gap pedestrian": None if cls["pedestrian"] is None else img - cls["pedestrian"],
             "object Gaussians": m["gaussians"]["objects"], "fg iterations": n.get("foreground", 0),
-            "seconds": m["seconds_per_stage"], "wall": m["wall_seconds"]}
+            "seconds": m["seconds_per_stage"], "wall": m["wall_seconds"], "median seconds": med,
+            "train median s": sum(med.values())}
 
 
 def seeds(args) -> None:
@@ -125,8 +135,9 @@ def seeds(args) -> None:
     keys = ("image", "objects", "car", "pedestrian", "other", "gap objects", "gap car", "gap pedestrian")
     stages = ("load", "init", "bg_phase1", "bg_phase2", "foreground", "fusion", "eval")
     print("| street | config | seeds | " + " | ".join(keys) + " | object Gaussians | fg iterations | "
-          "seconds (load / init / phase 1 / phase 2 / fg / fusion / eval) | wall s |")
-    print("|---" * (len(keys) + 7) + "|")
+          "seconds (load / init / phase 1 / phase 2 / fg / fusion / eval) | wall s | "
+          "iterations × median step s (phase 1 / 2 / fg / fusion = sum) |")
+    print("|---" * (len(keys) + 8) + "|")
     for street, cfgs in sorted(groups.items()):
         for cfg, runs in sorted(cfgs.items()):
             rs = [runs[k] for k in sorted(runs)]
@@ -135,9 +146,12 @@ def seeds(args) -> None:
                   + " | ".join(agg([r[k] for r in rs]) for k in keys)
                   + f" | {statistics.mean(r['object Gaussians'] for r in rs):.0f} | "
                   f"{'/'.join(str(r['fg iterations']) for r in rs)} | {sec} | "
-                  f"{statistics.mean(r['wall'] for r in rs):.0f} |")
-    print(f"\n| street | config − {args.base} | seeds | " + " | ".join(keys[:5]) + " | wall ratio per seed |")
-    print("|---" * 9 + "|")
+                  f"{statistics.mean(r['wall'] for r in rs):.0f} | "
+                  + " / ".join(f"{statistics.mean(r['median seconds'].get(k, 0) for r in rs):.0f}" for k in stages[2:6])
+                  + f" = {statistics.mean(r['train median s'] for r in rs):.0f} |")
+    print(f"\n| street | config − {args.base} | seeds | " + " | ".join(keys[:5]) + " | wall ratio per seed | training ratio per seed (iterations × median step s) "
+          "| the same, each run's in units of its own phase 2 |")
+    print("|---" * 11 + "|")
     for street, cfgs in sorted(groups.items()):
         base = cfgs.get(args.base, {})
         for cfg, runs in sorted(cfgs.items()):
@@ -147,8 +161,13 @@ def seeds(args) -> None:
             diff = lambda k: agg([None if runs[s][k] is None or base[s][k] is None  # noqa: E731
                                   else runs[s][k] - base[s][k] for s in common])
             ratio = " / ".join(f"{runs[s]['wall'] / base[s]['wall']:.2f}" for s in common)
+            work = " / ".join(f"{runs[s]['train median s'] / base[s]['train median s']:.2f}" for s in common)
+            # phase 2 is the same work in both runs of a seed (the budget changes the foreground stage and
+            # the object sets only), so its time measures each run's load
+            unit = lambda r: r["train median s"] / r["median seconds"].get("bg_phase2", float("nan"))  # noqa: E731
+            norm = " / ".join(f"{unit(runs[s]) / unit(base[s]):.2f}" for s in common)
             print(f"| {street} | {cfg} − {args.base} | {','.join(map(str, common))} | "
-                  + " | ".join(diff(k) for k in keys[:5]) + f" | {ratio} |")
+                  + " | ".join(diff(k) for k in keys[:5]) + f" | {ratio} | {work} | {norm} |")
 
 
 def count(args) -> None:
