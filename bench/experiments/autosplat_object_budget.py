@@ -20,7 +20,8 @@ step's seconds (``log.jsonl``: a paused step or a load spike does not count); th
 config against ``--base`` (default ``old``) paired by seed (mean, min..max of the differences) with
 the ratios per seed of the wall time and of the median-step training time, the latter also with each
 run's time in units of its own phase 2 (the same work in both runs of a seed: a load gauge; not
-meaningful against plain 3DGS, whose phase 2 takes phase 1's iterations too).
+meaningful against plain 3DGS, whose phase 2 takes phase 1's iterations too), and with ``--times`` the
+whole command's CPU seconds (``/usr/bin/time``; immune to pauses and, mostly, to the load).
 
 ``count``: the box-pixel count (:func:`~clsplat.models.autosplat.objects.track_box_pixels`) against
 the one before it counted inside each box's rectangle (``count_as_before`` of
@@ -96,8 +97,10 @@ def table(args) -> None:
               f"{' / '.join(f'{s.get(k, 0):.0f}' for k in stages)} | {m['wall_seconds']:.0f} |")
 
 
-def _run(run: Path) -> dict:
-    """One run folder's figures (None where a class has no pixel)."""
+def _run(run: Path, times: list[Path] | None = None) -> dict:
+    """One run folder's figures (None where a class has no pixel); ``cpu``: the whole command's user +
+    system seconds from ``<first of times>/<run>.time`` (``/usr/bin/time -f "%e %U %S"``; a rerun of the same
+    command where the run itself was not timed) where there is one."""
     import json
     from collections import Counter
     import statistics
@@ -115,7 +118,15 @@ def _run(run: Path) -> dict:
             "gap pedestrian": None if cls["pedestrian"] is None else img - cls["pedestrian"],
             "object Gaussians": m["gaussians"]["objects"], "fg iterations": n.get("foreground", 0),
             "seconds": m["seconds_per_stage"], "wall": m["wall_seconds"], "median seconds": med,
-            "train median s": sum(med.values())}
+            "train median s": sum(med.values()), "cpu": _cpu(run, times)}
+
+
+def _cpu(run: Path, times: list[Path] | None) -> float | None:
+    f = next((d / f"{run.name}.time" for d in times or [] if (d / f"{run.name}.time").is_file()), None)
+    if f is None:
+        return None
+    _, user, system = (float(x) for x in f.read_text().split()[-3:])
+    return user + system
 
 
 def seeds(args) -> None:
@@ -126,7 +137,7 @@ def seeds(args) -> None:
     for run in map(Path, args.runs):
         g = name.match(run.name)
         if g and (run / "metrics.json").is_file():
-            groups.setdefault(g["street"], {}).setdefault(g["config"], {})[int(g["seed"])] = _run(run)
+            groups.setdefault(g["street"], {}).setdefault(g["config"], {})[int(g["seed"])] = _run(run, args.times)
 
     def agg(v: list) -> str:
         v = [x for x in v if x is not None]
@@ -136,8 +147,8 @@ def seeds(args) -> None:
     stages = ("load", "init", "bg_phase1", "bg_phase2", "foreground", "fusion", "eval")
     print("| street | config | seeds | " + " | ".join(keys) + " | object Gaussians | fg iterations | "
           "seconds (load / init / phase 1 / phase 2 / fg / fusion / eval) | wall s | "
-          "iterations × median step s (phase 1 / 2 / fg / fusion = sum) |")
-    print("|---" * (len(keys) + 8) + "|")
+          "iterations × median step s (phase 1 / 2 / fg / fusion = sum) | CPU s (command) |")
+    print("|---" * (len(keys) + 9) + "|")
     for street, cfgs in sorted(groups.items()):
         for cfg, runs in sorted(cfgs.items()):
             rs = [runs[k] for k in sorted(runs)]
@@ -148,10 +159,11 @@ def seeds(args) -> None:
                   f"{'/'.join(str(r['fg iterations']) for r in rs)} | {sec} | "
                   f"{statistics.mean(r['wall'] for r in rs):.0f} | "
                   + " / ".join(f"{statistics.mean(r['median seconds'].get(k, 0) for r in rs):.0f}" for k in stages[2:6])
-                  + f" = {statistics.mean(r['train median s'] for r in rs):.0f} |")
+                  + f" = {statistics.mean(r['train median s'] for r in rs):.0f} | "
+                  + ("/".join("–" if r["cpu"] is None else f"{r['cpu']:.0f}" for r in rs)) + " |")
     print(f"\n| street | config − {args.base} | seeds | " + " | ".join(keys[:5]) + " | wall ratio per seed | training ratio per seed (iterations × median step s) "
-          "| the same, each run's in units of its own phase 2 |")
-    print("|---" * 11 + "|")
+          "| the same, each run's in units of its own phase 2 | CPU ratio per seed (command) |")
+    print("|---" * 12 + "|")
     for street, cfgs in sorted(groups.items()):
         base = cfgs.get(args.base, {})
         for cfg, runs in sorted(cfgs.items()):
@@ -166,8 +178,10 @@ def seeds(args) -> None:
             # the object sets only), so its time measures each run's load
             unit = lambda r: r["train median s"] / r["median seconds"].get("bg_phase2", float("nan"))  # noqa: E731
             norm = " / ".join(f"{unit(runs[s]) / unit(base[s]):.2f}" for s in common)
+            cpu = " / ".join("–" if runs[s]["cpu"] is None or base[s]["cpu"] is None
+                             else f"{runs[s]['cpu'] / base[s]['cpu']:.2f}" for s in common)
             print(f"| {street} | {cfg} − {args.base} | {','.join(map(str, common))} | "
-                  + " | ".join(diff(k) for k in keys[:5]) + f" | {ratio} | {work} | {norm} |")
+                  + " | ".join(diff(k) for k in keys[:5]) + f" | {ratio} | {work} | {norm} | {cpu} |")
 
 
 def count(args) -> None:
@@ -236,6 +250,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--set", action="append", default=None, metavar="FIELD=VALUE")
     ap.add_argument("--out", default="/tmp/autosplat_object_budget")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--times", type=Path, nargs="+", default=None,
+                    help="seeds: folders of /usr/bin/time outputs RUN.time (the first that has one)")
     ap.add_argument("--base", default="old", help="seeds: the config the others are paired against")
     ap.add_argument("--repeats", type=int, default=3, help="count: timings of each (medians reported)")
     args = ap.parse_args(argv)
