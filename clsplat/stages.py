@@ -68,10 +68,11 @@ def project(rt: Runtime, cfg: RenderConfig, means: DeviceArray, quats: DeviceArr
     C, N = viewmats.tensor.shape[0], means.tensor.shape[0]
     dt = cfg.dtype
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
+    # the kernel writes every entry, a culled pair's as zeros: no host fill
+    e = lambda shape, t=dt: rt.empty(shape, t, zero=False)  # noqa: E731
     out = Projection(
-        means2d=rt.empty((C, N, 2), dt), conics=rt.empty((C, N, 3), dt), depths=rt.empty((C, N), dt),
-        radii=rt.empty((C, N, 2), torch.int32), opacities=rt.empty((C, N), dt),
-        rects=rt.empty((C, N, 4), torch.int32), extents=rt.empty((C, N, 2), dt))
+        means2d=e((C, N, 2)), conics=e((C, N, 3)), depths=e((C, N)), radii=e((C, N, 2), torch.int32),
+        opacities=e((C, N)), rects=e((C, N, 4), torch.int32), extents=e((C, N, 2)))
     k = rt.kernel("project", "project", cfg.defines(tile_size) | {
         "ANTIALIASED": antialiased, "CLS_POCL_CPU": rt.is_pocl_cpu}, cfg.fast_math)
     R = _np_real(cfg)
@@ -92,7 +93,7 @@ def sh_colors(rt: Runtime, cfg: RenderConfig, means: DeviceArray, viewmats: Devi
     radii [C,N,2]: culled pairs (radii 0) are skipped and keep colour 0.
     """
     C, N = viewmats.tensor.shape[0], means.tensor.shape[0]
-    colors = rt.empty((C, N, 3), cfg.dtype)
+    colors = rt.empty((C, N, 3), cfg.dtype, zero=False)  # every entry written (culled: zeros)
     defines = {"REAL_DOUBLE": cfg.precision == "float64", "SH_DEGREE": sh_degree,
                "SH_COEFFS": coeffs.tensor.shape[1]}
     k = rt.kernel("sh", "sh_colors", defines, cfg.fast_math)

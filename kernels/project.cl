@@ -32,9 +32,16 @@ __kernel void project(const int C, const int N,
     __global const REAL *vm = viewmats + 16 * c;
     __global const REAL *K = Ks + 9 * c;
 
+    /* A culled pair's outputs are zeros, written here rather than by a host fill of every
+     * array before the launch: the first touch of fresh memory then happens on the device's
+     * cores, once (a visible pair's values overwrite these in the same cache lines). */
     radii[2 * cg] = 0;
     radii[2 * cg + 1] = 0;
     rects[4 * cg] = rects[4 * cg + 1] = rects[4 * cg + 2] = rects[4 * cg + 3] = 0;
+    means2d[2 * cg] = means2d[2 * cg + 1] = 0;
+    conics[3 * cg] = conics[3 * cg + 1] = conics[3 * cg + 2] = 0;
+    opac_cg[cg] = 0;
+    extents[2 * cg] = extents[2 * cg + 1] = 0;
 
     const REAL3 m = (REAL3)(means[3 * g], means[3 * g + 1], means[3 * g + 2]);
     const REAL3 p = (REAL3)(vm[0] * m.x + vm[1] * m.y + vm[2] * m.z + vm[3],

@@ -16,7 +16,10 @@ __kernel void sh_colors(const int C, const int N,
 {
     const int cg = get_global_id(0);
     if (cg >= C * N) return;
-    if (radii[2 * cg] == 0 && radii[2 * cg + 1] == 0) return;
+    if (radii[2 * cg] == 0 && radii[2 * cg + 1] == 0) { /* culled: zeros (no host fill) */
+        colors[(size_t)cg * 3] = colors[(size_t)cg * 3 + 1] = colors[(size_t)cg * 3 + 2] = 0;
+        return;
+    }
     const int c = cg / N, g = cg - c * N;
     const REAL3 dir = normalize((REAL3)(means[3 * g], means[3 * g + 1], means[3 * g + 2]) -
                                 camera_centre(viewmats + 16 * c));
