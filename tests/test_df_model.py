@@ -486,3 +486,26 @@ def test_pose_sign_test_decides_once_per_window_within_its_steps(sample):
             TINY.replace(pose_sign_test=bad)
     with pytest.raises(ValueError, match="pose_sign_test_window"):
         TINY.replace(pose_sign_test_window=0)
+
+
+def _sign_test_rank(rank: int, init: str, deltas: tuple, out: str) -> None:
+    import clsplat  # noqa: F401  (the thread defaults, as every entry point)
+    import torch.distributed as dist
+    torch.set_num_threads(1)
+    dist.init_process_group("gloo", init_method=init, rank=rank, world_size=2)
+    net = DrivingForward(TINY.replace(pose_sign_test=4, pose_sign_test_window=2)).pose_net
+    net.sign_test_accumulate(deltas[rank])
+    flipped = net.sign_test_decide(2)
+    dist.destroy_process_group()
+    torch.save({"flipped": flipped, "sign": float(net.translation_sign)}, f"{out}.{rank}")
+
+
+@pytest.mark.slow   # spawns two interpreters
+def test_pose_sign_test_decides_the_same_in_every_process(tmp_path):
+    """Under torchrun the window's sums are added over the processes before the decision: rank 1's
+    own sample (-0.1) would keep the sign, the two together (+0.2) flip it, in both processes."""
+    import torch.multiprocessing as mp
+    out = str(tmp_path / "r")
+    mp.spawn(_sign_test_rank, args=(f"file://{tmp_path / 'init'}", (0.3, -0.1), out), nprocs=2, join=True)
+    got = [torch.load(f"{out}.{r}") for r in (0, 1)]
+    assert got == [{"flipped": True, "sign": -1.0}] * 2

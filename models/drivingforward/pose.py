@@ -245,13 +245,16 @@ class PoseNetwork(nn.Module):
         """At the first call of a step ``0 < step <= pose_sign_test`` that ends a window of
         ``pose_sign_test_window`` steps: flip the translation's sign if the window's summed
         difference is above 0 (the negated branch had the lower loss), and start a new window.
-        Returns whether it flipped. With several processes (torchrun) each one would decide on its
-        own samples: the test is for one process."""
+        Returns whether it flipped. With several processes (torchrun) the windows' sums are added
+        over the processes first, so every process makes the same decision on all the samples."""
         p = self.preset
         w = p.pose_sign_test_window
         if step <= 0 or step > p.pose_sign_test or step % w or int(self.sign_test_last) == step:
             return False
         self.sign_test_last.fill_(step)
+        if torch.distributed.is_available() and torch.distributed.is_initialized() \
+                and torch.distributed.get_world_size() > 1:
+            torch.distributed.all_reduce(self.sign_test_sum)   # one decision, the same everywhere
         flip = bool(self.sign_test_sum > 0)
         if flip:
             self.translation_sign.neg_()
