@@ -14,10 +14,12 @@ pytestmark = pytest.mark.slow   # every test trains the tiny preset (the module'
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
+    # every run of this module on one torch thread: the tests compare their weights bit for bit, and
+    # the default thread count follows the machine's load (a sum in another order)
     root = tmp_path_factory.mktemp("pgt")
     base, budget = root / "base", root / "budget"
-    assert train(["--stage", "base", "--preset", "tiny", "--steps", "2", "--out", str(base)]) == 0
-    assert train(["--stage", "budget", "--init", str(base / "checkpoint.pt"), "--preset", "tiny",
+    assert train(["--stage", "base", "--preset", "tiny", "--threads", "1", "--steps", "2", "--out", str(base)]) == 0
+    assert train(["--stage", "budget", "--init", str(base / "checkpoint.pt"), "--preset", "tiny", "--threads", "1",
                   "--steps", "2", "--out", str(budget)]) == 0
     return root
 
@@ -46,7 +48,7 @@ def test_issue18_budget_stage_trains_on_many_views_from_a_base_with_other_budget
     sets = ["budget_views=4", "selection='stratified'", "importance_head=True", "coverage_input=True",
             "target='density'", "kappa_schedule='log_uniform'", "kappa_min=0.02", "fill_cap_px=8.0",
             "budget_colour=True"]
-    assert train(["--stage", "budget", "--init", str(runs / "base" / "checkpoint.pt"), "--preset", "tiny",
+    assert train(["--stage", "budget", "--init", str(runs / "base" / "checkpoint.pt"), "--preset", "tiny", "--threads", "1",
                   "--steps", "2", "--eval-scenes", "0", "--out", str(out)] + [a for s in sets for a in ("--set", s)]) == 0
     ck = torch.load(out / "checkpoint.pt", weights_only=True)
     base = torch.load(runs / "base" / "checkpoint.pt", weights_only=True)["model"]
@@ -55,7 +57,7 @@ def test_issue18_budget_stage_trains_on_many_views_from_a_base_with_other_budget
     logs = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     assert all(0.02 <= r["kappa"] <= 0.95 for r in logs)
     # another base network is still refused by name
-    assert train(["--stage", "budget", "--init", str(runs / "base" / "checkpoint.pt"), "--preset", "tiny",
+    assert train(["--stage", "budget", "--init", str(runs / "base" / "checkpoint.pt"), "--preset", "tiny", "--threads", "1",
                   "--set", "head_channels=8", "--steps", "1", "--out", str(tmp_path / "bad")]) == 2
 
 
@@ -65,7 +67,7 @@ def test_budget_stage_with_kappa_in_the_decoder_trains_and_evaluates(runs, tmp_p
     checkpoint's preset and keeps exact counts, with κ = 1 the base model for the naive rows and
     the finetuned parameters unpruned for the others."""
     out = tmp_path / "kd"
-    assert train(["--stage", "budget", "--init", str(runs / "base" / "checkpoint.pt"), "--preset", "tiny",
+    assert train(["--stage", "budget", "--init", str(runs / "base" / "checkpoint.pt"), "--preset", "tiny", "--threads", "1",
                   "--steps", "2", "--eval-scenes", "0", "--set", "kappa_decoder=2", "--set", "budget_views=4",
                   "--set", "selection='stratified'", "--set", "importance_head=True", "--out", str(out)]) == 0
     ck = torch.load(out / "checkpoint.pt", weights_only=True)["model"]
@@ -100,12 +102,12 @@ def test_base_stage_resumes_bitwise(runs, tmp_path, monkeypatch):
     out = tmp_path / "resumed"
     monkeypatch.setattr(training, "make_sample_loss", interrupted)
     with pytest.raises(KeyboardInterrupt):
-        train(["--preset", "tiny", "--steps", "2", "--checkpoint-every", "1", "--out", str(out)])
+        train(["--preset", "tiny", "--threads", "1", "--steps", "2", "--checkpoint-every", "1", "--out", str(out)])
     monkeypatch.setattr(training, "make_sample_loss", real)
     # the unfinished run stays staged; the folder gets its outputs only when a run completes
     assert torch.load(out / ".staging" / "checkpoint.pt", weights_only=True)["step"] == 1
     assert not (out / "checkpoint.pt").exists()
-    assert train(["--preset", "tiny", "--steps", "2", "--out", str(out), "--resume"]) == 0
+    assert train(["--preset", "tiny", "--threads", "1", "--steps", "2", "--out", str(out), "--resume"]) == 0
     a = torch.load(out / "checkpoint.pt", weights_only=True)["model"]
     b = torch.load(runs / "base" / "checkpoint.pt", weights_only=True)["model"]
     assert all(torch.equal(a[k], b[k]) for k in b)
@@ -232,7 +234,7 @@ def test_view_serves_the_run_and_leaves_it_unchanged(runs, tmp_path, capsys):
     on a held-out sample, and the run's weights are bitwise those of the same run unwatched."""
     pytest.importorskip("viser", reason="the view extra is not installed")
     out = tmp_path / "viewed"
-    assert train(["--stage", "base", "--preset", "tiny", "--steps", "2", "--out", str(out), "--view",
+    assert train(["--stage", "base", "--preset", "tiny", "--threads", "1", "--steps", "2", "--out", str(out), "--view",
                   "--view-port", "0"]) == 0
     assert "clsplat train --view: watch the run at http://127.0.0.1:" in capsys.readouterr().out
     a = torch.load(out / "checkpoint.pt", weights_only=True)["model"]
