@@ -488,24 +488,35 @@ def test_pose_sign_test_decides_once_per_window_within_its_steps(sample):
         TINY.replace(pose_sign_test_window=0)
 
 
-def _sign_test_rank(rank: int, init: str, deltas: tuple, out: str) -> None:
-    import clsplat  # noqa: F401  (the thread defaults, as every entry point)
-    import torch.distributed as dist
-    torch.set_num_threads(1)
-    dist.init_process_group("gloo", init_method=init, rank=rank, world_size=2)
-    net = DrivingForward(TINY.replace(pose_sign_test=4, pose_sign_test_window=2)).pose_net
-    net.sign_test_accumulate(deltas[rank])
-    flipped = net.sign_test_decide(2)
-    dist.destroy_process_group()
-    torch.save({"flipped": flipped, "sign": float(net.translation_sign)}, f"{out}.{rank}")
+_SIGN_TEST_RANK = """
+import json, sys
+import clsplat  # noqa: F401  (the thread defaults, as every entry point)
+import torch
+import torch.distributed as dist
+from clsplat.models.common.presets import get_preset
+from clsplat.models.drivingforward.model import DrivingForward
+rank, init = int(sys.argv[1]), sys.argv[2]
+torch.set_num_threads(1)
+dist.init_process_group("gloo", init_method=init, rank=rank, world_size=2)
+p = get_preset("drivingforward", "tiny").replace(pose_sign_test=4, pose_sign_test_window=2)
+net = DrivingForward(p).pose_net
+net.sign_test_accumulate((0.3, -0.1)[rank])
+flipped = net.sign_test_decide(2)
+dist.destroy_process_group()
+print(json.dumps({"flipped": flipped, "sign": float(net.translation_sign)}))
+"""
 
 
 @pytest.mark.slow   # spawns two interpreters
 def test_pose_sign_test_decides_the_same_in_every_process(tmp_path):
     """Under torchrun the window's sums are added over the processes before the decision: rank 1's
     own sample (-0.1) would keep the sign, the two together (+0.2) flip it, in both processes."""
-    import torch.multiprocessing as mp
-    out = str(tmp_path / "r")
-    mp.spawn(_sign_test_rank, args=(f"file://{tmp_path / 'init'}", (0.3, -0.1), out), nprocs=2, join=True)
-    got = [torch.load(f"{out}.{r}") for r in (0, 1)]
-    assert got == [{"flipped": True, "sign": -1.0}] * 2
+    import json
+    import subprocess
+    import sys
+    init = f"file://{tmp_path / 'init'}"
+    procs = [subprocess.Popen([sys.executable, "-c", _SIGN_TEST_RANK, str(r), init], stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for r in (0, 1)]
+    outs = [p.communicate(timeout=300) for p in procs]
+    assert all(p.returncode == 0 for p in procs), [e[-2000:] for _, e in outs]
+    assert [json.loads(o.strip().splitlines()[-1]) for o, _ in outs] == [{"flipped": True, "sign": -1.0}] * 2
