@@ -104,8 +104,8 @@ def view_main(argv: list[str]) -> int:
         viewer = Viewer(scene, host=a.host, port=a.port, device=a.device, render_width=a.render_width, up=a.up)
     except ValueError as e:
         return _fail("clsplat view", e)
-    print(f"clsplat view: {scene.title}, {len(scene)} Gaussians; open {viewer.url} (Ctrl-C stops)", flush=True)
-    try:
+    try:  # the address inside: a Ctrl-C as soon as it shows still stops cleanly
+        print(f"clsplat view: {scene.title}, {len(scene)} Gaussians; open {viewer.url} (Ctrl-C stops)", flush=True)
         viewer.wait()
     except KeyboardInterrupt:
         viewer.stop()
