@@ -339,6 +339,8 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--scenes: unknown {bad or a.scenes!r}; choose from {','.join(SCENES)}")
     if a.repeats < 1:
         p.error("--repeats must be >= 1")
+    if a.torch_max_n < 0:
+        p.error("--torch-max-n must be >= 0 (0: no torch peer)")
     if a.opensplat is not None and not (Path(a.opensplat) / OPENSPLAT_SOURCE).is_file():
         p.error(f"--opensplat: {Path(a.opensplat) / OPENSPLAT_SOURCE} not found (expected an OpenSplat source tree)")
     res = run(names, a.repeats, a.opensplat, a.build_dir, a.torch_max_n)

@@ -35,7 +35,7 @@ def test_the_torch_peer_stops_at_its_size_limit(tmp_path):
 
 def test_bad_arguments_are_named(tmp_path, capsys):
     for argv, name in ((["--opensplat", str(tmp_path)], "--opensplat"), (["--scenes", "huge"], "--scenes"),
-                       (["--repeats", "0"], "--repeats")):
+                       (["--repeats", "0"], "--repeats"), (["--torch-max-n", "-1"], "--torch-max-n")):
         with pytest.raises(SystemExit) as e:
             main(["peers", *argv, "--out", str(tmp_path / "o")])
         err = capsys.readouterr().err
