@@ -252,7 +252,9 @@ class Densifier:
                 continue
             growable = g.labels != self.sky if key == "background" else torch.ones(len(g), dtype=torch.bool)
             res = densify_and_prune(
-                g, self.stats[key], opt, grad_threshold=p.grad_threshold,
+                g, self.stats[key], opt,
+                grad_threshold=p.grad_threshold if key == "background" or not p.object_grad_threshold
+                else p.object_grad_threshold,
                 split_scale=p.split_scale if key == "background" else p.object_split_scale,
                 prune_opacity=p.prune_opacity, prune_scale=p.prune_scale,
                 max_gaussians=self.cap(key, stage, len(g)), growable=growable, generator=generator)

@@ -87,6 +87,11 @@ class AutoSplatPreset(Preset):
     lr_residual: float = 1e-3
     lr_pose: float = 2e-3
     lr_sky: float = 1e-2
+    # issue 36 (small objects): the object sets' learning rates (means, quats, scales, opacity, SH)
+    # are the background's times object_lr_scale; their densification threshold is
+    # object_grad_threshold (0: grad_threshold, as before). 1.0 / 0.0: bit for bit the runs before.
+    object_lr_scale: float = 1.0
+    object_grad_threshold: float = 0.0
     residual_width: int = 64
     time_frequencies: int = 4
     position_frequencies: int = 2
@@ -140,6 +145,12 @@ class AutoSplatPreset(Preset):
             v = getattr(self, f)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < float("inf"):
                 raise bad(f, "expected a finite number >= 0")
+        for f in ("object_lr_scale", "object_grad_threshold"):
+            v = getattr(self, f)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < float("inf"):
+                raise bad(f, "expected a finite number >= 0")
+        if self.object_lr_scale == 0:
+            raise bad("object_lr_scale", "must be > 0")
         for f in ("fg_steps_max", "object_points_min"):
             if isinstance(getattr(self, f), bool) or not isinstance(getattr(self, f), int):
                 raise bad(f, "expected an integer")

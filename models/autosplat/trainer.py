@@ -178,7 +178,8 @@ class Trainer(LoopHooks):
 
         for key, g in (("background", m.background), *((f"object{k}", o) for k, o in enumerate(m.objects))):
             for kind in _KINDS:
-                add(key, [getattr(g, kind)], lrs[kind], decay=kind == "means")
+                scale = 1.0 if key == "background" else p.object_lr_scale
+                add(key, [getattr(g, kind)], lrs[kind] * scale, decay=kind == "means")
         add("residuals", m.residuals.parameters(), p.lr_residual)
         add("pose", [m.pose.delta], p.lr_pose)
         add("sky", [m.sky_color], p.lr_sky)
