@@ -536,4 +536,30 @@ inline REAL3 camera_centre(__global const REAL *vm) {
 #define S_CC(k) l_conic[3 * (k) + 2]
 #endif
 
+/* ---- the backward compositors' common interface (composite_bwd*.cl; reduce.cl reads the slots) */
+/* RenderConfig.backward_impl picks one of two kernels with one argument list (the runtime sets
+ * the same arguments for either) and one slot layout (reduce.cl sums it), declared here once. G_GEOM:
+ * geometry values per slot (v_xy, v_conic, v_opacity, |v_xy| with ABSGRAD) in the geometry
+ * launch; WIDE: channels come from global memory when they do not fit in one chunk. */
+#define G_GEOM (GEOM_GRAD ? (ABSGRAD ? 8 : 6) : 0)
+#define WIDE (CHANNELS > CCHUNK)
+#define COMPOSITE_BWD_ARGS                                                                   \
+    const int width, const int height, const int tiles_x, const int tiles_per_cam,          \
+    const int N, const int ch0,                                                             \
+    __global const int *tile_offsets,  /* [C * tiles_per_cam + 1] */                        \
+    __global const ulong *keys,        /* [M] sorted per segment */                         \
+    __global const int *rects,         /* [C, N, 4] */                                      \
+    __global const int *isect_offsets, /* [C * N] first slot of each pair */                \
+    __global const REAL *means2d,      /* [C, N, 2] */                                      \
+    __global const REAL *conics,       /* [C, N, 3] */                                      \
+    __global const REAL *opac_cg,      /* [C, N] */                                         \
+    __global const REAL *extents,      /* [C, N, 2] */                                      \
+    __global const REAL *feats,        /* [C, N, CHANNELS] */                               \
+    __global const REAL *out_feats,    /* [C, H, W, CHANNELS] forward result */             \
+    __global const REAL *out_T,        /* [C, H, W] */                                      \
+    __global const int *out_last,      /* [C, H, W] */                                      \
+    __global const REAL *v_out,        /* [C, H, W, CHANNELS] */                            \
+    __global const REAL *v_T,          /* [C, H, W] */                                      \
+    __global REAL *slots               /* [M, SLOT_G] */
+
 #endif /* CLSPLAT_COMMON_H */

@@ -58,34 +58,16 @@
 
 #define GROUP (TILE * TILE / PIX)
 #define ITEMS_PER_ROW (TILE / PIX)
-#define G_GEOM (GEOM_GRAD ? (ABSGRAD ? 8 : 6) : 0)
 #define PG (G_GEOM + (COLOR_GRAD ? CCHUNK : 0)) /* partials per item and sample, this launch */
 #if CLS_TUNED
 /* Partials per item and batch, padded to whole vectors so the group sum can read CLS_MV
  * consecutive values (of consecutive samples and values) as one vector. */
 #define PB ((BATCH * PG + CLS_MV - 1) / CLS_MV * CLS_MV)
 #endif
-#define WIDE (CHANNELS > CCHUNK)
 #define WAVE (GROUP / WAVES)
 
 __kernel __attribute__((reqd_work_group_size(GROUP, 1, 1)))
-void composite_bwd(const int width, const int height, const int tiles_x, const int tiles_per_cam,
-                   const int N, const int ch0,
-                   __global const int *tile_offsets, /* [C * tiles_per_cam + 1] */
-                   __global const ulong *keys,       /* [M] sorted per segment */
-                   __global const int *rects,        /* [C, N, 4] */
-                   __global const int *isect_offsets,/* [C * N] first slot of each pair */
-                   __global const REAL *means2d,     /* [C, N, 2] */
-                   __global const REAL *conics,      /* [C, N, 3] */
-                   __global const REAL *opac_cg,     /* [C, N] */
-                   __global const REAL *extents,     /* [C, N, 2] */
-                   __global const REAL *feats,       /* [C, N, CHANNELS] */
-                   __global const REAL *out_feats,   /* [C, H, W, CHANNELS] forward result */
-                   __global const REAL *out_T,       /* [C, H, W] */
-                   __global const int *out_last,     /* [C, H, W] */
-                   __global const REAL *v_out,       /* [C, H, W, CHANNELS] */
-                   __global const REAL *v_T,         /* [C, H, W] */
-                   __global REAL *slots)             /* [M, SLOT_G] */
+void composite_bwd(COMPOSITE_BWD_ARGS)
 {
 #if CLS_TUNED
     __local MVREAL l_xv[NPAD / CLS_MV], l_yv[NPAD / CLS_MV], l_bxv[NPAD / CLS_MV], l_byv[NPAD / CLS_MV];

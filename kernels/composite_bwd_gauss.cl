@@ -37,8 +37,6 @@
 
 #define NSEG (TILE * TILE / PIX) /* row segments of PIX pixels in a tile */
 #define SEGS_PER_ROW (TILE / PIX)
-#define G_GEOM (GEOM_GRAD ? (ABSGRAD ? 8 : 6) : 0)
-#define WIDE (CHANNELS > CCHUNK)
 /* Samples ahead whose parameters are prefetched (PoCL's CPU device): the next sample's loads
  * are random Gaussians, a cache miss each, and a sample costs a few hundred cycles. */
 #ifndef PREFETCH_AHEAD /* (a -D for side-by-side timings) */
@@ -55,23 +53,7 @@ inline int2 index_range(REAL c, REAL bound, REAL base, int n) {
 }
 
 __kernel __attribute__((reqd_work_group_size(1, 1, 1)))
-void composite_bwd_gauss(const int width, const int height, const int tiles_x, const int tiles_per_cam,
-                         const int N, const int ch0,
-                         __global const int *tile_offsets, /* [C * tiles_per_cam + 1] */
-                         __global const ulong *keys,       /* [M] sorted per segment */
-                         __global const int *rects,        /* [C, N, 4] */
-                         __global const int *isect_offsets,/* [C * N] first slot of each pair */
-                         __global const REAL *means2d,     /* [C, N, 2] */
-                         __global const REAL *conics,      /* [C, N, 3] */
-                         __global const REAL *opac_cg,     /* [C, N] */
-                         __global const REAL *extents,     /* [C, N, 2] */
-                         __global const REAL *feats,       /* [C, N, CHANNELS] */
-                         __global const REAL *out_feats,   /* [C, H, W, CHANNELS] forward result */
-                         __global const REAL *out_T,       /* [C, H, W] */
-                         __global const int *out_last,     /* [C, H, W] */
-                         __global const REAL *v_out,       /* [C, H, W, CHANNELS] */
-                         __global const REAL *v_T,         /* [C, H, W] */
-                         __global REAL *slots)             /* [M, SLOT_G] */
+void composite_bwd_gauss(COMPOSITE_BWD_ARGS)
 {
     /* Per-segment state: T (running), B (running), the last contributor's position, v_T T_final,
      * v_out of this launch's channels [channel][segment], and each segment's largest last. */

@@ -9,7 +9,7 @@
  * Build parameters: REAL_DOUBLE, CHANNELS, GEOM_GRAD, COLOR_GRAD, ABSGRAD.
  */
 
-#define G_GEOM (GEOM_GRAD ? (ABSGRAD ? 8 : 6) : 0)
+/* G_GEOM: common.h, the slot layout the backward compositors write */
 #define G (G_GEOM + (COLOR_GRAD ? CHANNELS : 0))
 
 __kernel void reduce_slots(const int CN,
