@@ -70,20 +70,20 @@ def _finite_grad(name: str, g: torch.Tensor | None) -> None:
                          "gradient is not finite")
 
 
-def _grad_or_zeros(g: torch.Tensor | None, shape: tuple, dtype: torch.dtype) -> torch.Tensor:
-    return torch.zeros(shape, dtype=dtype) if g is None else g.contiguous().to(dtype)
-
-
 class ProjectFn(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, viewmats, Ks, s: Settings):
         rt, arr = s.rt, s.rt.array
-        inputs = {n: arr(t) for n, t in zip(("means", "quats", "scales", "opacities", "viewmats", "Ks"),
-                                            (means, quats, scales, opacities, viewmats, Ks))}
+        # (kept for the next call: parameters and cameras are passed again)
+        inputs = {n: arr(t, keep=True) for n, t in zip(
+            ("means", "quats", "scales", "opacities", "viewmats", "Ks"),
+            (means, quats, scales, opacities, viewmats, Ks))}
         p = stages.project(rt, s.cfg, *inputs.values(), s.width, s.height, s.tile_size,
                            near_plane=s.near_plane, far_plane=s.far_plane, eps2d=s.eps2d,
                            radius_clip=s.radius_clip, antialiased=s.antialiased, events=s.events)
-        outs = read_back(p.means2d, p.conics, p.depths, p.opacities, p.radii, p.rects, p.extents)
+        # (aliases: autograd sets its node on the tensors returned, never on a pooled array's own)
+        outs = [t.detach() for t in read_back(p.means2d, p.conics, p.depths, p.opacities, p.radii,
+                                                p.rects, p.extents)]
         p.rects.read_only = True  # no later command writes the rectangles: read without a wait
         if s.arrays is None:
             s.arrays = {}
@@ -103,19 +103,18 @@ class ProjectFn(torch.autograd.Function):
         means, quats, scales, opacities, viewmats, Ks, radii = ctx.saved_tensors
         C, N = radii.shape[:2]
         dt = s.cfg.dtype
-        grads = {"v_means2d": _grad_or_zeros(v_means2d, (C, N, 2), dt),
-                 "v_conics": _grad_or_zeros(v_conics, (C, N, 3), dt),
-                 "v_depths": _grad_or_zeros(v_depths, (C, N), dt),
-                 "v_opacities": _grad_or_zeros(v_opac, (C, N), dt)}
         rt = s.rt
+        grads = {"v_means2d": rt.staged(v_means2d, (C, N, 2), dt),
+                 "v_conics": rt.staged(v_conics, (C, N, 3), dt),
+                 "v_depths": rt.staged(v_depths, (C, N), dt),
+                 "v_opacities": rt.staged(v_opac, (C, N), dt)}
         inputs = ctx.arrays
         ctx.arrays = None  # (a second backward needs retain_graph, and finds them gone: remade)
         if inputs is None:
             inputs = {n: rt.array(t.detach()) for n, t in zip(
                 ("means", "quats", "scales", "opacities", "viewmats", "Ks"),
                 (means, quats, scales, opacities, viewmats, Ks))}
-        out = stages.project_bwd(rt, s.cfg, inputs, _array(s, radii),
-                                 {k: rt.array(v) for k, v in grads.items()}, s.width, s.height,
+        out = stages.project_bwd(rt, s.cfg, inputs, _array(s, radii), grads, s.width, s.height,
                                  eps2d=s.eps2d, antialiased=s.antialiased,
                                  viewmat_grad=ctx.needs_input_grad[4], events=s.events)
         need = ctx.needs_input_grad
@@ -140,8 +139,9 @@ class ShFn(torch.autograd.Function):
         rt, arr = s.rt, s.rt.array
         ctx.orig_viewmats = viewmats.detach()
         viewmats = _centre_viewmats(ctx.orig_viewmats)
-        colors = stages.sh_colors(rt, s.cfg, arr(means), arr(viewmats), arr(coeffs), _array(s, radii),
-                                  s.sh_degree, events=s.events).host()
+        colors = stages.sh_colors(rt, s.cfg, arr(means, keep=True), arr(viewmats), arr(coeffs, keep=True),
+                                  _array(s, radii),
+                                  s.sh_degree, events=s.events).host().detach()  # (an alias: see ProjectFn)
         ctx.save_for_backward(coeffs, means, viewmats, radii, colors)
         ctx.s = s
         return colors
@@ -155,8 +155,9 @@ class ShFn(torch.autograd.Function):
             return None, None, None, None, None
         rt, arr = s.rt, s.rt.array
         v_coeffs, v_means, v_dirs = stages.sh_colors_bwd(
-            rt, s.cfg, arr(means.detach()), arr(viewmats.detach()), arr(coeffs.detach()),
-            _array(s, radii), arr(colors), arr(v_colors.contiguous()), s.sh_degree, need_means, need_view,
+            rt, s.cfg, arr(means.detach(), keep=True), arr(viewmats.detach()), arr(coeffs.detach(), keep=True),
+            _array(s, radii), arr(colors), rt.staged(v_colors, tuple(colors.shape), colors.dtype),
+            s.sh_degree, need_means, need_view,
             events=s.events)
         v_view = None
         if need_view:  # direction = mean - centre, centre = inverse(viewmats)[:3, 3] as in
@@ -174,7 +175,7 @@ class RasterizeFn(torch.autograd.Function):
     def forward(ctx, means2d, conics, opacities, feats, rects, extents, depths, s: Settings):
         rt, cfg, arr = s.rt, s.cfg, s.rt.array
         a = {"means2d": arr(means2d.detach()), "conics": arr(conics.detach()),
-             "opacities": arr(opacities.detach()), "feats": arr(feats.detach()),
+             "opacities": arr(opacities.detach()), "feats": arr(feats.detach(), keep=True),
              "rects": _array(s, rects, read_only=True), "extents": _array(s, extents)}
         want_grad = any(ctx.needs_input_grad[:4])  # False under no_grad or for constants
         per_isect = plan.intersection_bytes(feats.shape[-1], feats.element_size(), grad=want_grad,
@@ -186,6 +187,7 @@ class RasterizeFn(torch.autograd.Function):
                                         a["extents"], a["feats"], offsets, keys, s.width, s.height,
                                         s.tile_size, save_last=want_grad, events=s.events)
         out_t, T_t, off_t, keys_t = read_back(out, T, offsets, keys)
+        out_t, T_t = out_t.detach(), T_t.detach()  # (aliases: see ProjectFn)
         ctx.s = s
         # The outputs are saved tensors, never held in ctx.fwd: out.tensor is out_t, and
         # output -> grad_fn -> ctx -> array -> output would be a cycle the GC cannot free.
@@ -209,12 +211,12 @@ class RasterizeFn(torch.autograd.Function):
         rt, cfg = s.rt, s.cfg
         out_t, T_t = ctx.saved_tensors
         fwd = dict(fwd, out=rt.array(out_t), T=rt.array(T_t))
-        v_out = _grad_or_zeros(v_out, fwd["out"].tensor.shape, fwd["out"].tensor.dtype)
-        v_T = _grad_or_zeros(v_T, fwd["T"].tensor.shape, fwd["T"].tensor.dtype)
+        v_out = rt.staged(v_out, tuple(out_t.shape), out_t.dtype)
+        v_T = rt.staged(v_T, tuple(T_t.shape), T_t.dtype)
         absgrad = s.absgrad and geom
         CH = fwd["feats"].tensor.shape[-1]
         with rt.scratch() as alloc:  # the slots live only until the reduce is read back
-            slots, offs = stages.composite_bwd(rt, cfg, fwd, rt.array(v_out), rt.array(v_T),
+            slots, offs = stages.composite_bwd(rt, cfg, fwd, v_out, v_T,
                                                s.width, s.height, s.tile_size, geom=geom,
                                                color=color, absgrad=absgrad, divide=s.bwd_divide,
                                                events=s.events, alloc=alloc)

@@ -21,6 +21,13 @@ plans (:meth:`Runtime.plan`: per shape and config, bounded).
 * Scratch memory: :meth:`Runtime.scratch` hands out zeroed intermediate arrays over host memory
   the runtime keeps from one block to the next (the backward's gradient slots, 100+ MB at 1M
   Gaussians, whose fresh pages cost more to fault in than the kernels take to fill them).
+* The array pool (the render plan's arrays, kept per shape): on a device that computes in host
+  memory, :meth:`Runtime.empty` hands out small arrays (:data:`POOL_ARRAY_BYTES`) again once
+  nothing but the pool holds them (no tensor, view, numpy array, saved tensor or queued
+  command: :func:`_unheld`), so a small render makes no buffer per call; a fresh one cost the
+  calling thread ~12 us (the tensor, the buffer, PoCL's first use and release of it).
+  :meth:`Runtime.array` of a pooled array's own memory returns that array. Bounded by
+  :data:`POOL_BYTES`, least recently used shapes dropped first.
 * Device limits: launches respect the kernel's own ``CL_KERNEL_WORK_GROUP_SIZE`` and every
   kernel is sized for :data:`LOCAL_MEM_BUDGET` (48 KiB, what GPUs offer) of local memory,
   not for a CPU runtime's larger figure.
@@ -30,6 +37,7 @@ from __future__ import annotations
 import hashlib
 import math
 import os
+import sys
 import threading
 from collections import OrderedDict
 from contextlib import contextmanager
@@ -47,7 +55,7 @@ from .memory import available_host_memory, fmt_bytes, host_allowance
 __all__ = [
     "BuildError", "DeviceError", "Runtime", "DeviceArray", "get_runtime", "list_devices",
     "describe_devices", "read_back", "LOCAL_MEM_BUDGET", "INT32_MAX", "available_host_memory",
-    "PLAN_CACHE_SIZE",
+    "PLAN_CACHE_SIZE", "POOL_ARRAY_BYTES", "POOL_PER_SHAPE", "POOL_BYTES", "KEEP_INPUTS",
 ]
 
 _BASE_OPTIONS = ("-cl-std=CL1.2", "-cl-denorms-are-zero")
@@ -64,6 +72,18 @@ HOST_CHECK_BYTES = 16 << 20  # allocations from this size on are checked against
 #: entries of a runtime's render-plan cache (:meth:`Runtime.plan`): a few per shape and config
 #: (two compositing kernels, two layouts, a stage's scratch), for a handful of shapes in use
 PLAN_CACHE_SIZE = 64
+#: the array pool (:meth:`Runtime.empty`): arrays up to this size are kept and handed out again
+#: once free; larger renders' arrays are made per call as before (their kernels outweigh it)
+POOL_ARRAY_BYTES = 1 << 20
+#: arrays of one shape and dtype kept at most: a call uses up to 5 of one shape ([C, N]: depths,
+#: opacities, their gradients in and out), and a training loop holds the last call's outputs
+#: while it makes the next call, and a step may render a few views of one shape
+POOL_PER_SHAPE = 8
+#: bytes the pool of a runtime keeps at most (least recently used shapes dropped first)
+POOL_BYTES = 32 << 20
+#: input arrays kept at most (:meth:`Runtime.array` with ``keep``): a render's six projection
+#: inputs and its colours, for a couple of scenes in turn
+KEEP_INPUTS = 16
 _MISSING = object()
 
 
@@ -169,6 +189,16 @@ class Runtime:
     _plan_lock: threading.Lock = field(default_factory=threading.Lock, init=False, repr=False)
     plan_builds: int = field(default=0, init=False, repr=False)  # entries built (misses), for tests
     plan_hits: int = field(default=0, init=False, repr=False)
+    # The array pool (:meth:`empty`): (shape, dtype) -> arrays, least recently used shape
+    # first; data_ptr -> pooled array (for :meth:`array`); the bytes kept; 0 turns it off.
+    _pool: OrderedDict = field(default_factory=OrderedDict, init=False, repr=False)
+    _pool_ptrs: dict = field(default_factory=dict, init=False, repr=False)
+    _pool_bytes: int = field(default=0, init=False, repr=False)
+    _pool_lock: threading.Lock = field(default_factory=threading.Lock, init=False, repr=False)
+    pool_limit: int = field(default=POOL_BYTES, init=False, repr=False)
+    pool_reuses: int = field(default=0, init=False, repr=False)  # arrays handed out again, for tests
+    # (data_ptr, shape, dtype) -> the kept array of an input (:meth:`array` with ``keep``)
+    _kept: OrderedDict = field(default_factory=OrderedDict, init=False, repr=False)
 
     def __post_init__(self) -> None:
         self.context = cl.Context([self.device])
@@ -355,7 +385,7 @@ class Runtime:
             kernel.set_scalar_arg_dtypes([np.dtype(t) if issubclass(t, np.generic) else None
                                           for t in sig])
             self._arg_dtypes[key] = sig
-        self._in_flight += [a for a in args if isinstance(a, cl.MemoryObjectHolder)]
+        self._in_flight.append(args)  # (its buffers, until the next finish)
         self.launches += 1
         return kernel(self.queue, (global_size,), (local_size,), *args)
 
@@ -435,20 +465,145 @@ class Runtime:
             raise ValueError(f"{what} needs {nbytes >> 20} MiB, over the {allowed >> 20} MiB that can "
                              f"be allocated ({why})")
 
-    def array(self, tensor: torch.Tensor, read_only: bool = False) -> "DeviceArray":
+    def array(self, tensor: torch.Tensor, read_only: bool = False,
+              keep: bool = False) -> "DeviceArray":
         """``tensor`` on the device; ``read_only``: no command will write it, so reading it
-        back never waits (the tensor is the data)."""
+        back never waits (the tensor is the data). A contiguous tensor over a pooled array's
+        own memory (e.g. a projection output read back, passed to the next stage) gets that
+        array: its buffer is over the same memory (the pool is on where the device computes
+        in host memory only). ``keep``: an input the kernels only read, likely passed again
+        (a parameter): its array is kept for the next call over the same memory
+        (:data:`KEEP_INPUTS` at most, each dropped once nothing but the runtime holds its
+        memory; there, kernels read the host memory itself, so the values are always the
+        tensor's)."""
+        if self._pool_ptrs and tensor.numel():
+            a = self._pool_ptrs.get(tensor.data_ptr())
+            if (a is not None and a.tensor.shape == tensor.shape and a.tensor.dtype == tensor.dtype
+                    and tensor.is_contiguous()):
+                if read_only:
+                    a.read_only = True  # (until empty() hands it out again)
+                return a
+            if keep and not read_only and tensor.is_contiguous():
+                return self._kept_array(tensor)
         return DeviceArray(self, tensor, read_only)
 
+    def _kept_array(self, t: torch.Tensor) -> "DeviceArray":
+        """:meth:`array` with ``keep`` (pool on, ``t`` contiguous and not empty)."""
+        key = (t.data_ptr(), t.shape, t.dtype)
+        with self._pool_lock:
+            a = self._kept.get(key)
+            if a is not None:
+                self._kept.move_to_end(key)
+                return a
+            if t.untyped_storage().nbytes() > POOL_ARRAY_BYTES:
+                return DeviceArray(self, t)
+            # Drop, oldest first, kept arrays whose memory nothing else holds any more (the
+            # inputs of former calls): up to the first still held (parameters, used by every
+            # call, stay at the recent end), and the oldest beyond KEEP_INPUTS.
+            while self._kept:
+                k = next(iter(self._kept))
+                b = self._kept[k]
+                if not (len(self._kept) >= KEEP_INPUTS or _is_free(b)):
+                    break
+                del self._kept[k]
+            b = None
+            a = DeviceArray(self, t.detach())  # (the storage, not the caller's autograd graph)
+            self._kept[key] = a
+            h = _holders(a)
+            # free: the runtime's own references, one use of the implementation, and of the
+            # storage the tensor's, the buffer's numpy view's and _holders' look-up
+            a._pool_free, a._pool_refs = (h[0], 1, 3, h[3]), _array_refs(a)
+            return a
+
     def empty(self, shape, dtype: torch.dtype, zero: bool = True) -> "DeviceArray":
+        """A new array ``shape`` of ``dtype``, zeroed unless ``zero`` is False (then every entry
+        a command reads must be written first). Small arrays come from the pool (see the module
+        docstring) where the device computes in host memory."""
+        shape = tuple(map(int, shape))
         n = 1
         for d in shape:
-            n *= int(d)
+            n *= d
         nbytes = n * dtype.itemsize
         if nbytes >= HOST_CHECK_BYTES or nbytes > self.max_alloc:  # the message only when needed
             self.check_memory(nbytes, f"an intermediate array {list(shape)} {dtype}")
+        if 0 < nbytes <= POOL_ARRAY_BYTES and self.pool_limit and self.computes_in_host_memory:
+            return self._pooled(shape, dtype, nbytes, zero)
         t = torch.zeros(shape, dtype=dtype) if zero else torch.empty(shape, dtype=dtype)
         return DeviceArray(self, t)
+
+    def from_host(self, values: np.ndarray) -> "DeviceArray":
+        """A device array holding ``values`` (a numpy array the device only reads): a pooled
+        array written in place where the pool is on, else one over a tensor of the values."""
+        nbytes = values.nbytes
+        if 0 < nbytes <= POOL_ARRAY_BYTES and self.pool_limit and self.computes_in_host_memory:
+            a = self._pooled(values.shape, torch.from_numpy(values[:0]).dtype, nbytes, zero=False)
+            np.copyto(a.tensor.numpy(), values, casting="no")
+            return a
+        return DeviceArray(self, torch.from_numpy(np.ascontiguousarray(values)))
+
+    def staged(self, g: torch.Tensor | None, shape: tuple, dtype: torch.dtype) -> "DeviceArray":
+        """An incoming gradient ``g`` (None: zeros) as a contiguous ``dtype`` array ``shape``
+        on the device, for kernels to read: copied into a pooled array where the pool is on
+        (the copy ``contiguous().to(dtype)`` would make anyway), else over that copy."""
+        if g is None:
+            return self.empty(shape, dtype)
+        if g.dtype == dtype and g.is_contiguous():
+            a = self._pool_ptrs.get(g.data_ptr()) if self._pool_ptrs and g.numel() else None
+            if a is not None and a.tensor.shape == g.shape and a.tensor.dtype == dtype:
+                return a  # a pooled array's own memory (e.g. a kernel's output): as it is
+        if tuple(g.shape) == tuple(shape) and self.pool_limit and self.computes_in_host_memory:
+            a = self.empty(shape, dtype, zero=False)  # (in host memory: written in place)
+            a.tensor.copy_(g.detach())
+            return a
+        return self.array(g.detach().contiguous().to(dtype))
+
+    def _pooled(self, shape: tuple, dtype: torch.dtype, nbytes: int, zero: bool) -> "DeviceArray":
+        """A free array of the pool for (shape, dtype), or a new one, kept while the pool has
+        room for it (:data:`POOL_PER_SHAPE`, :attr:`pool_limit`)."""
+        key = (shape, dtype)
+        with self._pool_lock:
+            entries = self._pool.get(key)
+            if entries is not None:
+                self._pool.move_to_end(key)
+                for i in range(len(entries)):  # (no enumerate: its tuple would hold ``a``)
+                    a = entries[i]
+                    if _is_free(a):
+                        a.synced_at, a.read_only = self.launches, False
+                        if zero:
+                            a.tensor.zero_()
+                        self.pool_reuses += 1
+                        if i + 1 < len(entries):  # the held ones last: the next scan finds the
+                            entries.append(entries.pop(i))  # free ones first
+                        return a
+            else:
+                entries = self._pool[key] = []
+            a = DeviceArray(self, torch.zeros(shape, dtype=dtype) if zero else
+                            torch.empty(shape, dtype=dtype))
+            if len(entries) < POOL_PER_SHAPE:
+                entries.append(a)
+                self._pool_ptrs[a.tensor.data_ptr()] = a
+                self._pool_bytes += nbytes
+                # what holds a pooled array that nothing outside holds: the same references
+                # as at every later check (entries, _pool_ptrs, the name ``a``)
+                a._pool_free, a._pool_refs = _holders(a), _array_refs(a)
+                while self._pool_bytes > self.pool_limit and len(self._pool) > 1:
+                    self._drop_pool_shape(next(iter(self._pool)))
+            return a
+
+    def _drop_pool_shape(self, key: tuple) -> None:
+        """Forget the pooled arrays of ``key`` (their holders keep them; nothing is freed
+        under anyone)."""
+        for a in self._pool.pop(key):
+            if self._pool_ptrs.get(a.tensor.data_ptr()) is a:
+                del self._pool_ptrs[a.tensor.data_ptr()]
+            self._pool_bytes -= a.tensor.numel() * a.tensor.dtype.itemsize
+
+    def release_pool(self) -> None:
+        """Forget every pooled array (see the module docstring)."""
+        with self._pool_lock:
+            while self._pool:
+                self._drop_pool_shape(next(iter(self._pool)))
+            self._kept.clear()
 
 
     @contextmanager
@@ -466,6 +621,8 @@ class Runtime:
 
         def alloc(shape: tuple, dtype: torch.dtype) -> "DeviceArray":
             nbytes = math.prod(int(d) for d in shape) * dtype.itemsize
+            if 0 < nbytes <= POOL_ARRAY_BYTES and self.pool_limit and self.computes_in_host_memory:
+                return self.empty(shape, dtype)  # small: a pooled array, zeroed
             if nbytes >= HOST_CHECK_BYTES or nbytes > self.max_alloc:
                 self.check_memory(nbytes, f"an intermediate array {list(shape)} {dtype}")
             with self._scratch_lock:
@@ -497,6 +654,28 @@ class Runtime:
             self._scratch_mem = None
 
 
+def _holders(a: "DeviceArray") -> tuple[int, int, int, int]:
+    """What holds a device array's memory: the references to its tensor and its buffer (a
+    queued command's hold, :meth:`Runtime.hold`), and the uses of its tensor's implementation
+    (autograd's saved tensors, views) and storage (views, numpy arrays, saved outputs). With
+    :func:`_array_refs`, what tells a free pooled array from a held one (:func:`_is_free`)."""
+    t = a.tensor
+    return (sys.getrefcount(t), t._use_count(), torch._C._storage_Use_Count(t.untyped_storage()._cdata),
+            sys.getrefcount(a.buffer))
+
+
+def _array_refs(a: "DeviceArray") -> int:
+    """The references to ``a`` (at the depth :func:`_is_free` counts them)."""
+    return sys.getrefcount(a)
+
+
+def _is_free(a: "DeviceArray") -> bool:
+    """Whether only the pool holds ``a``: the references to it (first: a held array mostly
+    fails there, cheaply) and :func:`_holders` are what they were when the pool took it. Called
+    with the same references to ``a`` as then (its list, ``_pool_ptrs``, one name)."""
+    return sys.getrefcount(a) == a._pool_refs and _holders(a) == a._pool_free
+
+
 def _define(v: object) -> str:
     if isinstance(v, bool):
         return "1" if v else "0"
@@ -514,6 +693,9 @@ class DeviceArray:
     Elsewhere the data are copied in at creation (``COPY_HOST_PTR``) and back by :meth:`host`.
     The tensor must not be read for device results other than through :meth:`host`.
     """
+
+    _pool_free: tuple | None = None  # pooled arrays: _holders() when only the pool holds it
+    _pool_refs: int = -1  # its first entry: the references to the array then
 
     def __init__(self, rt: Runtime, tensor: torch.Tensor, read_only: bool = False) -> None:
         if tensor.device.type != "cpu":

@@ -720,7 +720,7 @@ def isect_offsets(rt: Runtime, rects: DeviceArray) -> DeviceArray:
     """[C*N] first gradient slot of each pair: exclusive prefix of its tile count."""
     r = rects.host().reshape(-1, 4).numpy()  # numpy: a few us against ~40 for torch's ops
     n = ((r[:, 2] - r[:, 0]) * (r[:, 3] - r[:, 1])).astype(np.int64)
-    return rt.array(torch.from_numpy((np.cumsum(n) - n).astype(np.int32)))
+    return rt.from_host((np.cumsum(n) - n).astype(np.int32))
 
 
 def composite_bwd(rt: Runtime, cfg: RenderConfig, fwd: dict, v_out: DeviceArray,

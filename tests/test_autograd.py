@@ -193,7 +193,8 @@ def test_renders_free_their_buffers(make_scene):
         if backward:
             (r.sum() + a.sum()).backward()
 
-    render(True)  # warm caches
+    render(True)  # warm caches (and the runtime's array pool: both kinds of call, as below)
+    render(False)
     before = live()
     for i in range(10):
         render(backward=i % 2 == 0)

@@ -204,9 +204,10 @@ def test_small_render_waits_on_the_queue_few_times(make_scene, monkeypatch):
     assert len(waits) == 1
 
 
-def test_scratch_memory_is_zeroed_reused_and_never_shared_by_two_blocks():
+def test_scratch_memory_is_zeroed_reused_and_never_shared_by_two_blocks(monkeypatch):
     rt = clsplat.get_runtime()
     rt.release_scratch()
+    monkeypatch.setattr(rt, "pool_limit", 0)  # small blocks come from the array pool otherwise
     with rt.scratch() as alloc:
         a = alloc((1000, 9), torch.float32)
         a.tensor.fill_(7)
@@ -278,3 +279,138 @@ def test_scalar_arguments_declared_once_and_redeclared_on_change(rt):
         rt.launch(k, 2, 64, n, rects.buffer, offs.buffer, slots.buffer, *(o.buffer for o in outs))
         assert rt._arg_dtypes[k.int_ptr][0] is type(n)
         assert outs[-1].host().flatten().tolist() == [3.75, 4.0]
+
+
+def _reduce_kernel(rt):
+    return rt.kernel("reduce", "reduce_slots", {"REAL_DOUBLE": False, "CHANNELS": 1, "GEOM_GRAD": False,
+                                                "COLOR_GRAD": True, "ABSGRAD": False})
+
+
+def test_array_pool_hands_out_only_arrays_nothing_holds(rt):
+    """Runtime.empty (the render plan's arrays kept per shape): a small array nothing holds any
+    more is handed out again, zeroed when asked; one that a tensor, a view, a numpy array or a
+    queued command still holds is not; large arrays and a pool turned off are never pooled;
+    Runtime.array of a pooled array's memory gives that array."""
+    import numpy as np
+    from clsplat.runtime import POOL_ARRAY_BYTES, POOL_PER_SHAPE
+    if not rt.computes_in_host_memory:
+        pytest.skip("the pool is on only where the device computes in host memory (PoCL's CPU device)")
+    rt.release_pool()
+    a = rt.empty((7, 3), torch.float32)
+    a.tensor.fill_(5)
+    ptr = a.tensor.data_ptr()
+    del a
+    b = rt.empty((7, 3), torch.float32)
+    assert b.tensor.data_ptr() == ptr and not b.tensor.any()  # handed out again, zeroed
+    assert rt.array(b.tensor) is b and rt.array(b.tensor.detach()) is b
+    b.tensor.fill_(2)
+    holders = {"tensor": lambda x: x.tensor, "view": lambda x: x.tensor[1:], "alias": lambda x: x.tensor.detach(),
+               "numpy": lambda x: x.tensor.numpy(), "array": lambda x: x}
+    for name, hold in holders.items():
+        kept = hold(b)
+        del b
+        c = rt.empty((7, 3), torch.float32, zero=False)
+        assert c.tensor.data_ptr() != ptr, name  # held: a fresh array
+        del c, kept
+        b = rt.empty((7, 3), torch.float32, zero=False)
+        assert b.tensor.data_ptr() == ptr and float(b.tensor[0, 0]) == 2, name  # free again, not zeroed
+    rt.hold(b.buffer)  # as a queued command holds it until the next finish()
+    del b
+    assert rt.empty((7, 3), torch.float32).tensor.data_ptr() != ptr
+    rt.finish()
+    assert rt.empty((7, 3), torch.float32).tensor.data_ptr() == ptr
+    # at most POOL_PER_SHAPE arrays of one shape; large arrays never
+    many = [rt.empty((5,), torch.int32) for _ in range(POOL_PER_SHAPE + 3)]
+    assert len(rt._pool[((5,), torch.int32)]) == POOL_PER_SHAPE and len({m.buffer.int_ptr for m in many}) == len(many)
+    big = (POOL_ARRAY_BYTES // 4 + 1,)
+    p = rt.empty(big, torch.float32).tensor.data_ptr()
+    assert ((big, torch.float32)) not in rt._pool and p not in rt._pool_ptrs
+    # bounded in bytes: the least recently used shapes are dropped first
+    limit = rt.pool_limit
+    try:
+        rt.pool_limit = 64 << 10
+        for i in range(40):
+            rt.empty((1024 + i,), torch.float32)
+        assert rt._pool_bytes <= rt.pool_limit and ((1024 + 39,), torch.float32) in rt._pool
+        assert ((1024,), torch.float32) not in rt._pool
+        rt.pool_limit = 0  # off: a fresh array every time
+        assert rt.empty((7, 3), torch.float32).tensor.data_ptr() not in rt._pool_ptrs
+    finally:
+        rt.pool_limit = limit
+    rt.release_pool()
+    assert not rt._pool and not rt._pool_ptrs and rt._pool_bytes == 0
+    del many, np
+
+
+def test_kept_input_arrays_follow_their_tensors(rt):
+    """Runtime.array(keep=True): the same array for the same memory on the next call, reading
+    the tensor's current values (changed in place, as by an optimiser); dropped once nothing
+    else holds the memory, and never more than KEEP_INPUTS."""
+    import numpy as np
+    from clsplat.runtime import KEEP_INPUTS
+    if not rt.computes_in_host_memory:
+        pytest.skip("inputs are kept only where the device computes in host memory (PoCL's CPU device)")
+    rt.release_pool()
+    rt.empty((1,), torch.float32)  # (the pool on: keep needs it)
+    k = _reduce_kernel(rt)
+    rects = rt.array(torch.tensor([[0, 0, 1, 2], [0, 0, 1, 1]], dtype=torch.int32).reshape(1, 2, 4))
+    offs = rt.array(torch.tensor([0, 2], dtype=torch.int32))
+    slots = torch.tensor([[1.5], [2.25], [4.0]])
+    got = []
+    for _ in range(2):
+        a = rt.array(slots, keep=True)
+        outs = [rt.empty((1,), torch.float32) for _ in range(4)] + [rt.empty((1, 2, 1), torch.float32)]
+        rt.launch(k, 2, 64, np.int32(2), rects.buffer, offs.buffer, a.buffer, *(o.buffer for o in outs))
+        got.append(outs[-1].host().flatten().tolist())
+        slots.mul_(2)  # in place: the kept array reads the new values
+    assert got == [[3.75, 4.0], [7.5, 8.0]]
+    assert rt.array(slots, keep=True) is a and len(rt._kept) == 1
+    del a, outs
+    slots = None  # the caller drops it: the next new input drops its kept array
+    for i in range(KEEP_INPUTS + 5):
+        rt.array(torch.full((3,), float(i)), keep=True)
+    assert len(rt._kept) <= 2  # only the inputs of the last calls, not one per call
+    held = [torch.full((2,), float(i)) for i in range(KEEP_INPUTS + 5)]
+    for h in held:
+        rt.array(h, keep=True)
+    assert len(rt._kept) == KEEP_INPUTS  # all held: the oldest dropped
+    rt.release_pool()
+
+
+def test_small_renders_make_no_arrays_and_returned_tensors_stay_valid(make_scene):
+    """The render plan's arrays: once warm, a small forward + backward makes no new device array
+    (every one comes from the pool or the kept inputs), and tensors a caller keeps from one call
+    are never overwritten by the next (which sees inputs changed in place)."""
+    from clsplat import runtime as R
+    rt = clsplat.get_runtime()
+    if not rt.computes_in_host_memory:
+        pytest.skip("the pool is on only where the device computes in host memory (PoCL's CPU device)")
+    scene = make_scene(0, N=60, C=1, width=48, height=32, dtype=torch.float32)
+    for k in ("means", "quats", "scales", "opacities", "colors"):
+        scene[k] = scene[k].clone().requires_grad_()
+
+    def render():
+        img, alpha, meta = clsplat.rasterization(**scene)
+        (img.sum() + alpha.sum()).backward()
+        out = (img, alpha, meta["isect_offsets"], scene["means"].grad)
+        for k in ("means", "quats", "scales", "opacities", "colors"):
+            scene[k].grad = None
+        return out
+
+    for _ in range(3):
+        render()
+    made = []
+    init = R.DeviceArray.__init__
+    R.DeviceArray.__init__ = lambda self, *a, **kw: (made.append(1), init(self, *a, **kw))[1]
+    try:
+        first = render()
+    finally:
+        R.DeviceArray.__init__ = init
+    assert not made
+    copies = [t.detach().clone() for t in first]
+    with torch.no_grad():
+        scene["colors"].mul_(0.5)
+        scene["means"].add_(0.01)
+    second = render()
+    assert not torch.equal(second[0], copies[0])  # the change was seen
+    assert all(torch.equal(a, b) for a, b in zip(first, copies))  # the first call's results intact
