@@ -248,6 +248,14 @@ class Runtime:
         return self._in_host_memory
 
     @property
+    def pools(self) -> bool:
+        """Whether the array pool is on (:meth:`empty`, see the module docstring): where the
+        device computes in the zero-copy arrays' host memory itself (PoCL's CPU device; not
+        with ``CLSPLAT_HOST_MEMORY=copy``), so that a pooled array zeroed or written on the
+        host, or an input changed in place, needs no transfer; and :attr:`pool_limit` > 0."""
+        return self.pool_limit > 0 and self.computes_in_host_memory and self.shares_host_memory
+
+    @property
     def is_pocl_cpu(self) -> bool:
         """PoCL's CPU device (whose kernel compiler is clang on the host: kernels may use clang
         builtins there, e.g. the compositing kernels' prefetches)."""
@@ -476,7 +484,7 @@ class Runtime:
         (:data:`KEEP_INPUTS` at most, each dropped once nothing but the runtime holds its
         memory; there, kernels read the host memory itself, so the values are always the
         tensor's)."""
-        if self._pool_ptrs and tensor.numel():
+        if self._pool_ptrs and tensor.numel() and self.pools:
             a = self._pool_ptrs.get(tensor.data_ptr())
             if (a is not None and a.tensor.shape == tensor.shape and a.tensor.dtype == tensor.dtype
                     and tensor.is_contiguous()):
@@ -526,7 +534,7 @@ class Runtime:
         nbytes = n * dtype.itemsize
         if nbytes >= HOST_CHECK_BYTES or nbytes > self.max_alloc:  # the message only when needed
             self.check_memory(nbytes, f"an intermediate array {list(shape)} {dtype}")
-        if 0 < nbytes <= POOL_ARRAY_BYTES and self.pool_limit and self.computes_in_host_memory:
+        if 0 < nbytes <= POOL_ARRAY_BYTES and self.pools:
             return self._pooled(shape, dtype, nbytes, zero)
         t = torch.zeros(shape, dtype=dtype) if zero else torch.empty(shape, dtype=dtype)
         return DeviceArray(self, t)
@@ -535,7 +543,7 @@ class Runtime:
         """A device array holding ``values`` (a numpy array the device only reads): a pooled
         array written in place where the pool is on, else one over a tensor of the values."""
         nbytes = values.nbytes
-        if 0 < nbytes <= POOL_ARRAY_BYTES and self.pool_limit and self.computes_in_host_memory:
+        if 0 < nbytes <= POOL_ARRAY_BYTES and self.pools:
             a = self._pooled(values.shape, torch.from_numpy(values[:0]).dtype, nbytes, zero=False)
             np.copyto(a.tensor.numpy(), values, casting="no")
             return a
@@ -548,10 +556,10 @@ class Runtime:
         if g is None:
             return self.empty(shape, dtype)
         if g.dtype == dtype and g.is_contiguous():
-            a = self._pool_ptrs.get(g.data_ptr()) if self._pool_ptrs and g.numel() else None
+            a = self._pool_ptrs.get(g.data_ptr()) if self._pool_ptrs and g.numel() and self.pools else None
             if a is not None and a.tensor.shape == g.shape and a.tensor.dtype == dtype:
                 return a  # a pooled array's own memory (e.g. a kernel's output): as it is
-        if tuple(g.shape) == tuple(shape) and self.pool_limit and self.computes_in_host_memory:
+        if tuple(g.shape) == tuple(shape) and self.pools:
             a = self.empty(shape, dtype, zero=False)  # (in host memory: written in place)
             a.tensor.copy_(g.detach())
             return a
@@ -621,7 +629,7 @@ class Runtime:
 
         def alloc(shape: tuple, dtype: torch.dtype) -> "DeviceArray":
             nbytes = math.prod(int(d) for d in shape) * dtype.itemsize
-            if 0 < nbytes <= POOL_ARRAY_BYTES and self.pool_limit and self.computes_in_host_memory:
+            if 0 < nbytes <= POOL_ARRAY_BYTES and self.pools:
                 return self.empty(shape, dtype)  # small: a pooled array, zeroed
             if nbytes >= HOST_CHECK_BYTES or nbytes > self.max_alloc:
                 self.check_memory(nbytes, f"an intermediate array {list(shape)} {dtype}")

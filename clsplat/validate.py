@@ -36,8 +36,8 @@ def check_tensor(name: str, x: object, shape: tuple, dtypes=_FLOATS) -> torch.Te
                          "data to the OpenCL device itself")
     if x.dtype not in dtypes:
         raise ValueError(f"{name}: expected dtype in {[str(d) for d in dtypes]}, got {x.dtype}")
-    want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
     if x.dim() != len(shape) or any(isinstance(s, int) and s != d for s, d in zip(shape, x.shape)):
+        want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
         raise ValueError(f"{name}: expected shape {want}, got {list(x.shape)}")
     return x
 
@@ -47,10 +47,12 @@ def _values(x: torch.Tensor) -> np.ndarray:
     return x.detach().numpy()
 
 
-def check_finite(name: str, x: torch.Tensor) -> None:
-    if x.is_floating_point() and not np.isfinite(_values(x)).all():
-        bad = int((~torch.isfinite(x)).sum())
-        raise ValueError(f"{name}: contains {bad} NaN or Inf value(s)")
+def check_finite(name: str, x: torch.Tensor, values: np.ndarray | None = None) -> None:
+    """``x`` (float; ``values``: its numpy view, if at hand) holds no NaN or Inf."""
+    if x.is_floating_point():
+        if not np.isfinite(_values(x) if values is None else values).all():
+            bad = int((~torch.isfinite(x)).sum())
+            raise ValueError(f"{name}: contains {bad} NaN or Inf value(s)")
 
 
 def check_int(name: str, v: object, lo: int, hi: int) -> int:
@@ -139,22 +141,21 @@ def check_rasterization_inputs(means, quats, scales, opacities, colors, viewmats
         check_tensor("backgrounds", backgrounds, (C, D))
         check_finite("backgrounds", backgrounds)
 
-    for name, x in (("means", means), ("quats", quats), ("scales", scales),
-                    ("opacities", opacities), ("colors", colors), ("viewmats", viewmats), ("Ks", Ks)):
-        check_finite(name, x)
+    q, o, k = _values(quats), _values(opacities), _values(Ks)
+    for name, x, v in (("means", means, None), ("quats", quats, q), ("scales", scales, None),
+                       ("opacities", opacities, o), ("colors", colors, None),
+                       ("viewmats", viewmats, None), ("Ks", Ks, k)):
+        check_finite(name, x, v)
     if N:
         # norm below 1e-12, in the quaternions' own precision: float32 squares of components
         # under ~1e-19 go subnormal or zero, still below 1e-24, and overflow only above ~1e19, far
         # from it, so no float64 copy (32 MB and ~15 ms at 1M Gaussians) is needed
-        q = _values(quats)
         small = np.einsum("ij,ij->i", q, q) < 1e-24
         if small.any():
             raise ValueError(f"quats: {int(small.sum())} quaternion(s) have (near) zero norm, "
                              "which defines no rotation")
-        o = _values(opacities)
         if o.min() < 0 or o.max() > 1:
             raise ValueError("opacities: must lie in [0, 1] (post-activation opacities)")
-    k = _values(Ks)
     if min(k[:, 0, 0].min(), k[:, 1, 1].min()) <= 0:
         raise ValueError("Ks: focal lengths Ks[:, 0, 0] and Ks[:, 1, 1] must be > 0")
     check_index_range(C, N, D, width, height)

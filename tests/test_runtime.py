@@ -286,7 +286,7 @@ def _reduce_kernel(rt):
                                                 "COLOR_GRAD": True, "ABSGRAD": False})
 
 
-def test_array_pool_hands_out_only_arrays_nothing_holds(rt):
+def test_array_pool_hands_out_only_arrays_nothing_holds(rt, monkeypatch):
     """Runtime.empty (the render plan's arrays kept per shape): a small array nothing holds any
     more is handed out again, zeroed when asked; one that a tensor, a view, a numpy array or a
     queued command still holds is not; large arrays and a pool turned off are never pooled;
@@ -339,6 +339,13 @@ def test_array_pool_hands_out_only_arrays_nothing_holds(rt):
         rt.pool_limit = limit
     rt.release_pool()
     assert not rt._pool and not rt._pool_ptrs and rt._pool_bytes == 0
+    # the copying path (what GPUs take, CLSPLAT_HOST_MEMORY=copy): arrays hold device copies that
+    # a host-side zero or write would not reach, so nothing is pooled or kept
+    from clsplat.runtime import Runtime
+    monkeypatch.setattr(Runtime, "shares_host_memory", property(lambda self: False))
+    assert not rt.pools
+    x = rt.empty((7, 3), torch.float32)
+    assert not rt._pool and not x.zero_copy
     del many, np
 
 
