@@ -719,7 +719,15 @@ def gauss_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: int) 
 def isect_offsets(rt: Runtime, rects: DeviceArray) -> DeviceArray:
     """[C*N] first gradient slot of each pair: exclusive prefix of its tile count."""
     r = rects.host().reshape(-1, 4).numpy()  # numpy: a few us against ~40 for torch's ops
-    n = ((r[:, 2] - r[:, 0]) * (r[:, 3] - r[:, 1])).astype(np.int64)
+    n = (r[:, 2] - r[:, 0]) * (r[:, 3] - r[:, 1])
+    if rt.pools and 0 < n.nbytes:  # written in place into a pooled array (the device's memory)
+        # (int32 sums: their total, the intersection count, was checked below 2^31 - 1)
+        out = rt.empty(n.shape, torch.int32, zero=False)
+        o = out.tensor.numpy()
+        o[0] = 0
+        np.cumsum(n[:-1], out=o[1:])
+        return out
+    n = n.astype(np.int64)
     return rt.from_host((np.cumsum(n) - n).astype(np.int32))
 
 
