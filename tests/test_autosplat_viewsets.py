@@ -135,6 +135,21 @@ def test_the_straight_world_is_reachable_as_data_synthetic_straight():
     assert load_sequence("synthetic", ["CAM_FRONT"], (0, 3), 0.1).metadata["world"].world == "classic"
 
 
+def test_the_divided_world_is_reachable_as_data_synthetic_divided(tmp_path, capsys):
+    """``--data synthetic:divided`` (issue 33): a street of the ``divided`` world (a median wall
+    beside the ego's lane) for ``train autosplat``; a misspelt name is refused naming ``--data``."""
+    seq = load_sequence("synthetic:divided", ["CAM_FRONT"], (0, 2), 0.1, seed=2)
+    w = seq.metadata["world"]
+    assert w.world == "divided" and w.median_height > 2.0 and not w.lane_change
+    assert all(abs(f.ego_to_world[1, 3] - w.lane_from) < 1e-9 for f in seq.frames)
+    assert train(["--data", "synthetic:divided", "--preset", "tiny", "--steps", "2", "--frames", "0:3",
+                  "--scale", "0.1", "--cameras", "CAM_FRONT", "--no-progress", "--views", "recorded",
+                  "--out", str(tmp_path / "run")]) == 0
+    assert json.loads((tmp_path / "run" / "metrics.json").read_text())["train"]
+    assert train(["--data", "synthetic:divide", "--preset", "tiny", "--out", str(tmp_path / "bad")]) == 2
+    assert "synthetic:divided" in capsys.readouterr().err
+
+
 #: where each ``--views`` set writes its section of metrics.json (``recorded`` also ``pose_correction``
 #: under tracker noise)
 SECTIONS = {"recorded": "train", "far-side": "far_side", "lane-change": "lane_change", "appearance": "appearance"}

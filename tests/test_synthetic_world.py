@@ -1,7 +1,7 @@
 """Synthetic worlds (``SyntheticConfig.world``): the classic street bit for bit, the varied and
 straight worlds seeded and reproducible, their speed bins, their exact geometry (ground on the
 height field, LiDAR, camera height along the normal, vehicle pixels inside tilted boxes) and the
-straight world's promises."""
+straight and divided worlds' promises."""
 import hashlib
 
 import numpy as np
@@ -44,7 +44,7 @@ def test_classic_is_bitwise_unchanged():
 
 
 def test_world_is_validated():
-    with pytest.raises(ValueError, match=r"SyntheticConfig.world must be one of \['classic', 'varied', 'straight', 'overtake', 'busy'\]"):
+    with pytest.raises(ValueError, match=r"SyntheticConfig.world must be one of \['classic', 'varied', 'straight', 'overtake', 'busy', 'divided'\]"):
         SyntheticConfig(world="curvy").validate()
     with pytest.raises(ValueError, match="world must be one of"):
         draw_world(0, "curvy")
@@ -201,6 +201,73 @@ def test_straight_world():
             if b.track_id in {v.track_id for v in moving}:
                 assert lateral > 0, (b.track_id, lateral)               # every moving vehicle on the left
     assert all(v.y < 0 for v in parked)                                   # parked on the right only
+
+
+def test_divided_world_is_straight_plus_a_median():
+    """``divided`` (issue 33): straight's street from the same stream, a median wall taller than the
+    cameras, the ego in the inner lane, so that the 1 m lane-change rig (cameras up to 0.6 m off its
+    centre) stays on the ego's side, the 3 m rig stands wholly beyond the wall and no camera of the
+    1, 2 or 3 m rigs is inside it; traffic on the ego's right, in its direction."""
+    from clsplat.data.synthetic import CAMERA_HEIGHT
+    from clsplat.data.synthetic.config import _RIG_POS
+    keep = {"median_half", "median_height", "lane_from", "lane_to", "road_half", "world"}
+    heights = []
+    for seed in range(30):
+        d, st = draw_world(seed, "divided"), draw_world(seed, "straight")
+        assert {k: v for k, v in d.__dict__.items() if k not in keep} == \
+            {k: v for k, v in st.__dict__.items() if k not in keep}
+        assert st.median_half == st.median_height == 0.0 and st.lane_dash is None and st.lane_line == st.lane_width
+        mh, ego = d.median_half, d.lane_from
+        assert d.lane_to == ego and 0.15 <= 2 * mh <= 0.21 and d.median_height > CAMERA_HEIGHT + 0.3
+        cams = [ego + shift + py for _, py in _RIG_POS for shift in (1.0, 2.0, 3.0)]
+        assert all(abs(c) > mh + 0.02 for c in cams)                               # none inside the wall
+        assert all(ego + 1.0 + py < -mh for _, py in _RIG_POS)                     # 1 m: the ego's side
+        assert all(ego + 3.0 + py > mh for _, py in _RIG_POS)                      # 3 m: beyond the wall
+        assert d.lane_dash < d.lane_line < d.road_half - 1.9                        # two lanes, then the kerbside
+        heights.append(d.median_height)
+    assert max(heights) - min(heights) > 0.3                                       # drawn, not a constant
+    seq = generate_sequence(height=16, width=24, num_frames=3, seed=1, world="divided", lidar=False)
+    w, scene = seq.metadata["world"], seq.metadata["scene"]
+    moving = [v for v in scene.vehicles if v.speed > 0]
+    assert moving and all(v.heading == 0.0 and abs(v.y - (w.lane_from - w.lane_width)) < 1e-12 for v in moving)
+    assert all(v.y < -w.median_half for v in scene.vehicles)                      # nothing on the other side
+    assert any(b.kind == "median" for b in scene.static)
+
+
+@pytest.mark.parametrize("seed", [2, 5])      # 2: crossfall and a crest; 5: a 5 % gradient
+def test_the_median_hides_the_other_carriageway(seed):
+    """No camera of the ego sees a surface point beyond the median lower than the wall's top above
+    the local ground (the other carriageway, its kerb, footway and the façades' lower floors),
+    inside the street's layout; the 3 m lane-change rig sees that carriageway."""
+    seq = generate_sequence(height=44, width=80, num_frames=2, dt=1.5, seed=seed, world="divided", lidar=False)
+    w, scene = seq.metadata["world"], seq.metadata["scene"]
+
+    def lateral_and_height(f, c, c2w):
+        d = f.depths[c.name] if c2w is None else scene.render(c.K, c2w, c.width, c.height, f.timestamp).depth
+        T = f.ego_to_world @ c.cam_to_ego if c2w is None else c2w
+        v, u = np.nonzero(np.isfinite(d))
+        z = d[v, u].astype(np.float64)
+        pc = np.stack([(u + 0.5 - c.K[0, 2]) / c.K[0, 0] * z, (v + 0.5 - c.K[1, 2]) / c.K[1, 1] * z, z], 1)
+        p = pc @ T[:3, :3].T + T[:3, 3]
+        s, l = w.to_street(p[:, 0], p[:, 1])
+        inside = (s > scene.s_range[0]) & (s < scene.s_range[1])
+        return l[inside], (p[:, 2] - w.height(p[:, 0], p[:, 1]))[inside]
+
+    beyond = low = 0
+    for f in seq.frames:
+        for c in seq.cameras:
+            l, h = lateral_and_height(f, c, None)
+            far = l > w.median_half + 1e-3
+            beyond += int(far.sum())
+            low += int((h[far] < w.median_height - 0.1).sum())
+    assert beyond > 0 and low == 0        # the ego sees over the wall (upper façades), never below its top
+    f = seq.frames[0]
+    rig = shift_sideways(np.stack([f.ego_to_world @ c.cam_to_ego for c in seq.cameras]), f.ego_to_world, 3.0)
+    road_beyond = 0
+    for c, c2w in zip(seq.cameras, rig):
+        l, h = lateral_and_height(f, c, c2w)
+        road_beyond += int(((l > w.median_half + 1e-3) & (np.abs(h) < 1e-3)).sum())
+    assert road_beyond > 500              # the 3 m rig stands on the other carriageway and sees its ground
 
 
 def test_moving_vehicles_keep_clear_of_the_ego():

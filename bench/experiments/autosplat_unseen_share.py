@@ -1,17 +1,20 @@
 """How novel are AutoSplat's novel views? The share of pixels no training camera saw (issue 33),
 from the generator's geometry alone (no model is trained).
 
-For a generated street (``--world classic|varied|straight``, ``--seed``), AutoSplat's split of
+For a generated street (``--world classic|varied|straight|divided``, ``--seed``), AutoSplat's split of
 the synthetic data (16 frames at 0.2 s, every 4th frame from frame 2 held out) and ``--cameras``
 of the rig, it prints for each lateral shift of the held-out rigs (0 = the recorded views, then
 1, 2, 3 m left: the ``lane-change`` set) and for the rigs mirrored across every moving vehicle
 (the ``far-side`` set, over the vehicle's own pixels, views where it covers at least
 ``MIN_OBJECT_PIXELS``) the share of the counted pixels whose surface point no training camera
 saw (:func:`clsplat.models.autosplat.viewsets.unseen_pixels`, the figure ``eval autosplat``
-writes as ``unseen_share``).
+writes as ``unseen_share``), and how the 3 m set's unseen pixels split over the semantic classes
+(``by_class_3m``: each class's share of the counted pixels that are unseen pixels of that class).
+The ``divided`` world (issue 33) puts a median wall taller than the cameras beside the ego's lane.
 
     .venv/bin/python bench/experiments/autosplat_unseen_share.py --world straight --seed 1 --scale 0.25
     .venv/bin/python bench/experiments/autosplat_unseen_share.py --world classic --cameras CAM_FRONT
+    .venv/bin/python bench/experiments/autosplat_unseen_share.py --world divided --seed 0 1 2
 """
 from __future__ import annotations
 
@@ -33,7 +36,9 @@ RIG = ("CAM_FRONT", "CAM_FRONT_LEFT", "CAM_FRONT_RIGHT", "CAM_BACK", "CAM_BACK_L
 def unseen_shares(world: str, seed: int, scale: float, cameras: list[str], frames: int = 16,
                   holdout: int = 4) -> dict:
     """{"shift_<s>m": share over the held-out rigs shifted s m left, "far_side": share over the
-    mirrored rigs' vehicle pixels, "far_side_pixels": their count, "tracks": moving track ids}."""
+    mirrored rigs' vehicle pixels, "far_side_pixels": their count, "tracks": moving track ids,
+    "by_class_3m": {class: unseen pixels of that class / counted pixels of the 3 m set}}."""
+    from clsplat.data.scene import SEMANTIC_CLASSES
     from clsplat.data.synthetic import SyntheticConfig, generate_sequence
     from clsplat.data.synthetic.views import mirror_across_box, shift_sideways
     from clsplat.models.autosplat.data import SYNTHETIC_DT
@@ -51,11 +56,16 @@ def unseen_shares(world: str, seed: int, scale: float, cameras: list[str], frame
     out: dict = {}
     for shift in (0.0, *LATERAL_SHIFTS_M):
         u = n = 0
+        by_class = np.zeros(len(SEMANTIC_CLASSES), dtype=np.int64)
         for f in test:
             c2w = shift_sideways(_rig(seq, f, cameras), seq.frames[f].ego_to_world, shift)
-            un, solid = unseen_pixels(run, f, c2w, _generator_views(run, f, c2w))
+            views = _generator_views(run, f, c2w)
+            un, solid = unseen_pixels(run, f, c2w, views)
             u, n = u + int(un.sum()), n + int(solid.sum())
+            by_class += np.bincount(np.stack([v.semantic for v in views])[un], minlength=len(SEMANTIC_CLASSES))
         out[f"shift_{shift:g}m"] = u / n if n else None
+        if shift == LATERAL_SHIFTS_M[-1]:
+            out["by_class_3m"] = {c: int(k) / n for c, k in zip(SEMANTIC_CLASSES, by_class) if k and n}
     moving = sorted(moving_track_ids(seq, AutoSplatPreset.dynamic_threshold))
     u = n = 0
     for f in range(frames):
@@ -76,7 +86,7 @@ def unseen_shares(world: str, seed: int, scale: float, cameras: list[str], frame
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--world", default="straight", choices=("classic", "varied", "straight"))
+    p.add_argument("--world", default="straight", choices=("classic", "varied", "straight", "divided"))
     p.add_argument("--seed", type=int, nargs="+", default=[0, 1, 2])
     p.add_argument("--scale", type=float, default=0.25, help="image scale of the 176 x 320 rig (default 0.25)")
     p.add_argument("--cameras", nargs="+", default=list(RIG))
@@ -88,6 +98,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{a.world} seed {seed} ({len(a.cameras)} cameras, scale {a.scale:g}): "
               + ", ".join(f"{k.replace('shift_', '')} {fmt(v)}" for k, v in r.items() if k.startswith("shift_"))
               + f"; far side {fmt(r['far_side'])} of {r['far_side_pixels']} vehicle px (tracks {r['tracks']})"
+              + "; 3 m unseen by class " + ", ".join(f"{c} {fmt(v)}" for c, v in r["by_class_3m"].items())
               + f"  [{time.perf_counter() - t0:.0f} s]", flush=True)
     return 0
 

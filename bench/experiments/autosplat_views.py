@@ -96,7 +96,7 @@ UNSEEN_COLUMNS: list[tuple[str, tuple, bool]] = [
 ]
 COLUMNS += UNSEEN_COLUMNS
 #: ``--data`` values the script passes through to ``clsplat train autosplat``
-DATA = ("synthetic:views", "synthetic:views-exact", "synthetic", "synthetic:straight")
+DATA = ("synthetic:views", "synthetic:views-exact", "synthetic", "synthetic:straight", "synthetic:divided")
 #: the streets scored with the ``appearance`` set too (the ``synthetic:views`` streets have brake
 #: lights, indicators and the footbridge's shadow; ``synthetic`` has none, kept for its earlier runs);
 #: ``synthetic:straight`` has no changing pixels, so that set is not run there
@@ -242,7 +242,8 @@ def main() -> None:
                     help="the street (synthetic:views-exact: the same without tracker noise; synthetic: make "
                          "demo's street, no lamps, shadow or tracker noise; synthetic:straight: issue 33's street "
                          "where the ego keeps its lane and traffic passes on its left, exact boxes, no appearance "
-                         "set; the seed picks the street; use another --out)")
+                         "set; synthetic:divided: the same with a median wall beside the ego's lane and traffic on "
+                         "its right; the seed picks the street; use another --out)")
     ap.add_argument("--table-only", action="store_true", help="only rewrite views.md from the finished runs")
     ap.add_argument("--issue33", action="store_true",
                     help="print (and write issue33.md) issue 33's compact table: full minus plain and minus each "

@@ -37,11 +37,16 @@ SYNTHETIC_DT = 0.2
 #: boxes in both); issue 36's moving-object cases: ``synthetic:overtake`` (one car overtaking close
 #: beside the ego) and ``synthetic:busy`` (20 and more movers: cars, trucks, pedestrians), exact
 #: boxes, and ``synthetic:overtake-noisy`` / ``synthetic:busy-noisy``, the same streets with the
-#: tracker noise of ``synthetic:views`` (the exact boxes kept for scoring)
+#: tracker noise of ``synthetic:views`` (the exact boxes kept for scoring); ``synthetic:divided``
+#: (issue 33) a street of the ``divided`` world: a median wall taller than the cameras beside the
+#: ego's lane hides the other carriageway, where the 3 m lane-change rig stands, and the traffic
+#: passes on the ego's right only, in its direction (exact boxes)
 SYNTHETIC_SPECS = ("synthetic", "synthetic:views", "synthetic:views-exact", "synthetic:straight", "synthetic:varied",
-                   "synthetic:overtake", "synthetic:overtake-noisy", "synthetic:busy", "synthetic:busy-noisy")
+                   "synthetic:overtake", "synthetic:overtake-noisy", "synthetic:busy", "synthetic:busy-noisy",
+                   "synthetic:divided")
 _WORLD_SPECS = {"synthetic:straight": "straight", "synthetic:varied": "varied", "synthetic:overtake": "overtake",
-                "synthetic:overtake-noisy": "overtake", "synthetic:busy": "busy", "synthetic:busy-noisy": "busy"}
+                "synthetic:overtake-noisy": "overtake", "synthetic:busy": "busy", "synthetic:busy-noisy": "busy",
+                "synthetic:divided": "divided"}
 #: the specs whose boxes carry :class:`clsplat.data.synthetic.views.TrackerNoise`'s defaults
 _NOISY_SPECS = ("synthetic:views", "synthetic:overtake-noisy", "synthetic:busy-noisy")
 _SYNTHETIC_FRAMES = 16

@@ -14,7 +14,9 @@ out along the curved centre line and standing on that ground) or ``"straight"`` 
 varied, but a straight road, no lane change, constant speed and traffic on the ego's left only);
 issue 36's moving-object cases are drawn like straight: ``"overtake"`` (one car overtaking close
 beside the ego) and ``"busy"`` (20 and more movers: platoons of cars and trucks in both driving
-lanes, pedestrians on both sidewalks; boxes labelled ``car``, ``truck``, ``pedestrian``).
+lanes, pedestrians on both sidewalks; boxes labelled ``car``, ``truck``, ``pedestrian``); issue 33's
+``"divided"`` is drawn like straight with a median wall taller than the cameras beside the ego's
+lane (hiding the other carriageway) and traffic on the ego's right only, in its direction.
 
 Scene content of the classic world (world frame, metres, z up, road along +x; see
 :mod:`clsplat.data.scene`):

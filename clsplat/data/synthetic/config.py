@@ -81,7 +81,9 @@ class SyntheticConfig:
             only); issue 36's test cases for moving objects: ``"overtake"`` (drawn like straight,
             one car overtaking close beside the ego) and ``"busy"`` (drawn like straight, 20 and
             more movers: platoons of cars and trucks in both driving lanes, pedestrians on both
-            sidewalks). See :mod:`clsplat.data.synthetic.world`.
+            sidewalks); issue 33's ``"divided"`` (drawn like straight, a median wall taller than
+            the cameras beside the ego's lane, traffic on the ego's side only). See
+            :mod:`clsplat.data.synthetic.world`.
         depth_only: trace the depth maps only, no shading: images, semantics and instances are
             zero (what an image-blind control reads: a window's depth and ego poses, at about
             half the cost of a full frame).
@@ -150,7 +152,7 @@ class SyntheticConfig:
         if not (isinstance(self.fine_texture, (int, float)) and not isinstance(self.fine_texture, bool)
                 and 0.0 <= self.fine_texture <= 1.0):
             raise ValueError(f"SyntheticConfig.fine_texture must be a number in [0, 1], got {self.fine_texture!r}")
-        worlds = ("classic", "varied", "straight", "overtake", "busy")
+        worlds = ("classic", "varied", "straight", "overtake", "busy", "divided")
         if self.world not in worlds:
             raise ValueError(f"SyntheticConfig.world must be one of {list(worlds)}, got {self.world!r}")
         if not (isinstance(self.lateral_shift, (int, float)) and abs(self.lateral_shift) <= 5.0):
@@ -197,7 +199,7 @@ class _Box:
 
     T: np.ndarray  # [4,4] local (centre) -> world
     half: np.ndarray  # [3]
-    kind: str  # facade, body, cabin, wheel, pole, trunk, canopy
+    kind: str  # facade, body, cabin, wheel, pole, trunk, canopy, median
     sem: int
     inst: int
     color: np.ndarray  # [3]

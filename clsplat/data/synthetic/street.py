@@ -14,7 +14,7 @@ from ..scene import Box3D, LidarPoints, invert_transform, make_transform, rotmat
 from .config import (_AMBIENT, _SUN, BRAKE_PERIOD, FOOTBRIDGE_HALF, FOOTBRIDGE_X, FOOTBRIDGE_Z, LIDAR_MOUNT,
                      ROAD_HALF, SEM, SIDEWALK_OUT, RenderOutput, VehicleSpec, _Box)
 from .textures import _box_albedo, _ground_albedo, _signal_lamps, _sky
-from .world import BUSY_LANE_VEHICLES, BUSY_PEDESTRIANS, STRAIGHT_WORLDS, WorldParams
+from .world import BUSY_LANE_VEHICLES, BUSY_PEDESTRIANS, MEDIAN_SEGMENT, STRAIGHT_WORLDS, WorldParams
 
 #: the eight corners of a unit box, the order every box's projection uses
 _CORNERS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
@@ -202,6 +202,8 @@ class StreetScene:
                                             "trunk", SEM["other"], 0, np.array([0.35, 0.24, 0.14])))
                     self.static.append(_Box(w.upright_pose(float(s), l, g + 4.2), np.array([1.3, 1.3, 1.2]), "canopy",
                                             SEM["other"], 0, np.array([0.2, 0.45, 0.15]) * rng.uniform(0.8, 1.2), key))
+        if w.median_half > 0:
+            self.static.extend(self._median(w, smin, smax))
         # vehicles: moving ones (track ids 1..) in the driving lanes, then parked ones at the kerbs
         rng = np.random.default_rng([self.seed, 4])
         self.vehicles: list[VehicleSpec] = []
@@ -223,6 +225,8 @@ class StreetScene:
             for _ in range(30):
                 lane = w.lane_width / 2 * (1.0 if (straight or rng.uniform() < 0.5) else -1.0)
                 heading = 0.0 if rng.uniform() < 0.5 else math.pi
+                if w.median_half > 0:         # divided: the outer lane on the ego's side, its direction
+                    lane, heading = w.lane_from - w.lane_width, 0.0
                 speed = rng.uniform(3.0, 14.0)
                 s0 = rng.uniform(-30.0, 60.0)
                 size = (rng.uniform(4.2, 4.8), rng.uniform(1.8, 2.0), rng.uniform(1.45, 1.6))
@@ -261,6 +265,30 @@ class StreetScene:
         self.moving_ids = {v.track_id for v in self.vehicles if v.speed != 0}
 
     # ----------------------------------------------------------------------------------
+    @staticmethod
+    def _median(w: WorldParams, smin: float, smax: float) -> list[_Box]:
+        """The ``divided`` world's median wall on the centre line over ``[smin, smax]``: segments of
+        :data:`MEDIAN_SEGMENT` m (2 cm overlap), each pitched with the road's gradient at its
+        centre (no roll: the wall stands vertical), ``median_height`` above the ground there and
+        sunk 0.5 m below it."""
+        out = []
+        n = max(1, int(math.ceil((smax - smin) / MEDIAN_SEGMENT)))
+        zh = w.median_height
+        for i in range(n):
+            sc = smin + (i + 0.5) * MEDIAN_SEGMENT
+            x, y = (float(v) for v in w.to_world(sc, 0.0))
+            g, hx, hy = (float(v) for v in w.height(x, y, grad=True))
+            a = w.heading(sc)
+            ca, sa = math.cos(a), math.sin(a)
+            ex = np.array([ca, sa, hx * ca + hy * sa])
+            ex /= np.linalg.norm(ex)
+            ey = np.array([-sa, ca, 0.0])
+            ez = np.cross(ex, ey)
+            T = make_transform(R=np.stack([ex, ey, ez], axis=1), t=np.array([x, y, g]) + 0.5 * (zh - 0.5) * ez)
+            out.append(_Box(T, np.array([MEDIAN_SEGMENT / 2 + 0.01, w.median_half, (zh + 0.5) / 2]), "median",
+                            SEM["other"], 0, np.array([0.62, 0.61, 0.58]), 2000 + i))
+        return out
+
     @staticmethod
     def _overtaker(w: WorldParams, rng: np.random.Generator, t_range) -> list[dict]:
         """The ``overtake`` world's one mover: a car in the left lane pulled towards the ego,
@@ -498,7 +526,8 @@ class StreetScene:
             if self.varied:
                 w = self.world
                 ss, ll = w.to_street(p[:, 0], p[:, 1], self.s_mid)
-                a, sm = _ground_albedo(ss, ll, self.seed, self.fine_texture, w.road_half, w.lane_width, w.sidewalk_out)
+                a, sm = _ground_albedo(ss, ll, self.seed, self.fine_texture, w.road_half, w.lane_line, w.sidewalk_out,
+                                       w.lane_dash)
                 sun_z = np.clip(w.normal(p[:, 0], p[:, 1]) @ self.sun, 0.0, None)
             else:
                 a, sm = _ground_albedo(p[:, 0], p[:, 1], self.seed, self.fine_texture)

@@ -2,7 +2,7 @@
 colour): integer-lattice hash and value noise, the ground's albedo and class (road with lane
 markings, paved sidewalk, grass), the sky gradient, and the albedo / emissive flags of box
 primitives (façades with windows and shop fronts, vehicle bodies with lamps and hazard lights,
-cabins with glass, tree canopies).
+cabins with glass, tree canopies, the divided road's median wall).
 """
 from __future__ import annotations
 
@@ -44,11 +44,14 @@ def fine_grain(u: np.ndarray, v: np.ndarray, seed: int, amplitude: float) -> np.
 
 
 def _ground_albedo(x: np.ndarray, y: np.ndarray, seed: int, fine: float = 0.0, road_half: float = ROAD_HALF,
-                   lane_line: float = 3.5, sidewalk_out: float = SIDEWALK_OUT) -> tuple[np.ndarray, np.ndarray]:
+                   lane_line: float = 3.5, sidewalk_out: float = SIDEWALK_OUT,
+                   lane_dash: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Albedo ``[N,3]`` and semantic ``[N]`` of ground points at street coordinates ``x`` (along the
     road) and ``y`` (lateral) ``[N]``; ``fine``: the grain's amplitude; ``road_half``: the road's
     half-width, ``lane_line``: lateral offset of the lines between the driving and the kerbside
-    lanes, ``sidewalk_out``: the sidewalk's outer edge (defaults: the classic street)."""
+    lanes, ``sidewalk_out``: the sidewalk's outer edge (defaults: the classic street);
+    ``lane_dash``: lateral offset of dashed lines between two driving lanes on each side (None:
+    none)."""
     n = x.shape[0]
     alb = np.empty((n, 3))
     sem = np.empty(n, dtype=np.uint8)
@@ -65,6 +68,8 @@ def _ground_albedo(x: np.ndarray, y: np.ndarray, seed: int, fine: float = 0.0, r
     mark = (np.abs(yr) < 0.08) & (np.mod(xr, 6.0) < 3.0)  # dashed centre line
     mark |= np.abs(np.abs(yr) - lane_line) < 0.075  # parking-lane lines
     mark |= np.abs(np.abs(yr) - (road_half - 0.15)) < 0.075  # edge lines
+    if lane_dash is not None:
+        mark |= (np.abs(np.abs(yr) - lane_dash) < 0.075) & (np.mod(xr, 6.0) < 3.0)
     sub = alb[road]
     sub[mark] = [0.92, 0.92, 0.88]
     alb[road] = sub
@@ -180,6 +185,13 @@ def _box_albedo(b: _Box, pl: np.ndarray, seed: int, fine: float = 0.0) -> tuple[
         glass = vert & (zr > 0.08) & (zr < 2 * h[2] - 0.06)
         glass &= np.where(axis == 1, np.abs(x) < h[0] - 0.1, ay < h[1] - 0.1)
         alb[glass] = _GLASS
+    elif b.kind == "median":
+        # concrete panels 2 m wide (local x) with joints; each face its own stain pattern
+        u = x + h[0]
+        face = np.where(y > 0, 57.0, 0.0)
+        tone = 0.8 + 0.35 * _value_noise(u * 1.5 + face, z * 1.5, seed + b.key)
+        alb = alb * tone[:, None]
+        alb[(axis != 2) & (np.mod(u, 2.0) < 0.05)] *= 0.6
     elif b.kind == "canopy":
         nz = _value_noise(pl[:, 0] * 3 + b.key, pl[:, 1] * 3 + pl[:, 2] * 3, seed + 7)
         alb = alb * (0.7 + 0.6 * nz)[:, None]

@@ -28,6 +28,18 @@ Three worlds (``SyntheticConfig.world``):
   tries of pedestrians walking ``U[0.8, 1.8]`` m/s along either sidewalk, each try redrawn up to
   30 times while it comes too close to the ego or another mover (20 and more movers on every
   street, tested).
+* ``"divided"`` (issue 33, views a lateral shift truly uncovers): drawn like ``straight`` (the
+  same parameters from the same stream), plus a continuous median wall on the centre line
+  (``U[0.16, 0.20]`` m thick, ``U[2.0, 2.5]`` m tall: taller than the cameras, 1.6 m) from
+  the stream ``np.random.default_rng([seed, 8])``.  Each carriageway has two driving lanes and
+  the drawn kerbside lane (``road_half`` = the median's half-width + the ego's distance to it +
+  1.5 lanes + the drawn ``road_half - lane_width``).  The ego keeps the inner lane, its centre
+  ``U[2.03, 2.12]`` m from the median's face, so that AutoSplat's 1 m lane-change rig stays on
+  its side, the 3 m rig stands wholly beyond it (its cameras sit up to 0.6 m off the rig's
+  centre) and no camera of the 1, 2 or 3 m rigs is inside the wall; the moving vehicles drive in
+  the outer lane on the ego's right, in its direction (their right sides face the kerb), and
+  nothing drives or parks on the other carriageway.  The median hides the other carriageway,
+  its kerb, footway and the façades' lower floors from every camera of the ego.
 
 Street coordinates: ``s`` along the centre line (m, 0 = the ego at ``t = 0``), ``l`` lateral
 (m, left positive).  The centre line starts at the world origin heading +x; with curvature
@@ -102,12 +114,19 @@ import numpy as np
 
 from ..scene import make_transform
 
-__all__ = ["WORLDS", "STRAIGHT_WORLDS", "BUSY_LANE_VEHICLES", "BUSY_PEDESTRIANS", "SPEED_KINDS", "SPEED_BINS", "WorldParams", "draw_world", "classic_world",
+__all__ = ["WORLDS", "STRAIGHT_WORLDS", "MEDIAN_HALF_RANGE", "MEDIAN_HEIGHT_RANGE", "MEDIAN_GAP_RANGE",
+           "MEDIAN_SEGMENT", "BUSY_LANE_VEHICLES", "BUSY_PEDESTRIANS", "SPEED_KINDS", "SPEED_BINS", "WorldParams", "draw_world", "classic_world",
            "classic_ego_pose", "speed_bin"]
 
-WORLDS: tuple[str, ...] = ("classic", "varied", "straight", "overtake", "busy")
+WORLDS: tuple[str, ...] = ("classic", "varied", "straight", "overtake", "busy", "divided")
 #: worlds drawn like ``straight`` (straight road, constant speed, no lane change, the ego on the right)
-STRAIGHT_WORLDS: tuple[str, ...] = ("straight", "overtake", "busy")
+STRAIGHT_WORLDS: tuple[str, ...] = ("straight", "overtake", "busy", "divided")
+#: ``divided``: the median wall's half-thickness, its height and the ego's distance (centre to the
+#: wall's near face) ranges (m), and the length of the wall's segments along the road
+MEDIAN_HALF_RANGE = (0.08, 0.10)
+MEDIAN_HEIGHT_RANGE = (2.0, 2.5)
+MEDIAN_GAP_RANGE = (2.03, 2.12)
+MEDIAN_SEGMENT = 8.0
 #: ``busy``: placement tries of vehicles per driving lane and of pedestrians (both sidewalks)
 BUSY_LANE_VEHICLES = 10
 BUSY_PEDESTRIANS = 12
@@ -164,7 +183,7 @@ class WorldParams:
     """Every drawn parameter of one street (see the module docstring for the distributions).
 
     Attributes:
-        world: ``"classic"``, ``"varied"`` or ``"straight"``.  seed: the street's seed.
+        world: one of :data:`WORLDS`.  seed: the street's seed.
         speed_kind: ``"classic"`` or one of :data:`SPEED_KINDS`.
         v0, accel, t_accel: ego speed ``v(t) = clip(v0 + accel * max(t - t_accel, 0), 0, 15)`` m/s
             (classic: constant ``v0``).
@@ -183,6 +202,8 @@ class WorldParams:
         grade: road gradient at the start (rise per metre).  vcurv: vertical curvature ``B / L^2``
             at the start (1/m; positive = sag).  crossfall: lateral slope (rise per metre to the
             left).  profile_length: ``L`` of the vertical profile (m).
+        median_half, median_height: the ``divided`` world's median wall on the centre line: its
+            half-thickness and height (m); 0 elsewhere (no median).
     """
 
     world: str
@@ -211,8 +232,24 @@ class WorldParams:
     vcurv: float
     crossfall: float
     profile_length: float
+    median_half: float = 0.0
+    median_height: float = 0.0
 
     # ------------------------------------------------------------------ derived constants
+    @property
+    def lane_line(self) -> float:
+        """Lateral offset of the painted lines between the driving and the kerbside lanes (m):
+        ``lane_width``; with a median, beyond the ego's (inner) lane and the outer one."""
+        if self.median_half > 0:
+            return abs(self.lane_from) + 1.5 * self.lane_width
+        return self.lane_width
+
+    @property
+    def lane_dash(self) -> float | None:
+        """With a median, the lateral offset of the dashed line between the inner and the outer
+        driving lane (m); None otherwise (a dashed centre line)."""
+        return abs(self.lane_from) + 0.5 * self.lane_width if self.median_half > 0 else None
+
     @property
     def flat(self) -> bool:
         """True when the ground is the plane ``z = 0``."""
@@ -602,4 +639,13 @@ def draw_world(seed: int, world: str = "varied") -> WorldParams:
         vcurv=float(vcurv), crossfall=float(crossfall), profile_length=float(L))
     vref = max(w.road_speed(lc_t), w.road_speed(lc_t + lc_dur))
     length = float(np.clip(lc_dur * vref, 12.0, 60.0))
-    return WorldParams(**{**w.__dict__, "lc_s_start": w.ego_distance(lc_t), "lc_length": length})
+    extra: dict = {}
+    if world == "divided":            # the median, from its own stream: the rest is straight's street
+        u_m = np.random.default_rng([int(seed), 8]).uniform(size=3)
+        mh = MEDIAN_HALF_RANGE[0] + (MEDIAN_HALF_RANGE[1] - MEDIAN_HALF_RANGE[0]) * u_m[0]
+        mz = MEDIAN_HEIGHT_RANGE[0] + (MEDIAN_HEIGHT_RANGE[1] - MEDIAN_HEIGHT_RANGE[0]) * u_m[1]
+        gap = MEDIAN_GAP_RANGE[0] + (MEDIAN_GAP_RANGE[1] - MEDIAN_GAP_RANGE[0]) * u_m[2]
+        ego = -(mh + gap)
+        extra = {"median_half": float(mh), "median_height": float(mz), "lane_from": float(ego),
+                 "lane_to": float(ego), "road_half": float(mh + gap + 0.5 * lane_width + road_half)}
+    return WorldParams(**{**w.__dict__, "lc_s_start": w.ego_distance(lc_t), "lc_length": length, **extra})
