@@ -155,7 +155,8 @@ class ShFn(torch.autograd.Function):
             return None, None, None, None, None
         rt, arr = s.rt, s.rt.array
         v_coeffs, v_means, v_dirs = stages.sh_colors_bwd(
-            rt, s.cfg, arr(means.detach(), keep=True), arr(viewmats.detach()), arr(coeffs.detach(), keep=True),
+            rt, s.cfg, arr(means.detach(), keep=True), arr(viewmats.detach()),
+            arr(coeffs.detach(), keep=True),
             _array(s, radii), arr(colors), rt.staged(v_colors, tuple(colors.shape), colors.dtype),
             s.sh_degree, need_means, need_view,
             events=s.events)

@@ -27,7 +27,7 @@ plans (:meth:`Runtime.plan`: per shape and config, bounded).
   command: :func:`_unheld`), so a small render makes no buffer per call; a fresh one cost the
   calling thread ~12 us (the tensor, the buffer, PoCL's first use and release of it).
   :meth:`Runtime.array` of a pooled array's own memory returns that array. Bounded by
-  :data:`POOL_BYTES`, least recently used shapes dropped first.
+  :data:`POOL_BYTES` and :data:`POOL_SHAPES`, least recently used shapes dropped first.
 * Device limits: launches respect the kernel's own ``CL_KERNEL_WORK_GROUP_SIZE`` and every
   kernel is sized for :data:`LOCAL_MEM_BUDGET` (48 KiB, what GPUs offer) of local memory,
   not for a CPU runtime's larger figure.
@@ -55,7 +55,8 @@ from .memory import available_host_memory, fmt_bytes, host_allowance
 __all__ = [
     "BuildError", "DeviceError", "Runtime", "DeviceArray", "get_runtime", "list_devices",
     "describe_devices", "read_back", "LOCAL_MEM_BUDGET", "INT32_MAX", "available_host_memory",
-    "PLAN_CACHE_SIZE", "POOL_ARRAY_BYTES", "POOL_PER_SHAPE", "POOL_BYTES", "KEEP_INPUTS",
+    "PLAN_CACHE_SIZE", "POOL_ARRAY_BYTES", "POOL_PER_SHAPE", "POOL_BYTES", "POOL_SHAPES",
+    "KEEP_INPUTS",
 ]
 
 _BASE_OPTIONS = ("-cl-std=CL1.2", "-cl-denorms-are-zero")
@@ -81,6 +82,10 @@ POOL_ARRAY_BYTES = 1 << 20
 POOL_PER_SHAPE = 8
 #: bytes the pool of a runtime keeps at most (least recently used shapes dropped first)
 POOL_BYTES = 32 << 20
+#: shapes the pool keeps at most (a tiny call uses ~20; the intersection arrays change shape
+#: with every call whose intersection count differs, and would otherwise fill it with
+#: thousands of small buffers)
+POOL_SHAPES = 64
 #: input arrays kept at most (:meth:`Runtime.array` with ``keep``): a render's six projection
 #: inputs and its colours, for a couple of scenes in turn
 KEEP_INPUTS = 16
@@ -594,7 +599,8 @@ class Runtime:
                 # what holds a pooled array that nothing outside holds: the same references
                 # as at every later check (entries, _pool_ptrs, the name ``a``)
                 a._pool_free, a._pool_refs = _holders(a), _array_refs(a)
-                while self._pool_bytes > self.pool_limit and len(self._pool) > 1:
+                while ((self._pool_bytes > self.pool_limit or len(self._pool) > POOL_SHAPES)
+                       and len(self._pool) > 1):
                     self._drop_pool_shape(next(iter(self._pool)))
             return a
 

@@ -292,7 +292,7 @@ def test_array_pool_hands_out_only_arrays_nothing_holds(rt, monkeypatch):
     queued command still holds is not; large arrays and a pool turned off are never pooled;
     Runtime.array of a pooled array's memory gives that array."""
     import numpy as np
-    from clsplat.runtime import POOL_ARRAY_BYTES, POOL_PER_SHAPE
+    from clsplat.runtime import POOL_ARRAY_BYTES, POOL_PER_SHAPE, POOL_SHAPES
     if not rt.computes_in_host_memory:
         pytest.skip("the pool is on only where the device computes in host memory (PoCL's CPU device)")
     rt.release_pool()
@@ -304,8 +304,9 @@ def test_array_pool_hands_out_only_arrays_nothing_holds(rt, monkeypatch):
     assert b.tensor.data_ptr() == ptr and not b.tensor.any()  # handed out again, zeroed
     assert rt.array(b.tensor) is b and rt.array(b.tensor.detach()) is b
     b.tensor.fill_(2)
-    holders = {"tensor": lambda x: x.tensor, "view": lambda x: x.tensor[1:], "alias": lambda x: x.tensor.detach(),
-               "numpy": lambda x: x.tensor.numpy(), "array": lambda x: x}
+    holders = {"tensor": lambda x: x.tensor, "view": lambda x: x.tensor[1:],
+               "alias": lambda x: x.tensor.detach(), "numpy": lambda x: x.tensor.numpy(),
+               "array": lambda x: x}
     for name, hold in holders.items():
         kept = hold(b)
         del b
@@ -321,7 +322,8 @@ def test_array_pool_hands_out_only_arrays_nothing_holds(rt, monkeypatch):
     assert rt.empty((7, 3), torch.float32).tensor.data_ptr() == ptr
     # at most POOL_PER_SHAPE arrays of one shape; large arrays never
     many = [rt.empty((5,), torch.int32) for _ in range(POOL_PER_SHAPE + 3)]
-    assert len(rt._pool[((5,), torch.int32)]) == POOL_PER_SHAPE and len({m.buffer.int_ptr for m in many}) == len(many)
+    assert len(rt._pool[((5,), torch.int32)]) == POOL_PER_SHAPE
+    assert len({m.buffer.int_ptr for m in many}) == len(many)
     big = (POOL_ARRAY_BYTES // 4 + 1,)
     p = rt.empty(big, torch.float32).tensor.data_ptr()
     assert ((big, torch.float32)) not in rt._pool and p not in rt._pool_ptrs
@@ -333,6 +335,11 @@ def test_array_pool_hands_out_only_arrays_nothing_holds(rt, monkeypatch):
             rt.empty((1024 + i,), torch.float32)
         assert rt._pool_bytes <= rt.pool_limit and ((1024 + 39,), torch.float32) in rt._pool
         assert ((1024,), torch.float32) not in rt._pool
+        rt.pool_limit = limit  # and in shapes: one small array each of many sizes (as the
+        for i in range(POOL_SHAPES + 10):  # intersection arrays of calls whose counts differ)
+            rt.empty((3000 + i,), torch.int64, zero=False)
+        assert len(rt._pool) == POOL_SHAPES and ((3000 + POOL_SHAPES + 9,), torch.int64) in rt._pool
+        assert len(rt._pool_ptrs) == sum(len(v) for v in rt._pool.values())
         rt.pool_limit = 0  # off: a fresh array every time
         assert rt.empty((7, 3), torch.float32).tensor.data_ptr() not in rt._pool_ptrs
     finally:

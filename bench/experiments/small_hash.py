@@ -10,8 +10,9 @@ configuration renders three times in a row (forward + backward of a weighted los
 the runtime's pooled arrays are handed out again), changing means, colours and opacities in
 place between calls (as an optimiser step does: kept input arrays must see it), and the
 results of the first call are held and hashed only after the other two ran: a returned tensor
-a later call overwrote would change the fingerprint. Prints one JSON line: per configuration, an md5 over images, alphas, meta's
-means2d, radii, isect_offsets and flatten_ids, and every leaf gradient (and absgrad).
+a later call overwrote would change the fingerprint. Prints one JSON line: per configuration,
+an md5 over images, alphas, meta's means2d, radii, isect_offsets and flatten_ids, and every leaf
+gradient (and absgrad).
 """
 from __future__ import annotations
 
