@@ -56,7 +56,7 @@ __all__ = [
     "BuildError", "DeviceError", "Runtime", "DeviceArray", "get_runtime", "list_devices",
     "describe_devices", "read_back", "LOCAL_MEM_BUDGET", "INT32_MAX", "available_host_memory",
     "PLAN_CACHE_SIZE", "POOL_ARRAY_BYTES", "POOL_PER_SHAPE", "POOL_BYTES", "POOL_SHAPES",
-    "KEEP_INPUTS",
+    "KEEP_INPUTS", "STAGE_COPY_BYTES",
 ]
 
 _BASE_OPTIONS = ("-cl-std=CL1.2", "-cl-denorms-are-zero")
@@ -86,6 +86,10 @@ POOL_BYTES = 32 << 20
 #: with every call whose intersection count differs, and would otherwise fill it with
 #: thousands of small buffers)
 POOL_SHAPES = 64
+#: an incoming gradient ready to use (contiguous, of the right dtype) is copied into a pooled
+#: array up to this size (a copy that costs less than the ~12 us of a new buffer); larger ones
+#: get an array over their own memory, as before
+STAGE_COPY_BYTES = 64 << 10
 #: input arrays kept at most (:meth:`Runtime.array` with ``keep``): a render's six projection
 #: inputs and its colours, for a couple of scenes in turn
 KEEP_INPUTS = 16
@@ -556,15 +560,19 @@ class Runtime:
 
     def staged(self, g: torch.Tensor | None, shape: tuple, dtype: torch.dtype) -> "DeviceArray":
         """An incoming gradient ``g`` (None: zeros) as a contiguous ``dtype`` array ``shape``
-        on the device, for kernels to read: copied into a pooled array where the pool is on
-        (the copy ``contiguous().to(dtype)`` would make anyway), else over that copy."""
+        on the device, for kernels to read. Where the pool is on: a pooled array's own memory
+        (e.g. a kernel's output) as it is; else copied into a pooled array where a copy is due
+        anyway (``contiguous().to(dtype)`` makes one) or costs less than a new buffer (up to
+        :data:`STAGE_COPY_BYTES`). Otherwise an array over ``g`` (or that copy), as before."""
         if g is None:
             return self.empty(shape, dtype)
-        if g.dtype == dtype and g.is_contiguous():
+        ready = g.dtype == dtype and g.is_contiguous()
+        if ready:
             a = self._pool_ptrs.get(g.data_ptr()) if self._pool_ptrs and g.numel() and self.pools else None
             if a is not None and a.tensor.shape == g.shape and a.tensor.dtype == dtype:
                 return a  # a pooled array's own memory (e.g. a kernel's output): as it is
-        if tuple(g.shape) == tuple(shape) and self.pools:
+        if (tuple(g.shape) == tuple(shape) and self.pools
+                and (not ready or g.numel() * dtype.itemsize <= STAGE_COPY_BYTES)):
             a = self.empty(shape, dtype, zero=False)  # (in host memory: written in place)
             a.tensor.copy_(g.detach())
             return a

@@ -428,3 +428,26 @@ def test_small_renders_make_no_arrays_and_returned_tensors_stay_valid(make_scene
     second = render()
     assert not torch.equal(second[0], copies[0])  # the change was seen
     assert all(torch.equal(a, b) for a, b in zip(first, copies))  # the first call's results intact
+
+
+def test_staged_gradients_copy_only_what_is_cheaper_to_copy(rt):
+    """Runtime.staged: an incoming gradient that is a pooled array's memory is used as it is; a
+    small or non-contiguous one is copied into a pooled array; a large contiguous one gets an
+    array over its own memory (no copy, as before the pool); None gives zeros. Values equal."""
+    from clsplat.runtime import STAGE_COPY_BYTES
+    if not rt.pools:
+        pytest.skip("the pool is on only where the device computes in host memory (PoCL's CPU device)")
+    pooled = rt.empty((4, 3), torch.float32)
+    assert rt.staged(pooled.tensor, (4, 3), torch.float32) is pooled
+    small = torch.arange(12, dtype=torch.float32).reshape(4, 3)
+    a = rt.staged(small, (4, 3), torch.float32)
+    assert a.tensor.data_ptr() in rt._pool_ptrs and torch.equal(a.tensor, small)
+    n = STAGE_COPY_BYTES // 4 + 1
+    large = torch.arange(n, dtype=torch.float32)
+    b = rt.staged(large, (n,), torch.float32)
+    assert b.tensor.data_ptr() == large.data_ptr()
+    wide = torch.ones(3, 1).expand(3, 4)  # as a sum's gradient comes: not contiguous
+    c = rt.staged(wide, (3, 4), torch.float64)
+    assert c.tensor.dtype == torch.float64 and torch.equal(c.tensor, torch.ones(3, 4, dtype=torch.float64))
+    z = rt.staged(None, (2, 2), torch.float32)
+    assert not z.tensor.any()
