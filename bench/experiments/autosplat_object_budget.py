@@ -99,7 +99,7 @@ def table(args) -> None:
 
 def _run(run: Path, times: list[Path] | None = None) -> dict:
     """One run folder's figures (None where a class has no pixel); ``cpu``: the whole command's user +
-    system seconds from ``<first of times>/<run>.time`` (``/usr/bin/time -f "%e %U %S"``; a rerun of the same
+    system seconds from ``<first of times>/<run>.time`` (``/usr/bin/time -f "%e %U %S"`` or ``-v``; a rerun of the same
     command where the run itself was not timed) where there is one."""
     import json
     from collections import Counter
@@ -125,7 +125,11 @@ def _cpu(run: Path, times: list[Path] | None) -> float | None:
     f = next((d / f"{run.name}.time" for d in times or [] if (d / f"{run.name}.time").is_file()), None)
     if f is None:
         return None
-    _, user, system = (float(x) for x in f.read_text().split()[-3:])
+    text = f.read_text()
+    if "User time (seconds):" in text:   # /usr/bin/time -v
+        import re
+        return sum(float(re.search(rf"{k} time \(seconds\): ([0-9.]+)", text).group(1)) for k in ("User", "System"))
+    _, user, system = (float(x) for x in text.split()[-3:])
     return user + system
 
 

@@ -18,7 +18,8 @@ on the training frames of the same run.
   (``--supersample``) on the same pixels: how far a perfectly anti-aliased picture of the truth
   would score from the truth a run is scored against, a property of the data, not of a model.
 
-    PYTHONPATH=<tree> .venv/bin/python bench/experiments/autosplat_small_objects.py RUN [RUN ...] [--aliasing]
+    PYTHONPATH=<tree> .venv/bin/python bench/experiments/autosplat_small_objects.py RUN [RUN ...] [--aliasing] [--out DIR]
+    .venv/bin/python bench/experiments/autosplat_small_objects.py --from-json DIR/small_objects.json ...   # the rows again
 
 Each RUN is a finished ``clsplat train autosplat`` folder on generated data (instance masks are the
 generator's). Prints one markdown row per run and writes ``small_objects.json`` into ``--out``
@@ -202,7 +203,16 @@ def main() -> None:
     p.add_argument("--aliasing", action="store_true", help="also score the truth against its anti-aliased render")
     p.add_argument("--supersample", type=int, default=4, help="rays per pixel side for --aliasing (default 4)")
     p.add_argument("--out", type=Path, default=None, help="write small_objects.json here")
+    p.add_argument("--from-json", action="store_true",
+                   help="RUN arguments are small_objects.json files written before: print their rows only")
     a = p.parse_args()
+    if a.from_json:
+        print(HEADER)
+        print("|" + "---|" * HEADER.count(" | ") + "---|")
+        for f in a.runs:
+            for o in json.loads(f.read_text()):
+                print(_row(o))
+        return
     for name, v in (("--band", a.band), ("--border", a.border), ("--supersample", a.supersample)):
         if v < 1:
             p.error(f"{name}: expected an integer >= 1, got {v}")
