@@ -1,8 +1,9 @@
 """OpenCL runtime: device choice, specialised program builds, and host/device arrays.
 
 This module owns the only global mutable state of clsplat: the runtime cache (one context and
-queue per device) and, inside each runtime, the program and kernel caches and the render
-plans (:meth:`Runtime.plan`: per shape and config, bounded).
+queue per device) and, inside each runtime, the program and kernel caches, the render
+plans (:meth:`Runtime.plan`: per shape and config, bounded) and the plans' arrays (the array
+pool and the kept input arrays, below: per shape, bounded, handed out only when free).
 
 * Device choice: an argument, else ``CLSPLAT_DEVICE``, else the first GPU, else PoCL's CPU.
   A device is named by ``"P:D"`` (platform and device indices), or by a case-insensitive
