@@ -497,7 +497,7 @@ class Runtime:
         if self._pool_ptrs and tensor.numel() and self.pools:
             a = self._pool_ptrs.get(tensor.data_ptr())
             if (a is not None and a.tensor.shape == tensor.shape and a.tensor.dtype == tensor.dtype
-                    and tensor.is_contiguous()):
+                    and tensor.is_contiguous() and a.tensor.data_ptr() == a._pool_ptr):
                 if read_only:
                     a.read_only = True  # (until empty() hands it out again)
                 return a
@@ -510,9 +510,11 @@ class Runtime:
         key = (t.data_ptr(), t.shape, t.dtype)
         with self._pool_lock:
             a = self._kept.get(key)
-            if a is not None:
+            if a is not None and a.tensor.data_ptr() == a._pool_ptr:
                 self._kept.move_to_end(key)
                 return a
+            if a is not None:  # its memory moved under the buffer (see _moved): make it again
+                del self._kept[key]
             if t.untyped_storage().nbytes() > POOL_ARRAY_BYTES:
                 return DeviceArray(self, t)
             # Drop, oldest first, kept arrays whose memory nothing else holds any more (the
@@ -531,6 +533,7 @@ class Runtime:
             # free: the runtime's own references, one use of the implementation, and of the
             # storage the tensor's, the buffer's numpy view's and _holders' look-up
             a._pool_free, a._pool_refs = (h[0], 1, 3, h[3]), _array_refs(a)
+            a._pool_ptr = a.tensor.data_ptr()
             return a
 
     def empty(self, shape, dtype: torch.dtype, zero: bool = True) -> "DeviceArray":
@@ -587,6 +590,8 @@ class Runtime:
             entries = self._pool.get(key)
             if entries is not None:
                 self._pool.move_to_end(key)
+                if any(_moved(x) for x in entries):
+                    self._forget_moved(entries)
                 for i in range(len(entries)):  # (no enumerate: its tuple would hold ``a``)
                     a = entries[i]
                     if _is_free(a):
@@ -608,17 +613,28 @@ class Runtime:
                 # what holds a pooled array that nothing outside holds: the same references
                 # as at every later check (entries, _pool_ptrs, the name ``a``)
                 a._pool_free, a._pool_refs = _holders(a), _array_refs(a)
+                a._pool_ptr = a.tensor.data_ptr()
                 while ((self._pool_bytes > self.pool_limit or len(self._pool) > POOL_SHAPES)
                        and len(self._pool) > 1):
                     self._drop_pool_shape(next(iter(self._pool)))
             return a
 
+    def _forget_moved(self, entries: list) -> None:
+        """Drop from ``entries`` (one shape's pooled arrays) those whose memory moved away from
+        their buffer (:func:`_moved`): the buffer is over the old memory, so the array can never
+        be handed out again; whoever moved it keeps the tensor."""
+        for x in [x for x in entries if _moved(x)]:
+            entries.remove(x)
+            if self._pool_ptrs.get(x._pool_ptr) is x:
+                del self._pool_ptrs[x._pool_ptr]
+            self._pool_bytes -= x.tensor.numel() * x.tensor.dtype.itemsize
+
     def _drop_pool_shape(self, key: tuple) -> None:
         """Forget the pooled arrays of ``key`` (their holders keep them; nothing is freed
         under anyone)."""
         for a in self._pool.pop(key):
-            if self._pool_ptrs.get(a.tensor.data_ptr()) is a:
-                del self._pool_ptrs[a.tensor.data_ptr()]
+            if self._pool_ptrs.get(a._pool_ptr) is a:
+                del self._pool_ptrs[a._pool_ptr]
             self._pool_bytes -= a.tensor.numel() * a.tensor.dtype.itemsize
 
     def release_pool(self) -> None:
@@ -692,11 +708,18 @@ def _array_refs(a: "DeviceArray") -> int:
     return sys.getrefcount(a)
 
 
+def _moved(a: "DeviceArray") -> bool:
+    """Whether a pooled or kept array's memory moved away from its buffer: ``share_memory_()``
+    (which ``torch.multiprocessing`` queues call on every tensor they send), ``resize_()`` or
+    ``set_()`` on an alias swap the storage's memory, and the buffer stays over the old one."""
+    return a.tensor.data_ptr() != a._pool_ptr
+
+
 def _is_free(a: "DeviceArray") -> bool:
     """Whether only the pool holds ``a``: the references to it (first: a held array mostly
     fails there, cheaply) and :func:`_holders` are what they were when the pool took it. Called
     with the same references to ``a`` as then (its list, ``_pool_ptrs``, one name)."""
-    return sys.getrefcount(a) == a._pool_refs and _holders(a) == a._pool_free
+    return sys.getrefcount(a) == a._pool_refs and _holders(a) == a._pool_free and not _moved(a)
 
 
 def _define(v: object) -> str:
@@ -719,6 +742,7 @@ class DeviceArray:
 
     _pool_free: tuple | None = None  # pooled arrays: _holders() when only the pool holds it
     _pool_refs: int = -1  # its first entry: the references to the array then
+    _pool_ptr: int = 0  # pooled and kept arrays: the memory their buffer was made over
 
     def __init__(self, rt: Runtime, tensor: torch.Tensor, read_only: bool = False) -> None:
         if tensor.device.type != "cpu":

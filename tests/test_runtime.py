@@ -430,6 +430,32 @@ def test_small_renders_make_no_arrays_and_returned_tensors_stay_valid(make_scene
     assert all(torch.equal(a, b) for a, b in zip(first, copies))  # the first call's results intact
 
 
+def test_tensors_moved_to_shared_memory_leave_the_pool_and_later_renders_right(make_scene):
+    """``share_memory_()`` (what a ``torch.multiprocessing`` queue does to every tensor it sends)
+    moves a returned image's or an input's memory away from the buffer the pool made over it:
+    such arrays leave the pool, so a later render is what a fresh process renders."""
+    rt = clsplat.get_runtime()
+    if not rt.computes_in_host_memory:
+        pytest.skip("the pool is on only where the device computes in host memory (PoCL's CPU device)")
+    scene = make_scene(1, N=60, C=1, width=48, height=32, dtype=torch.float32)
+    other = make_scene(2, N=60, C=1, width=48, height=32, dtype=torch.float32)
+    expected = clsplat.rasterization(**scene)[0].clone()
+    for _ in range(2):
+        clsplat.rasterization(**other)
+    img, alpha, meta = clsplat.rasterization(**other)
+    for t in (img, alpha, *(v for v in meta.values() if isinstance(v, torch.Tensor))):
+        t.share_memory_()
+    del img, alpha, meta
+    shared = {k: (v.clone().share_memory_() if isinstance(v, torch.Tensor) and v.numel() else v)
+              for k, v in scene.items()}  # inputs moved too, then changed in place
+    assert torch.equal(clsplat.rasterization(**shared)[0], expected)
+    with torch.no_grad():
+        shared["colors"].mul_(0.5)
+    again = clsplat.rasterization(**shared)[0]
+    assert torch.equal(again, clsplat.rasterization(**{**scene, "colors": scene["colors"] * 0.5})[0])
+    assert torch.equal(clsplat.rasterization(**scene)[0], expected)
+
+
 def test_staged_gradients_copy_only_what_is_cheaper_to_copy(rt):
     """Runtime.staged: an incoming gradient that is a pooled array's memory is used as it is; a
     small or non-contiguous one is copied into a pooled array; a large contiguous one gets an
