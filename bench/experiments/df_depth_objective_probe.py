@@ -33,6 +33,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--layout", type=int, default=32, help="training streets behind the layout control")
     p.add_argument("--blur", type=int, default=9, help="box size (pixels) of gt-blur")
     p.add_argument("--scales", type=float, nargs="+", default=[0.8, 1.25])
+    p.add_argument("--ramp-scales", type=float, nargs="*", default=[],
+                   help="also the layout and the prior times each of these (which scale does a ramp prefer?)")
+    p.add_argument("--cap", type=float, default=None, help="the prior's cap (default: the preset's ground_prior_cap)")
     p.add_argument("--automask", type=int, default=1, help="1: monodepth2's auto-mask (the preset's), 0: off")
     p.add_argument("--w-smooth", type=float, nargs="+", default=[1.0, 0.3, 0.1, 0.03, 0.01, 0.001],
                    help="smoothness weights to re-weigh the same terms with (last table)")
@@ -70,7 +73,10 @@ def main(argv: list[str] | None = None) -> int:
             disp = F.avg_pool2d(F.pad(1.0 / gt, [a.blur // 2] * 4, mode="replicate"), a.blur, 1)
             cands = {"gt": gt, **{f"gt x{s:g}": gt * s for s in a.scales}, "gt-blur": 1.0 / disp,
                      "layout": torch.minimum(torch.maximum(lay, lo), hi),
-                     "prior": ground_prior_depth(Ks, E, preset.height, preset.width, preset.ground_prior_cap)}
+                     "prior": ground_prior_depth(Ks, E, preset.height, preset.width, a.cap or preset.ground_prior_cap)}
+            for r in a.ramp_scales:
+                cands[f"layout x{r:g}"] = cands["layout"] * r
+                cands[f"prior x{r:g}"] = cands["prior"] * r
             tgt, srcs = smp["images"][1], [smp["images"][0], smp["images"][2]]
             noise = torch.zeros(E.shape[0], 2, preset.height, preset.width)
             valid = torch.isfinite(smp["depths"][1][:, None]) & (smp["depths"][1][:, None] < preset.max_depth)

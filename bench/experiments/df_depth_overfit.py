@@ -42,6 +42,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import df_depth_structure as st     # bench/experiments: the same scoring
 
+    torch.set_num_threads(1)            # as --threads 1: PoCL renders on the other core
     preset = apply_sets(get_preset("drivingforward", a.preset), a.set, pose_source="dataset")
     torch.manual_seed(a.seed)
     model = DrivingForward(preset)
