@@ -141,11 +141,8 @@ class AutoSplatPreset(Preset):
                 raise bad(f, "must be >= 0")
         if sum(self.stage_steps().values()) < 1:
             raise bad("fusion_steps", "the schedule has no iteration at all")
-        for f in ("fg_steps_per_track", "fg_steps_per_area", "object_points_per_pixel"):
-            v = getattr(self, f)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < float("inf"):
-                raise bad(f, "expected a finite number >= 0")
-        for f in ("object_lr_scale", "object_grad_threshold"):
+        for f in ("fg_steps_per_track", "fg_steps_per_area", "object_points_per_pixel", "object_lr_scale",
+                  "object_grad_threshold"):
             v = getattr(self, f)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < float("inf"):
                 raise bad(f, "expected a finite number >= 0")
