@@ -53,7 +53,7 @@ def analyse(run: Path, band: int, front_share: float = 0.9) -> dict:
             true_depth = np.stack([d.seq.frames[i].depths[c] for c in d.cameras])
             gs_bg, _ = tr.model.scene_at(i, background=True, objects=False)
             bg = gs_bg.render(d.viewmats[i], d.Ks, d.width, d.height, packed=False, device=tr.device,
-                              render_mode="RGB+ED")[0][..., 3].numpy()
+                              render_mode="RGB+ED", **tr.renderer.options)[0][..., 3].numpy()
             mov = np.isin(inst, sorted(moving))
             front = mov & (bg < front_share * true_depth)
             acc["moving_bg_front"] += [err[front].sum(), 3 * front.sum()]

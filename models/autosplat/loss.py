@@ -34,10 +34,14 @@ class StepRenderer:
 
     Args:
         data: the run's ``RunData`` (intrinsics, image size); device: the OpenCL device.
+        eps2d, rasterize_mode: the rasteriser's 2D dilation and its mode (the preset's fields of
+            the same names), for every render of the run: :attr:`options`.
     """
 
-    def __init__(self, data, device=None) -> None:
+    def __init__(self, data, device=None, eps2d: float = 0.3, rasterize_mode: str = "classic") -> None:
         self.data, self.device = data, device
+        #: the ``rasterization`` keywords every render of the run passes (training and evaluation)
+        self.options = {"eps2d": float(eps2d), "rasterize_mode": rasterize_mode}
         self.renders: list = []
         self.events: list = []
         self.wall = 0.0
@@ -49,7 +53,7 @@ class StepRenderer:
         bg = torch.sigmoid(model.sky_color).expand(C, 3)
         t0 = time.perf_counter()
         out = gs.render(viewmats, self.data.Ks, self.data.width, self.data.height, backgrounds=bg,
-                        absgrad=absgrad, packed=False, device=self.device, events=self.events)
+                        absgrad=absgrad, packed=False, device=self.device, events=self.events, **self.options)
         self.wall += time.perf_counter() - t0
         if layout is not None:
             self.renders.append((out[2], layout))

@@ -22,6 +22,8 @@ TEMPLATES = ("car", "box")
 #: the switches); "with-flatness" (flat only with the flatness switch on, else isotropic as 3DGS:
 #: the flat start is half of the flatness treatment)
 ROAD_INITS = ("flat", "with-flatness")
+#: how the rasteriser weighs its 2D dilation (``clsplat.rasterization``'s ``rasterize_mode``)
+RASTERIZE_MODES = ("classic", "antialiased")
 
 
 @dataclass(frozen=True)
@@ -92,6 +94,12 @@ class AutoSplatPreset(Preset):
     # object_grad_threshold (0: grad_threshold, as before). 1.0 / 0.0: bit for bit the runs before.
     object_lr_scale: float = 1.0
     object_grad_threshold: float = 0.0
+    # issue 36 (outlines): how every render of the run (training and evaluation) rasterises: eps2d
+    # (pixels^2) is added to each 2D covariance (the rasteriser's default 0.3), rasterize_mode
+    # "antialiased" scales each Gaussian's opacity by the dilation's compensation (gsplat's
+    # Mip-Splatting option). 0.3 / "classic": bit for bit the runs before.
+    eps2d: float = 0.3
+    rasterize_mode: str = "classic"
     residual_width: int = 64
     time_frequencies: int = 4
     position_frequencies: int = 2
@@ -142,7 +150,7 @@ class AutoSplatPreset(Preset):
         if sum(self.stage_steps().values()) < 1:
             raise bad("fusion_steps", "the schedule has no iteration at all")
         for f in ("fg_steps_per_track", "fg_steps_per_area", "object_points_per_pixel", "object_lr_scale",
-                  "object_grad_threshold"):
+                  "object_grad_threshold", "eps2d"):
             v = getattr(self, f)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < float("inf"):
                 raise bad(f, "expected a finite number >= 0")
@@ -168,6 +176,8 @@ class AutoSplatPreset(Preset):
                 raise bad(f, "must be > 0")
         if not 0 < self.phase1_budget_share <= 1:
             raise bad("phase1_budget_share", "expected a share in (0, 1]")
+        if self.rasterize_mode not in RASTERIZE_MODES:
+            raise bad("rasterize_mode", f"expected one of {RASTERIZE_MODES}")
         if self.sky not in SKIES:
             raise bad("sky", f"expected one of {SKIES}")
         if self.template not in TEMPLATES:

@@ -102,7 +102,7 @@ class Trainer(LoopHooks):
         self.model = AutoSplatModel(data.seq, self.tracks, train_mask, preset.sh_degree, switches,
                                     preset.residual_width, preset.time_frequencies, preset.position_frequencies)
         self.densifier = Densifier(preset, self.model.sizes(), SKY, self._object_caps())
-        self.renderer = StepRenderer(data, device)
+        self.renderer = StepRenderer(data, device, preset.eps2d, preset.rasterize_mode)
         self.stage_seconds = {s: 0.0 for s in STAGES}
         self.step = 0
         self.opt: torch.optim.Optimizer | None = None

@@ -84,7 +84,7 @@ def render_views(trainer, frame: int, cam_to_world: np.ndarray, depth: bool = Fa
     gs, _ = trainer.model.scene_at(frame)
     bg = torch.sigmoid(trainer.model.sky_color).expand(vm.shape[0], 3)
     out, _, _ = gs.render(vm, d.Ks, d.width, d.height, backgrounds=bg, packed=False, device=trainer.device,
-                          render_mode="RGB+ED" if depth else "RGB")
+                          render_mode="RGB+ED" if depth else "RGB", **trainer.renderer.options)
     col = out[..., :3].clamp(0, 1)
     return (col, out[..., 3]) if depth else col
 
