@@ -135,3 +135,105 @@ def test_user_mask_folder_fills_semantics_and_names_bad_masks(tmp_path):
     write_image(tmp_path / cam / "03.png", np.full((16, 24), len(SEMANTIC_CLASSES) / 255.0, np.float32))
     with pytest.raises(ValueError, match="holds class"):
         load_mask_folder(bare, tmp_path, [3, 4])
+
+
+# ---------------------------------------------------------------- road continuation (issue 33)
+def _strip(n: int = 4000, seed: int = 0):
+    """Road Gaussians on the plane z = 0.3 + 0.02 x over x in [0, 40], y in [-3, 2] (a dark grey
+    road), and poses along +x at y = 0: a road seen 2 m to the left and 3 m to the right."""
+    rng = np.random.default_rng(seed)
+    xy = np.stack([rng.uniform(0, 40, n), rng.uniform(-3, 2, n)], 1)
+    means = np.concatenate([xy, (0.3 + 0.02 * xy[:, 0])[:, None]], 1)
+    colors = np.full((n, 3), 0.25) + rng.normal(0, 0.01, (n, 3))
+    normals = np.tile([-0.02, 0.0, 1.0], (n, 1)) / np.hypot(1, 0.02)
+    poses = np.tile(np.eye(4), (8, 1, 1))
+    poses[:, 0, 3] = np.linspace(5, 30, 8)
+    poses[:, 2, 3] = 0.3 + 0.02 * poses[:, 0, 3] + 1.6
+    return means, colors, normals, poses
+
+
+def test_extend_road_adds_a_flat_road_beyond_the_observed_edges():
+    from clsplat.models.autosplat.init import extend_road
+    means, colors, normals, poses = _strip()
+    em, ec, en = extend_road(means, colors, normals, poses, width=3.0, spacing=0.5)
+    left, right = em[:, 1] > 2.0, em[:, 1] < -3.0
+    assert (left | right).all()                                         # every added one lies beyond an edge
+    assert left.sum() > 400 and right.sum() > 400                       # both sides, all along the road
+    assert em[left, 1].max() <= 2.0 + 3.0 + 0.05 and em[right, 1].min() >= -3.0 - 3.0 - 0.05
+    assert np.ptp(em[left, 0]) > 38 and np.ptp(em[right, 0]) > 38
+    # on the road's own plane (its height continued across from the edge), coloured and oriented as the road
+    assert np.abs(em[:, 2] - (0.3 + 0.02 * em[:, 0])).max() < 0.03
+    assert np.abs(ec - 0.25).max() < 0.02
+    assert np.all(en @ np.array([0.0, 0.0, 1.0]) > 0.999)
+    # a grid of the given step: no two added Gaussians closer than it
+    from clsplat.models.autosplat.init import knn_mean_distance
+    import torch
+    assert knn_mean_distance(torch.from_numpy(em), k=1).min() > 0.49
+    # 0 adds nothing
+    assert all(len(a) == 0 for a in extend_road(means, colors, normals, poses, width=0.0, spacing=0.5))
+
+
+def test_extend_road_follows_the_road_not_the_heading():
+    """A road along the diagonal with the ego's heading 10 degrees off it (a lane change): the
+    continuation is parallel to the road's own principal axis."""
+    from clsplat.models.autosplat.init import extend_road
+    means, colors, normals, poses = _strip()
+    c, s = np.cos(np.pi / 4), np.sin(np.pi / 4)
+    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+    h = np.radians(10.0)
+    tilt = np.array([[np.cos(h), -np.sin(h), 0], [np.sin(h), np.cos(h), 0], [0, 0, 1.0]])
+    poses = poses.copy()
+    poses[:, :3, :3] = R @ tilt
+    poses[:, :3, 3] = poses[:, :3, 3] @ R.T
+    em, *_ = extend_road(means @ R.T, colors, normals @ R.T, poses, width=3.0, spacing=0.5)
+    back = em @ R               # into the road's frame
+    assert len(em) > 800
+    assert np.all((back[:, 1] > 2.0) | (back[:, 1] < -3.0))
+    assert back[:, 1].max() <= 5.1 and back[:, 1].min() >= -6.1
+
+
+def test_road_extend_m_adds_road_gaussians_in_init_and_zero_changes_nothing():
+    seq = generate_sequence(height=44, width=80, num_frames=3, seed=2, dt=0.2)
+    tiny = get_preset("autosplat", "tiny")
+    base, _ = init_background(seq, [0, 1, 2], seq.camera_names, tiny, np.random.default_rng(0))
+    zero, _ = init_background(seq, [0, 1, 2], seq.camera_names, tiny.replace(road_extend_m=0.0),
+                              np.random.default_rng(0))
+    for f in ("means", "colors", "scales", "labels", "normals", "source"):
+        assert np.array_equal(getattr(base, f), getattr(zero, f)), f
+    ext, _ = init_background(seq, [0, 1, 2], seq.camera_names, tiny.replace(road_extend_m=8.0),
+                             np.random.default_rng(0))
+    n = len(base) - tiny.dome_points
+    assert np.array_equal(ext.means[:n], base.means[:n])          # the observed set is untouched
+    assert np.array_equal(ext.means[-tiny.dome_points:], base.means[n:])
+    added = np.zeros(len(ext), bool)
+    added[n:len(ext) - tiny.dome_points] = True
+    assert added.sum() > 50
+    assert np.all(ext.labels[added] == ROAD) and np.all(ext.source[added] == -1)
+    # beyond the observed road's lateral extent: the street runs along x, so per 2 m strip of x the
+    # added Gaussians lie left of its leftmost road Gaussian or right of its rightmost one
+    road = base.means[base.labels == ROAD].astype(np.float64)
+    add = ext.means[added].astype(np.float64)
+    strip = np.floor(road[:, 0] / 2.0)
+    lo = {b: road[strip == b, 1].min() for b in np.unique(strip)}
+    hi = {b: road[strip == b, 1].max() for b in np.unique(strip)}
+    out = [y > hi[b] or y < lo[b] for (x, y), b in zip(add[:, :2], np.floor(add[:, 0] / 2.0)) if b in lo]
+    assert len(out) > 0.9 * len(add) and np.mean(out) > 0.95
+    assert (add[:, 1] > road[:, 1].max()).sum() > 10 and (add[:, 1] < road[:, 1].min()).sum() > 10
+    assert add[:, 1].max() < road[:, 1].max() + 8.0 + 1e-3 and add[:, 1].min() > road[:, 1].min() - 8.0 - 1e-3
+    # and on the road's plane: within 0.15 m of a plane fitted to the observed road
+    A = np.c_[road[:, :2], np.ones(len(road))]
+    coef = np.linalg.lstsq(A, road[:, 2], rcond=None)[0]
+    assert np.abs(np.c_[add[:, :2], np.ones(len(add))] @ coef - add[:, 2]).max() < 0.15
+    assert np.allclose(ext.scales[added], 4 * tiny.lidar_voxel)
+
+
+@pytest.mark.parametrize("value", [-1.0, float("nan"), float("inf"), "3", True])
+def test_bad_road_extend_m_is_named(value):
+    with pytest.raises(ValueError, match="road_extend_m") as e:
+        get_preset("autosplat", "tiny").replace(road_extend_m=value)
+    assert "\n" not in str(e.value)
+
+
+def test_road_extend_m_is_off_in_every_preset():
+    for name in ("tiny", "demo", "small", "paper"):
+        assert get_preset("autosplat", name).road_extend_m == 0.0, name

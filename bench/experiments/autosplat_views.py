@@ -68,6 +68,10 @@ ROWS: dict[str, list[str]] = {
     "full, former demo, phase1 share 0.5": [*FORMER, "--set", "phase1_budget_share=0.5"],
     "full, former demo, phase1 20 phase2 100": ["--set", "road_classes=('road',)"],
     "full, former demo, sidewalk in road set": ["--set", "bg_phase1_steps=40", "--set", "bg_phase2_steps=80"],
+    # issue 33 on the divided road: the full model with the road-continuation prior (road Gaussians
+    # carried on 8 or 16 m beyond the observed road's edges, ``road_extend_m``)
+    "full, road extend 8m": ["--set", "road_extend_m=8.0"],
+    "full, road extend 16m": ["--set", "road_extend_m=16.0"],
 }
 #: (column, path into metrics.json, higher is better)
 COLUMNS: list[tuple[str, tuple, bool]] = [

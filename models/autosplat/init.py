@@ -20,6 +20,14 @@
   (``dome_points``, Fibonacci lattice, radius ``dome_radius`` about the trajectory), coloured
   from sky pixels; their reference normal is radial. (Alternative: ``sky="color"``, no dome and
   a learnt background colour; measured in bench/RESULTS.md (AutoSplat).)
+* Road continuation (``preset.road_extend_m`` > 0, off by default; issue 33): the road goes on
+  where no sensor reached it. Along the road (its direction: the principal axis of the road
+  Gaussians about each training pose), in strips ``ROAD_EXTEND_SPACING`` x ``lidar_voxel`` long,
+  road Gaussians are added on a grid of that spacing from the observed road's outermost Gaussian
+  of the strip outwards, ``road_extend_m`` metres on each side (:func:`extend_road`); each takes
+  the mean height, colour and normal of its ``ROAD_EXTEND_NEIGHBOURS`` nearest observed road
+  Gaussians (horizontal distance), is labelled road and never seen (``source`` -1). Everything
+  comes from the LiDAR road points and the poses, nothing from the scene's layout.
 """
 from __future__ import annotations
 
@@ -33,13 +41,21 @@ import torch
 from clsplat.data.scene import SEMANTIC_CLASSES, DrivingSequence, Frame
 
 __all__ = ["BG_CLASSES", "ROAD", "SKY", "OTHER", "UNKNOWN", "BackgroundInit", "pixel_classes",
-           "init_background", "knn_mean_distance", "load_mask_folder", "accumulate_lidar", "moving_track_ids"]
+           "init_background", "knn_mean_distance", "load_mask_folder", "accumulate_lidar", "moving_track_ids",
+           "extend_road"]
 
 BG_CLASSES: tuple[str, ...] = ("road", "sky", "other")
 ROAD, SKY, OTHER, UNKNOWN = 0, 1, 2, 255
 ZBUF_WINDOW = 5
 #: the semantic classes of the road set by default (``AutoSplatPreset.road_classes``)
 ROAD_CLASSES: tuple[str, ...] = ("road",)
+#: road continuation (:func:`extend_road`): the added grid's spacing in ``lidar_voxel``s (demo: 1 m;
+#: it carries the road's colour on, not detail), the radius (m) of road Gaussians about a training
+#: pose whose principal axis is the road's direction there, and how many nearest observed road
+#: Gaussians give an added one its height, colour and normal
+ROAD_EXTEND_SPACING = 4.0
+ROAD_AXIS_RADIUS = 20.0
+ROAD_EXTEND_NEIGHBOURS = 8
 
 
 def sem_to_bg(road_classes: tuple[str, ...] = ROAD_CLASSES) -> np.ndarray:
@@ -245,6 +261,82 @@ def _colour_points(seq: DrivingSequence, i: int, cams: Sequence[str], pts: np.nd
     return colors, labels, source, seen
 
 
+def _nearest(query: torch.Tensor, points: torch.Tensor, k: int, chunk: int = 2048) -> torch.Tensor:
+    """Indices ``[Q, k]`` of the ``k`` nearest ``points [N, D]`` to each ``query [Q, D]``."""
+    k = min(k, points.shape[0])
+    return torch.cat([torch.cdist(query[s:s + chunk], points).topk(k, largest=False).indices
+                      for s in range(0, query.shape[0], chunk)]) if query.shape[0] else torch.zeros(0, k, dtype=torch.long)
+
+
+def extend_road(means: np.ndarray, colors: np.ndarray, normals: np.ndarray, poses: np.ndarray, width: float,
+                spacing: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Road Gaussians continuing the observed road ``width`` metres beyond its lateral edges.
+
+    Args:
+        means [N,3], colors [N,3], normals [N,3]: the observed road Gaussians (world frame).
+        poses [F,4,4]: the training frames' ego-to-world poses (x forward); they fix where "along"
+            and "across" the road are, the road's direction itself is the principal axis of the
+            road Gaussians within ``ROAD_AXIS_RADIUS`` of each pose (the pose's heading with fewer
+            than 3 of them).
+        width: metres added on each side (0: nothing); spacing: the added grid's step (metres).
+
+    Each road Gaussian gets an along-road coordinate s (from its horizontally nearest pose) and a
+    signed lateral one l (left positive). Per strip of ``spacing`` in s, grid points are placed at
+    l = max l + k * spacing and min l - k * spacing, k = 1..round(width / spacing), and kept where
+    no observed road Gaussian lies within half a step (a gap a neighbouring strip covers is not
+    beyond the road). Each kept point takes the mean height, colour and normal (renormalised,
+    z >= 0) of its ``ROAD_EXTEND_NEIGHBOURS`` horizontally nearest observed road Gaussians.
+
+    Returns:
+        ``(means [M,3], colors [M,3], normals [M,3])`` float64; M = 0 when ``width`` is 0 or there
+        are fewer than 4 road Gaussians.
+    """
+    empty = (np.zeros((0, 3)),) * 3
+    if not width > 0 or len(means) < 4 or len(poses) == 0:
+        return empty
+    xy = means[:, :2].astype(np.float64)
+    centre = poses[:, :2, 3].astype(np.float64)
+    axis = poses[:, :2, 0].astype(np.float64)
+    axis /= np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-9)
+    for j in range(len(poses)):
+        near = xy[np.linalg.norm(xy - centre[j], axis=1) < ROAD_AXIS_RADIUS]
+        if len(near) >= 3:
+            c = near - near.mean(0)
+            a = np.linalg.eigh(c.T @ c)[1][:, -1]
+            axis[j] = a if a @ axis[j] >= 0 else -a
+    left = np.stack([-axis[:, 1], axis[:, 0]], 1)
+    # arc length of the poses along the road
+    s_pose = np.concatenate([[0.0], np.cumsum(np.abs(np.einsum("ij,ij->i", np.diff(centre, axis=0), axis[:-1])))])
+    j = _nearest(torch.from_numpy(xy), torch.from_numpy(centre), 1)[:, 0].numpy()
+    rel = xy - centre[j]
+    s = s_pose[j] + np.einsum("ij,ij->i", rel, axis[j])
+    lat = np.einsum("ij,ij->i", rel, left[j])
+    strip = np.floor(s / spacing).astype(np.int64)
+    n = max(1, int(round(width / spacing)))
+    steps = spacing * np.arange(1, n + 1)
+    cand = []
+    for b in np.unique(strip):
+        m = strip == b
+        sc = (b + 0.5) * spacing
+        jj = int(np.argmin(np.abs(s_pose - sc)))
+        base = centre[jj] + (sc - s_pose[jj]) * axis[jj]
+        for ls in (lat[m].max() + steps, lat[m].min() - steps):
+            cand.append(base + ls[:, None] * left[jj])
+    cand = np.concatenate(cand)
+    obs = torch.from_numpy(xy)
+    d = torch.cat([torch.cdist(c, obs).min(1).values for c in torch.from_numpy(cand).split(2048)]).numpy()
+    cand = cand[d >= 0.5 * spacing]
+    if len(cand) == 0:
+        return empty
+    nb = _nearest(torch.from_numpy(cand), obs, ROAD_EXTEND_NEIGHBOURS).numpy()
+    z = means[nb, 2].astype(np.float64).mean(1)
+    col = colors[nb].astype(np.float64).mean(1)
+    nrm = normals[nb].astype(np.float64).mean(1)
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-9)
+    nrm *= np.where(nrm[:, 2:] < 0, -1.0, 1.0)
+    return np.concatenate([cand, z[:, None]], 1), col, nrm
+
+
 def _sky_dome(seq: DrivingSequence, frame_ids: Sequence[int], cams: Sequence[str], n: int, radius: float):
     """Hemisphere of ``n`` sky Gaussians about the trajectory, coloured from sky pixels."""
     centre = np.mean([seq.frames[i].ego_to_world[:3, 3] for i in frame_ids], axis=0)
@@ -314,6 +406,15 @@ def init_background(seq: DrivingSequence, frame_ids: Sequence[int], cameras: Seq
     road = L == ROAD
     if road.sum() >= 4:
         normals[road] = _knn_normals(pts_t[torch.from_numpy(road)]).numpy()
+    width = float(getattr(preset, "road_extend_m", 0.0))
+    if width > 0:
+        spacing = ROAD_EXTEND_SPACING * preset.lidar_voxel
+        em, ec, en = extend_road(P[road], C[road], normals[road],
+                                 np.stack([seq.frames[i].ego_to_world for i in frame_ids]), width, spacing)
+        P = np.concatenate([P, em]); C = np.concatenate([C, ec]); normals = np.concatenate([normals, en])
+        scales = np.concatenate([scales, np.full((len(em), 3), spacing)])
+        L = np.concatenate([L, np.full(len(em), ROAD, L.dtype)])
+        S = np.concatenate([S, np.full((len(em), 3), -1, np.int64)])
     mean_sky = None
     if preset.sky == "dome":
         dm, dc, ds, dn, dsrc, mean_sky = _sky_dome(seq, frame_ids, cameras, preset.dome_points, preset.dome_radius)

@@ -65,6 +65,11 @@ class AutoSplatPreset(Preset):
     # the paper's road. issue 19: ("road", "sidewalk") makes the sidewalk, the same ground plane,
     # flat too
     road_classes: tuple[str, ...] = ("road",)
+    # issue 33 (a divided road): a road-continuation prior. > 0 adds road Gaussians beyond the
+    # observed road's lateral edges, this many metres on each side, on the road's own local plane
+    # (height, colour and normal of the nearest observed road Gaussians; :func:`.init.extend_road`),
+    # labelled road (phase 1, flatness, the flat start like the rest of it). 0: none, as before
+    road_extend_m: float = 0.0
     object_points: int = 400
     # issue 36: a foreground budget that follows the scene (:func:`.objects.object_budget`), from the
     # tracked boxes' pixels over the training views (boxes, not instance masks: what a user gives).
@@ -150,7 +155,7 @@ class AutoSplatPreset(Preset):
         if sum(self.stage_steps().values()) < 1:
             raise bad("fusion_steps", "the schedule has no iteration at all")
         for f in ("fg_steps_per_track", "fg_steps_per_area", "object_points_per_pixel", "object_lr_scale",
-                  "object_grad_threshold", "eps2d"):
+                  "object_grad_threshold", "eps2d", "road_extend_m"):
             v = getattr(self, f)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < float("inf"):
                 raise bad(f, "expected a finite number >= 0")
