@@ -24,6 +24,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--val", type=int, default=40, help="validation windows it is scored on")
     p.add_argument("--radius", type=int, default=3)
     p.add_argument("--level", type=int, default=4)
+    p.add_argument("--metric", action="store_true",
+                   help="add the lower half's statistics weighted by the ground prior's depth / f "
+                        "(camera height and extrinsics: calibration, a named prior), capped at --cap")
+    p.add_argument("--cap", type=float, default=30.0, help="ground prior cap (m) of --metric")
     a = p.parse_args(argv)
 
     import numpy as np
@@ -32,6 +36,7 @@ def main(argv: list[str] | None = None) -> int:
     from clsplat.models.common.data import parse_data
     from clsplat.models.common.presets import get_preset
     from clsplat.models.drivingforward.data import gt_ego_motion, load_triplet
+    from clsplat.models.drivingforward.depth import ground_prior_depth
     from clsplat.models.drivingforward.fusion import scale_intrinsics
     from clsplat.models.drivingforward.pose import flow_statistics, local_correlation
 
@@ -46,7 +51,16 @@ def main(argv: list[str] | None = None) -> int:
             R = E[:, :3, :3]
             T0 = torch.linalg.inv(E[0]) @ gt_ego_motion(s)[2].double() @ E[0]
             cue = local_correlation(s["images"][1], s["images"][2], a.radius, a.level)
-            phi = flow_statistics(cue[:, -2:], scale_intrinsics(s["Ks"], 1.0 / a.level)).double()
+            Kl = scale_intrinsics(s["Ks"], 1.0 / a.level)
+            phi = flow_statistics(cue[:, -2:], Kl).double()
+            if a.metric:
+                flow = cue[:, -2:].double()
+                h, w = flow.shape[-2:]
+                Zg = ground_prior_depth(Kl.double(), E, h, w, a.cap)            # [V, 1, h, w]
+                ground = (Zg < a.cap).double()
+                fl = flow * Zg / torch.stack([Kl[:, 0, 0], Kl[:, 1, 1]], 1).double().reshape(-1, 2, 1, 1)
+                metric = flow_statistics(fl * ground, Kl.double())[:, :3]        # lower half
+                phi = torch.cat([phi, metric], 1)
             phi = torch.cat([phi, torch.ones(phi.shape[0], 1, dtype=phi.dtype)], 1)
             M = torch.einsum("ckj,cm->kjm", R[0].T.unsqueeze(0) @ R, phi) / E.shape[0]   # t0 = M : [A | b]
             X.append(M.reshape(3, -1).numpy())
