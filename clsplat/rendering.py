@@ -271,22 +271,29 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
     if sparse is not None:
         sparse.set_visible((radii[0] > 0).all(-1).any(0))
     pairs = pack_pairs(radii) if packed else None
-    m2d_flat = means2d.reshape(-1, 2)
+    m2d_flat = means2d.reshape(-1, 2) if packed else None
     route = PackedMeans2d(pairs) if packed else None
-    m2d_meta = route.pack(m2d_flat) if packed else means2d.reshape(batch + (C, N, 2))
+    # (without batch dimensions the projection's own output: no view nodes on the loss path)
+    m2d_meta = (route.pack(m2d_flat) if packed else
+                proj[0][0] if not batch else means2d.reshape(batch + (C, N, 2)))
     m2d_user = m2d_meta
     if out_device.type != "cpu" or out_dtype != dt:  # the user's node must lie on the loss path
         m2d_user = m2d_meta.to(device=out_device, dtype=out_dtype)
         m2d_meta = m2d_user.to(device="cpu", dtype=dt)
     m2d_used = route.unpack(m2d_meta, m2d_flat) if packed else m2d_meta
     # per batch element without select nodes (their backward zero-fills all of [B, C, N, 2])
-    m2d_used = [m2d_used.reshape(C, N, 2)] if B == 1 else m2d_used.reshape(B, C, N, 2).unbind(0)
+    m2d_used = ([m2d_used if m2d_used.shape == (C, N, 2) else m2d_used.reshape(C, N, 2)] if B == 1
+                else m2d_used.reshape(B, C, N, 2).unbind(0))
     sink = AbsgradSink(m2d_user, (B, C, N, 2), dt, pairs) if absgrad else None
 
     renders, Ts, isects = [], [], []
     for b in range(B):
-        st = replace(st0, absgrad_sink=None if sink is None else sink.for_batch(b),
-                     pixel_reserve=pixels.nbytes * (B - b) // B)
+        if B == 1 and sink is None:  # (the call's own settings: no copy)
+            st = st0
+            st.pixel_reserve = pixels.nbytes
+        else:
+            st = replace(st0, absgrad_sink=None if sink is None else sink.for_batch(b),
+                         pixel_reserve=pixels.nbytes * (B - b) // B)
         _, conics_b, depths_b, opac_b, radii_b, rects_b, extents_b = proj[b]  # no select nodes
         parts = []
         if n_col:
@@ -318,8 +325,9 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
             render = torch.cat([render[..., :n_col] + T.unsqueeze(-1) * bg, render[..., n_col:]], -1)
         renders.append(render)
         Ts.append(T)
-    # (one batch element: a view, not a copy of every image)
-    render, T = (renders[0].unsqueeze(0), Ts[0].unsqueeze(0)) if B == 1 else (torch.stack(renders), torch.stack(Ts))
+    # (no batch dimensions: the images as they are; one batch element: a view, not a copy)
+    render, T = ((renders[0], Ts[0]) if not batch else (renders[0].unsqueeze(0), Ts[0].unsqueeze(0)) if B == 1
+                 else (torch.stack(renders), torch.stack(Ts)))
     alphas = (1 - T).unsqueeze(-1)
     if render_mode in ("ED", "RGB+ED"):
         render = torch.cat([render[..., :-1], render[..., -1:] / alphas.clamp_min(1e-10)], -1)
@@ -364,8 +372,9 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
                       ("opacities", opac_pairs))})
     meta = LazyMeta(meta, pending)
     shape = batch + (C, height, width)
-    return (_to_user(render.reshape(shape + (render.shape[-1],)), out_device, out_dtype),
-            _to_user(alphas.reshape(shape + (1,)), out_device, out_dtype), meta)
+    if batch:
+        render, alphas = render.reshape(shape + (render.shape[-1],)), alphas.reshape(shape + (1,))
+    return _to_user(render, out_device, out_dtype), _to_user(alphas, out_device, out_dtype), meta
 
 
 def _to_user(x: torch.Tensor, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
