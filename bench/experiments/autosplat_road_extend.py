@@ -10,7 +10,7 @@ the run's ``metrics.json``. Then the paired differences per seed (mean ± sample
 ``--rule``, the adoption rule of ``bench/notes/autosplat_unseen_share.md`` (2026-11-27).
 
     .venv/bin/python bench/experiments/autosplat_road_extend.py --out /work/runs/i33e_roadext_val \\
-        --seeds 0 1 2 --ext "full, road extend 8m" "full, road extend 16m" --rule
+        --seeds 0 1 2 --ext "full, road extend 8m" "full, road extend 16m" --control "plain, road extend 8m" --rule
 """
 from __future__ import annotations
 
@@ -79,10 +79,13 @@ def main() -> None:
     ap.add_argument("--out", required=True, help="the --out of autosplat_views.py")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--ext", nargs="+", default=["full, road extend 8m"], help="the rows with the prior")
+    ap.add_argument("--control", nargs="*", default=[],
+                    help="plain 3DGS rows given the prior (e.g. 'plain, road extend 8m'): in the table, against "
+                         "plain and against the full model with the same width")
     ap.add_argument("--rule", action="store_true", help="print the adoption rule's verdict per width")
     a = ap.parse_args()
     out = Path(a.out)
-    rows = ["full", *a.ext, "plain"]
+    rows = ["full", *a.ext, "plain", *a.control]
     runs = {r: {s: scores(out, r, s) for s in a.seeds} for r in rows}
     runs = {r: {s: v for s, v in by.items() if v is not None} for r, by in runs.items()}
     lines = ["| row | seeds | " + " | ".join(f"{s} {k}" for s in SHIFTS for k, _ in KINDS) + " | held-out |",
@@ -110,6 +113,11 @@ def main() -> None:
     for e in a.ext:
         diff(e, "plain")
         diff(e, "full")
+    for c in a.control:
+        diff(c, "plain")
+        for e in a.ext:
+            if e.split(", ", 1)[1:] == c.split(", ", 1)[1:]:
+                diff(e, c)
     print("\n".join(lines))
     print("\nroad Gaussians at the end: " + "; ".join(
         f"{r}: " + " / ".join(str(runs[r][s]["gaussians_road"]) for s in sorted(runs[r])) for r in rows))

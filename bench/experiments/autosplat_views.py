@@ -72,6 +72,9 @@ ROWS: dict[str, list[str]] = {
     # carried on 8 or 16 m beyond the observed road's edges, ``road_extend_m``)
     "full, road extend 8m": ["--set", "road_extend_m=8.0"],
     "full, road extend 16m": ["--set", "road_extend_m=16.0"],
+    # its control: plain 3DGS given the same continued road (isotropic, no flatness: what the prior
+    # alone does, without AutoSplat's constraints)
+    "plain, road extend 8m": [*ALL_OFF, "--set", "road_extend_m=8.0"],
 }
 #: (column, path into metrics.json, higher is better)
 COLUMNS: list[tuple[str, tuple, bool]] = [
