@@ -24,10 +24,21 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--val", type=int, default=40, help="validation windows it is scored on")
     p.add_argument("--radius", type=int, default=3)
     p.add_argument("--level", type=int, default=4)
+    p.add_argument("--temperature", type=float, default=0.1, help="of the correlation's soft-argmax")
     p.add_argument("--metric", action="store_true",
                    help="add the lower half's statistics weighted by the ground prior's depth / f "
                         "(camera height and extrinsics: calibration, a named prior), capped at --cap")
     p.add_argument("--cap", type=float, default=30.0, help="ground prior cap (m) of --metric")
+    p.add_argument("--grid", type=int, nargs=2, metavar=("GH", "GW"),
+                   help="add the flow field itself, averaged to GH x GW cells per camera (a richer "
+                        "linear read-out of the same cue)")
+    p.add_argument("--true-flow", action="store_true",
+                   help="replace the correlation's flow by the generator's exact flow of the static scene "
+                        "(its depth and the true camera motion), averaged to the cue's resolution: what "
+                        "the read-out could do with a perfect flow (a bound, ground truth)")
+    p.add_argument("--ridge", action="store_true",
+                   help="ridge regression, its weight chosen by 5-fold cross-validation on the "
+                        "training windows (never on the validation ones)")
     a = p.parse_args(argv)
 
     import numpy as np
@@ -43,6 +54,22 @@ def main(argv: list[str] | None = None) -> int:
     preset = get_preset("drivingforward", a.preset)
     src = parse_data(a.data, default_world="varied")
 
+    def exact_flow(s: dict, level: int) -> torch.Tensor:
+        """[V, 2, H/level, W/level] flow from frame 1 to 2 (cue pixels), static scene, sky at 1 km."""
+        D = s["depths"][1].double()                                           # [V, H, W]
+        D = torch.where(torch.isfinite(D), D, torch.full_like(D, 1e3))
+        V, H, W = D.shape
+        K = s["Ks"].double()
+        v, u = torch.meshgrid(torch.arange(H, dtype=D.dtype) + 0.5, torch.arange(W, dtype=D.dtype) + 0.5, indexing="ij")
+        pix = torch.stack([u, v, torch.ones_like(u)], 0).reshape(3, -1)
+        X = (torch.linalg.inv(K) @ pix) * D.reshape(V, 1, -1)                 # camera 1 frame
+        T = s["viewmats"][2].double() @ torch.linalg.inv(s["viewmats"][1].double())   # cam(t) -> cam(t+1)
+        Y = T[:, :3, :3] @ X + T[:, :3, 3:]
+        q = K @ Y
+        uv = q[:, :2] / q[:, 2:].clamp_min(1e-6)
+        flow = (uv - pix[:2]).reshape(V, 2, H, W)
+        return torch.nn.functional.avg_pool2d(flow, level) / level
+
     def design(split: str, n: int):
         X, Y = [], []
         for i in range(n):
@@ -50,7 +77,9 @@ def main(argv: list[str] | None = None) -> int:
             E = s["cam_to_ego"].double()
             R = E[:, :3, :3]
             T0 = torch.linalg.inv(E[0]) @ gt_ego_motion(s)[2].double() @ E[0]
-            cue = local_correlation(s["images"][1], s["images"][2], a.radius, a.level)
+            cue = local_correlation(s["images"][1], s["images"][2], a.radius, a.level, a.temperature)
+            if a.true_flow:
+                cue = torch.cat([cue[:, :-2], exact_flow(s, a.level).to(cue.dtype)], 1)
             Kl = scale_intrinsics(s["Ks"], 1.0 / a.level)
             phi = flow_statistics(cue[:, -2:], Kl).double()
             if a.metric:
@@ -61,6 +90,9 @@ def main(argv: list[str] | None = None) -> int:
                 fl = flow * Zg / torch.stack([Kl[:, 0, 0], Kl[:, 1, 1]], 1).double().reshape(-1, 2, 1, 1)
                 metric = flow_statistics(fl * ground, Kl.double())[:, :3]        # lower half
                 phi = torch.cat([phi, metric], 1)
+            if a.grid:
+                cells = torch.nn.functional.adaptive_avg_pool2d(cue[:, -2:].double(), tuple(a.grid))
+                phi = torch.cat([phi, cells.reshape(cells.shape[0], -1)], 1)
             phi = torch.cat([phi, torch.ones(phi.shape[0], 1, dtype=phi.dtype)], 1)
             M = torch.einsum("ckj,cm->kjm", R[0].T.unsqueeze(0) @ R, phi) / E.shape[0]   # t0 = M : [A | b]
             X.append(M.reshape(3, -1).numpy())
@@ -69,7 +101,28 @@ def main(argv: list[str] | None = None) -> int:
 
     Xt, Yt = design("train", a.train)
     Xv, Yv = design("val", a.val)
-    A, *_ = np.linalg.lstsq(Xt, Yt, rcond=None)
+    def fit(X, Y, alpha):
+        return np.linalg.solve(X.T @ X + alpha * np.eye(X.shape[1]), X.T @ Y)
+
+    if a.ridge:  # rows come three per window: folds split windows, not rows
+        win = np.arange(len(Yt)) // 3
+        folds = win % 5
+        best = None
+        for alpha in 10.0 ** np.arange(-4, 4):
+            errs = []
+            for f in range(5):
+                tr, te = folds != f, folds == f
+                P = (Xt[te] @ fit(Xt[tr], Yt[tr], alpha)).reshape(-1, 3)
+                T = Yt[te].reshape(-1, 3)
+                n = np.linalg.norm(T, axis=1)
+                mv = n > 0.05
+                errs.append(np.median(np.linalg.norm(P - T, axis=1)[mv] / n[mv]))
+            if best is None or np.mean(errs) < best[0]:
+                best = (float(np.mean(errs)), alpha)
+        print(f"ridge: alpha {best[1]:g} chosen by 5-fold CV on the training windows ({best[0] * 100:.0f} %)")
+        A = fit(Xt, Yt, best[1])
+    else:
+        A, *_ = np.linalg.lstsq(Xt, Yt, rcond=None)
     for name, X, Y in (("train (fit)", Xt, Yt), ("val", Xv, Yv)):
         P, T = (X @ A).reshape(-1, 3), Y.reshape(-1, 3)
         err, n = np.linalg.norm(P - T, axis=1), np.linalg.norm(T, axis=1)
