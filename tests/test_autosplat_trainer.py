@@ -333,3 +333,42 @@ def test_a_checkpoint_from_before_road_init_and_road_classes_resumes_as_it_train
     assert old.road_init == "flat" and old.road_classes == ("road",)
     now = preset_from_saved("autosplat", get_preset("autosplat", "demo").to_dict())
     assert now == get_preset("autosplat", "demo")    # a current record is its preset, unchanged
+
+
+@pytest.mark.slow   # trains the tiny preset (4 x 6 steps)
+def test_road_opacity_floor_holds_with_flatness_and_zero_or_plain_changes_nothing(street, tmp_path):
+    """``road_opacity_floor`` (issue 33, H2): with flatness on, every road-labelled background
+    Gaussian keeps opacity >= the floor through training (densification at step 3 included) while
+    other Gaussians are free; a floor of 0, or flatness off, trains bit for bit as a trainer whose
+    floor hook does nothing."""
+    from clsplat.models.autosplat.init import ROAD
+    data = prepare_data(street, CAMS, holdout=4)
+
+    class NoHook(Trainer):
+        def hold_road_opacity(self) -> None:
+            pass
+
+    def run(cls, preset, switches, name):
+        t = cls(data, preset, switches, tmp_path / name, progress=False)
+        t.fit(stop_at=6)
+        return t
+
+    held = run(Trainer, TINY.replace(road_opacity_floor=0.9), Switches(), "floor")
+    bg = held.model.background
+    opac = torch.sigmoid(bg.opacity_logits.detach())
+    road = bg.labels == ROAD
+    assert road.sum() > 20 and float(opac[road].min()) >= 0.9 - 1e-6
+    assert float(opac[~road].min()) < 0.9                       # the floor is the road's alone
+    assert any(k.startswith("densify_") for k in _log(tmp_path / "floor")[2])   # a densification was crossed
+    for preset, switches in ((TINY.replace(road_opacity_floor=0.0), Switches()),
+                             (TINY.replace(road_opacity_floor=0.9), Switches(flatness=False))):
+        tag = f"{preset.road_opacity_floor}_{switches.flatness}"
+        a = run(Trainer, preset, switches, "a" + tag).model.state_dict()
+        b = run(NoHook, preset, switches, "b" + tag).model.state_dict()
+        assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a), tag
+
+
+@pytest.mark.parametrize("value", [-0.1, 1.0, 1.5, math.nan, True, "0.5"])
+def test_bad_road_opacity_floor_is_named(value):
+    with pytest.raises(ValueError, match=r"road_opacity_floor: expected an opacity in \[0, 1\)"):
+        TINY.replace(road_opacity_floor=value)

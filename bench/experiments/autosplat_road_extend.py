@@ -83,9 +83,14 @@ def main() -> None:
                     help="plain 3DGS rows given the prior (e.g. 'plain, road extend 8m'): in the table, against "
                          "plain and against the full model with the same width")
     ap.add_argument("--rule", action="store_true", help="print the adoption rule's verdict per width")
+    ap.add_argument("--h2", nargs=2, metavar=("BASE", "CONTROL"),
+                    help="H2 (2026-11-27, helper s7): for every --ext row, ext − CONTROL at 3 m (> 0 on every "
+                         "seed) and the held-out drop against BASE (paired mean <= 0.1 dB); both rows join the "
+                         "table, e.g. 'full, road extend 8m' 'plain, road extend 8m'")
     a = ap.parse_args()
     out = Path(a.out)
     rows = ["full", *a.ext, "plain", *a.control]
+    rows += [r for r in (a.h2 or []) if r not in rows]
     runs = {r: {s: scores(out, r, s) for s in a.seeds} for r in rows}
     runs = {r: {s: v for s, v in by.items() if v is not None} for r, by in runs.items()}
     lines = ["| row | seeds | " + " | ".join(f"{s} {k}" for s in SHIFTS for k, _ in KINDS) + " | held-out |",
@@ -118,6 +123,11 @@ def main() -> None:
         for e in a.ext:
             if e.split(", ", 1)[1:] == c.split(", ", 1)[1:]:
                 diff(e, c)
+    if a.h2:
+        for e in a.ext:
+            for r in a.h2:
+                if r != e:
+                    diff(e, r)
     print("\n".join(lines))
     print("\nroad Gaussians at the end: " + "; ".join(
         f"{r}: " + " / ".join(str(runs[r][s]["gaussians_road"]) for s in sorted(runs[r])) for r in rows))
@@ -136,6 +146,20 @@ def main() -> None:
                   f"{'pass' if a_ok else 'fail'}; (b) held-out drop {h.round(2).tolist()} mean {h.mean():+.2f}: "
                   f"{'pass' if b_ok else 'fail'}; adopt: {a_ok and b_ok}; ext − plain at 3 m {v.round(2).tolist()}: "
                   f"H {'confirmed' if a_ok and b_ok and (v > 0).all() else 'not confirmed'}")
+
+    if a.h2:
+        base, control = a.h2
+        for e in a.ext:
+            ss = sorted(set(runs[e]) & set(runs[base]) & set(runs[control]))
+            if len(ss) < 2:
+                print(f"{e}: too few seeds for H2 ({ss})")
+                continue
+            v = np.array([runs[e][s]["3m"]["psnr"] - runs[control][s]["3m"]["psnr"] for s in ss])
+            h = np.array([runs[base][s]["held_out"] - runs[e][s]["held_out"] for s in ss])
+            ok = bool((v > 0).all() and h.mean() <= 0.1)
+            print(f"{e}: H2 — 3 m against {control} {v.round(2).tolist()} mean {v.mean():+.2f} sd "
+                  f"{v.std(ddof=1):.2f}; held-out drop against {base} {h.round(2).tolist()} mean {h.mean():+.2f}: "
+                  f"H2 {'holds' if ok else 'refuted'}")
 
 
 if __name__ == "__main__":

@@ -75,6 +75,10 @@ ROWS: dict[str, list[str]] = {
     # its control: plain 3DGS given the same continued road (isotropic, no flatness: what the prior
     # alone does, without AutoSplat's constraints)
     "plain, road extend 8m": [*ALL_OFF, "--set", "road_extend_m=8.0"],
+    # H2 (issue 33): the road kept opaque as part of the road constraint (flatness on only): every
+    # road-labelled Gaussian's opacity held at >= 0.7, its start value, or >= 0.9 (``road_opacity_floor``)
+    "full, road extend 8m, road opacity floor 0.7": ["--set", "road_extend_m=8.0", "--set", "road_opacity_floor=0.7"],
+    "full, road extend 8m, road opacity floor 0.9": ["--set", "road_extend_m=8.0", "--set", "road_opacity_floor=0.9"],
 }
 #: (column, path into metrics.json, higher is better)
 COLUMNS: list[tuple[str, tuple, bool]] = [

@@ -70,6 +70,11 @@ class AutoSplatPreset(Preset):
     # (height, colour and normal of the nearest observed road Gaussians; :func:`.init.extend_road`),
     # labelled road (phase 1, flatness, the flat start like the rest of it). 0: none, as before
     road_extend_m: float = 0.0
+    # issue 33 (H2: the road is an opaque surface): > 0 holds every road-labelled background
+    # Gaussian's opacity at or above this floor (its logit clamped after initialisation and after
+    # every optimiser step), only with the flatness switch on: part of the road constraint, so
+    # --no-flatness and plain 3DGS do not get it. 0: no floor, as before
+    road_opacity_floor: float = 0.0
     object_points: int = 400
     # issue 36: a foreground budget that follows the scene (:func:`.objects.object_budget`), from the
     # tracked boxes' pixels over the training views (boxes, not instance masks: what a user gives).
@@ -179,6 +184,9 @@ class AutoSplatPreset(Preset):
                   "grad_threshold"):
             if not getattr(self, f) > 0:
                 raise bad(f, "must be > 0")
+        v = self.road_opacity_floor
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < 1:
+            raise bad("road_opacity_floor", "expected an opacity in [0, 1)")
         if not 0 < self.phase1_budget_share <= 1:
             raise bad("phase1_budget_share", "expected a share in (0, 1]")
         if self.rasterize_mode not in RASTERIZE_MODES:

@@ -30,6 +30,7 @@ densification) as for every family.
 """
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 
@@ -156,7 +157,22 @@ class Trainer(LoopHooks):
             from .init import knn_mean_distance
             sc = knn_mean_distance(torch.from_numpy(pts)).clamp(0.01, 0.3)[:, None].repeat(1, 3)
             m.objects[k] = GaussianParams.from_points(pts, cols, sc.numpy(), p.sh_degree, opacity=0.7)
+        self.hold_road_opacity()
         self._build_optimizer()
+
+    def hold_road_opacity(self) -> None:
+        """``preset.road_opacity_floor`` > 0 with the flatness switch on (issue 33, H2: the road is
+        an opaque surface): every road-labelled background Gaussian's opacity logit is clamped to at
+        least ``logit(floor)`` (a projection, in place; Adam's moments are left as they are). No-op
+        with a floor of 0 or flatness off."""
+        floor = float(self.preset.road_opacity_floor)
+        if not (floor > 0 and self.switches.flatness):
+            return
+        bg = self.model.background
+        with torch.no_grad():
+            lo = math.log(floor / (1.0 - floor))
+            road = bg.labels == ROAD
+            bg.opacity_logits.copy_(torch.where(road, bg.opacity_logits.clamp(min=lo), bg.opacity_logits))
 
     def _build_optimizer(self) -> None:
         """Adam with one group per (set, parameter kind), then the residual MLPs, the pose
@@ -244,6 +260,8 @@ class Trainer(LoopHooks):
         if applied and self.switches.densify and self.densifier.due(s_in, n_stage):
             sets = {k: m.background if k == "background" else m.objects[int(k[6:])] for k in trained}
             record.update(self.densifier.densify(sets, self.opt, stage, sample_generator(self.preset.seed, step)))
+        if applied and "background" in trained:
+            self.hold_road_opacity()
         record.update(renderer_device_s=device_s, render_wall_s=wall_s, gaussians=sum(m.sizes().values()))
         return record
 
