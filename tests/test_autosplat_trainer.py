@@ -372,3 +372,8 @@ def test_road_opacity_floor_holds_with_flatness_and_zero_or_plain_changes_nothin
 def test_bad_road_opacity_floor_is_named(value):
     with pytest.raises(ValueError, match=r"road_opacity_floor: expected an opacity in \[0, 1\)"):
         TINY.replace(road_opacity_floor=value)
+
+
+def test_road_opacity_floor_is_off_in_every_preset():
+    for name in ("tiny", "demo", "small", "paper"):
+        assert get_preset("autosplat", name).road_opacity_floor == 0.0, name
