@@ -36,6 +36,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="replace the correlation's flow by the generator's exact flow of the static scene "
                         "(its depth and the true camera motion), averaged to the cue's resolution: what "
                         "the read-out could do with a perfect flow (a bound, ground truth)")
+    p.add_argument("--lk", type=int, default=0, metavar="ITERS",
+                   help="refine the correlation's flow by ITERS Lucas-Kanade steps on the full-resolution "
+                        "images (7x7 windows, a small damping), then average it back to the cue's resolution")
     p.add_argument("--ridge", action="store_true",
                    help="ridge regression, its weight chosen by 5-fold cross-validation on the "
                         "training windows (never on the validation ones)")
@@ -70,6 +73,29 @@ def main(argv: list[str] | None = None) -> int:
         flow = (uv - pix[:2]).reshape(V, 2, H, W)
         return torch.nn.functional.avg_pool2d(flow, level) / level
 
+    def lk_refine(im1: torch.Tensor, im2: torch.Tensor, flow: torch.Tensor, level: int, iters: int,
+                  window: int = 7, damping: float = 1e-4) -> torch.Tensor:
+        """[V, 2, h, w] cue-resolution flow -> refined, the same resolution (Lucas-Kanade from im1 to im2)."""
+        F_ = torch.nn.functional
+        g1, g2 = im1.double().mean(1, keepdim=True), im2.double().mean(1, keepdim=True)    # [V, 1, H, W]
+        V, _, H, W = g1.shape
+        f = F_.interpolate(flow.double() * level, size=(H, W), mode="bilinear", align_corners=False)
+        ys, xs = torch.meshgrid(torch.arange(H, dtype=f.dtype), torch.arange(W, dtype=f.dtype), indexing="ij")
+        box = lambda x: F_.avg_pool2d(x, window, 1, window // 2, count_include_pad=False)  # noqa: E731
+        kx = torch.tensor([[[[-0.5, 0.0, 0.5]]]], dtype=f.dtype)
+        for _ in range(iters):
+            gx = 2 * (xs + f[:, 0]) / (W - 1) - 1
+            gy = 2 * (ys + f[:, 1]) / (H - 1) - 1
+            w2 = F_.grid_sample(g2, torch.stack([gx, gy], -1), align_corners=True, padding_mode="border")
+            Ix = F_.conv2d(F_.pad(w2, (1, 1, 0, 0), mode="replicate"), kx)
+            Iy = F_.conv2d(F_.pad(w2, (0, 0, 1, 1), mode="replicate"), kx.transpose(-1, -2))
+            It = w2 - g1
+            a11, a12, a22 = box(Ix * Ix) + damping, box(Ix * Iy), box(Iy * Iy) + damping
+            b1, b2 = -box(Ix * It), -box(Iy * It)
+            det = a11 * a22 - a12 * a12
+            f = f + torch.cat([(a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det], 1)
+        return (F_.avg_pool2d(f, level) / level).to(flow.dtype)
+
     def design(split: str, n: int):
         X, Y = [], []
         for i in range(n):
@@ -78,6 +104,8 @@ def main(argv: list[str] | None = None) -> int:
             R = E[:, :3, :3]
             T0 = torch.linalg.inv(E[0]) @ gt_ego_motion(s)[2].double() @ E[0]
             cue = local_correlation(s["images"][1], s["images"][2], a.radius, a.level, a.temperature)
+            if a.lk:
+                cue = torch.cat([cue[:, :-2], lk_refine(s["images"][1], s["images"][2], cue[:, -2:], a.level, a.lk)], 1)
             if a.true_flow:
                 cue = torch.cat([cue[:, :-2], exact_flow(s, a.level).to(cue.dtype)], 1)
             Kl = scale_intrinsics(s["Ks"], 1.0 / a.level)
