@@ -35,4 +35,4 @@ info: $(STAMP)
 
 # the built wheel in a fresh venv over an older numpy/pandas: clsplat info and a tiny render
 wheel-smoke: $(STAMP)
-	PYTHON=$(PY) .ci/wheel_smoke $(or $(SMOKE_DIR),$(shell mktemp -d))
+	PYTHON=$(PY) .ci/wheel_smoke $(SMOKE_DIR)
