@@ -497,7 +497,7 @@ class Runtime:
         if self._pool_ptrs and tensor.numel() and self.pools:
             a = self._pool_ptrs.get(tensor.data_ptr())
             if (a is not None and a.tensor.shape == tensor.shape and a.tensor.dtype == tensor.dtype
-                    and tensor.is_contiguous() and a.tensor.data_ptr() == a._pool_ptr):
+                    and tensor.is_contiguous() and not _moved(a)):
                 if read_only:
                     a.read_only = True  # (until empty() hands it out again)
                 return a
@@ -510,7 +510,7 @@ class Runtime:
         key = (t.data_ptr(), t.shape, t.dtype)
         with self._pool_lock:
             a = self._kept.get(key)
-            if a is not None and a.tensor.data_ptr() == a._pool_ptr:
+            if a is not None and not _moved(a):
                 self._kept.move_to_end(key)
                 return a
             if a is not None:  # its memory moved under the buffer (see _moved): make it again

@@ -227,7 +227,7 @@ def test_road_extend_m_adds_road_gaussians_in_init_and_zero_changes_nothing():
     assert np.allclose(ext.scales[added], 4 * tiny.lidar_voxel)
 
 
-@pytest.mark.parametrize("value", [-1.0, float("nan"), float("inf"), "3", True])
+@pytest.mark.parametrize("value", [-1.0, float("nan"), float("inf"), "3", True, 1e6])
 def test_bad_road_extend_m_is_named(value):
     with pytest.raises(ValueError, match="road_extend_m") as e:
         get_preset("autosplat", "tiny").replace(road_extend_m=value)

@@ -24,6 +24,9 @@ TEMPLATES = ("car", "box")
 ROAD_INITS = ("flat", "with-flatness")
 #: how the rasteriser weighs its 2D dilation (``clsplat.rasterization``'s ``rasterize_mode``)
 RASTERIZE_MODES = ("classic", "antialiased")
+#: the widest road continuation (``road_extend_m``): its grid grows with the width, so a width far
+#: beyond a street's would exhaust memory rather than fail with an error
+ROAD_EXTEND_MAX_M = 100.0
 
 
 @dataclass(frozen=True)
@@ -184,6 +187,9 @@ class AutoSplatPreset(Preset):
                   "grad_threshold"):
             if not getattr(self, f) > 0:
                 raise bad(f, "must be > 0")
+        if self.road_extend_m > ROAD_EXTEND_MAX_M:
+            raise bad("road_extend_m", f"expected at most {ROAD_EXTEND_MAX_M} m (a road's continuation "
+                      "beside it, not the world)")
         v = self.road_opacity_floor
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < 1:
             raise bad("road_opacity_floor", "expected an opacity in [0, 1)")
