@@ -1,5 +1,5 @@
 """DrivingForward's optimiser and schedule (models/drivingforward/training.py): the pose network's
-own learning-rate decay (``pose_lr_half_life``) and gradient clip (``pose_grad_clip``) do what the
+own learning-rate decay (``pose_lr_half_life``, its floor ``pose_lr_floor``) and gradient clip (``pose_grad_clip``) do what the
 preset says, leave the other networks alone, and are off unless named."""
 import math
 
@@ -65,6 +65,21 @@ def test_half_life_composes_with_the_warm_up_and_resumes_where_it_stopped():
     assert _rates(opt2)[1] == pytest.approx(p.lr * 0.5 ** (13 / 8))
 
 
+def test_pose_lr_floor_stops_the_decay_there_and_is_off_by_default():
+    for p in (TINY, SMALL):
+        assert p.pose_lr_floor == 0.0
+    off = TINY.replace(pose_lr_half_life=10)
+    assert lr_factors(off, 100)[1] == pytest.approx(0.5 ** 10, rel=1e-12)        # no floor: today's decay
+    p = TINY.replace(pose_lr=1e-3, pose_lr_half_life=10, pose_lr_floor=0.1)
+    assert lr_factors(p, 20) == pytest.approx((1.0, 0.25))                      # above the floor: the decay
+    opt = make_optimizer(_Toy(), p)
+    sched = make_scheduler(opt, p)
+    for _ in range(100):
+        opt.step()
+        sched.step()
+    assert _rates(opt) == pytest.approx((p.lr, 1e-4), rel=1e-12)               # 0.5 ** 10 < 0.1: held at it
+
+
 def test_no_schedule_when_neither_warm_up_nor_decay():
     assert make_scheduler(make_optimizer(_Toy(), TINY), TINY) is None
 
@@ -105,7 +120,9 @@ def test_pose_grad_clip_leaves_a_small_gradient_as_it_is():
 @pytest.mark.parametrize("field,value", [("pose_lr_half_life", 0), ("pose_lr_half_life", 2.5),
                                          ("pose_lr_half_life", True), ("pose_grad_clip", 0.0),
                                          ("pose_grad_clip", -1.0), ("pose_grad_clip", float("inf")),
-                                         ("pose_grad_clip", "1")])
+                                         ("pose_grad_clip", "1"), ("pose_lr_floor", -0.1),
+                                         ("pose_lr_floor", 1.5), ("pose_lr_floor", True),
+                                         ("pose_lr_floor", 0.1)])
 def test_a_bad_value_names_the_field(field, value):
     with pytest.raises(ValueError, match=field) as e:
         TINY.replace(**{field: value})

@@ -121,6 +121,10 @@ class DFPreset(Preset):
             N > 0: it halves every N steps, 0.5 ** (step / N), so that a head whose Adam step is large
             near the answer settles there. (Issue 32: the flow head at pose_translation_scale 1000
             learns the motion in ~50 steps and then overshoots; off in every preset.)
+        pose_lr_floor: the least fraction of the pose network's rate that ``pose_lr_half_life``
+            decays to, max(floor, 0.5 ** (step / N)); 0.0 (the default): no floor, the rate decays to
+            nothing. Needs ``pose_lr_half_life``. (Issue 32: at half-life 50 the rate is 1/64 of
+            itself at step 300 and the pose is frozen for the rest of a longer run; 0.0 in every preset.)
         pose_grad_clip: None (the paper): no clip of the pose network's own. A value: the pose
             network's gradient (its parameters alone) is clipped to this total L2 norm before the
             Adam step, so a spike enters Adam's moments at this size. (Issue 32; off in every preset.)
@@ -211,6 +215,7 @@ class DFPreset(Preset):
     lr: float = 1e-4
     pose_lr: float | None = None
     pose_lr_half_life: int | None = None
+    pose_lr_floor: float = 0.0
     pose_grad_clip: float | None = None
     pose_sign_test: int | None = None
     pose_sign_test_window: int = 10
@@ -299,6 +304,10 @@ class DFPreset(Preset):
         h = self.pose_lr_half_life
         if h is not None and (isinstance(h, bool) or not isinstance(h, int) or h < 1):
             raise ValueError(f"preset {self.name}: pose_lr_half_life must be None or an int >= 1 (steps), got {h!r}")
+        f = self.pose_lr_floor
+        if isinstance(f, bool) or not isinstance(f, (int, float)) or not 0 <= f <= 1 or (f > 0 and h is None):
+            raise ValueError(f"preset {self.name}: pose_lr_floor must be a number in [0, 1] (a fraction of the pose "
+                             f"rate) and above 0 only with pose_lr_half_life, got {f!r} with half-life {h!r}")
         c = self.pose_grad_clip
         if c is not None and (isinstance(c, bool) or not isinstance(c, (int, float)) or not 0 < c < float("inf")):
             raise ValueError(f"preset {self.name}: pose_grad_clip must be None or a finite number > 0, got {c!r}")

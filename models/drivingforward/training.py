@@ -1,7 +1,7 @@
 """DrivingForward's training parts, as ``clsplat train drivingforward`` puts them together: the
 optimiser (the pose network at its own rate, its gradient optionally clipped on its own:
 ``pose_grad_clip``), the learning-rate schedule (the warm-up, and the pose network's exponential
-decay ``pose_lr_half_life``), the per-sample loss of the shared loop, and the validation learning
+decay ``pose_lr_half_life`` down to ``pose_lr_floor``), the per-sample loss of the shared loop, and the validation learning
 curve (:class:`ValCurve`)."""
 from __future__ import annotations
 
@@ -45,11 +45,13 @@ def make_optimizer(model, preset) -> torch.optim.Adam:
 def lr_factors(preset, step: int) -> tuple[float, float]:
     """The multipliers of (the other networks', the pose network's) learning rates at ``step``
     (from 0): the linear warm-up of ``preset.lr_warmup`` on both, min(1, (step + 1) / lr_warmup), and
-    on the pose network's alone 0.5 ** (step / pose_lr_half_life) when ``pose_lr_half_life`` is set."""
+    on the pose network's alone max(pose_lr_floor, 0.5 ** (step / pose_lr_half_life)) when
+    ``pose_lr_half_life`` is set (the floor 0.0 unless the preset names one)."""
     n = preset.lr_warmup
     warm = min(1.0, (step + 1) / n) if n else 1.0
     h = getattr(preset, "pose_lr_half_life", None)
-    return warm, warm * (0.5 ** (step / h) if h else 1.0)
+    floor = getattr(preset, "pose_lr_floor", 0.0)
+    return warm, warm * (max(floor, 0.5 ** (step / h)) if h else 1.0)
 
 
 def make_scheduler(opt: torch.optim.Optimizer, preset) -> torch.optim.lr_scheduler.LambdaLR | None:
