@@ -9,7 +9,10 @@ selection minus the best naive selection on the same finetuned parameters and mi
 naive pruning of the base, and κ 0.05 minus the finetuned κ 1; then the decision against the
 ``--reference`` cell: the best cell (by mean score) replaces the reference only if its mean beats
 the reference's by more than the larger of the two seed sds (one seed each: no sd, so no
-decision, only the screen's order).
+decision, only the screen's order). ``--guard METRIC`` (repeatable; any per-seed metric above, all
+higher-is-better) adds a condition the winner must also meet: its mean not below the reference's by
+more than the larger sd of that metric; ``--guard METRIC:gain``: above the reference's by more
+than the larger sd (issue 33's 800-step rule, bench/notes/ecosplat_controls.md).
 
     .venv/bin/python bench/experiments/pgt_val_choice.py --reference current \\
         --cell 'current=/tmp/h33/eval400_val_s{seed}' --cell 'kd1=/tmp/h33v/eval_val_kd1_s{seed}' \\
@@ -76,7 +79,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cell", action="append", default=[], help="NAME=FOLDER, FOLDER with {seed} or seed 0 alone")
     ap.add_argument("--reference", default=None, help="the cell the winner must beat (the current recipe)")
     ap.add_argument("--json", type=Path, default=None, help="write every cell's numbers and the decision here")
+    ap.add_argument("--guard", action="append", default=[],
+                    help="METRIC or METRIC:gain, a further condition on the winner (see the docstring)")
     a = ap.parse_args(argv)
+    guards: list[tuple[str, bool]] = []
+    for g in a.guard:
+        metric, _, mode = g.partition(":")
+        if mode not in ("", "gain") or metric not in ("score", "finetuned@1", "k0.05-k1") + tuple(
+                f"{p}@{k:g}" for p in ("finetuned", "sel", "vs_base") for k in KAPPAS):
+            print(f"error: guard: expected METRIC or METRIC:gain with a metric of seed_metrics, got {g!r}",
+                  file=sys.stderr)
+            return 2
+        guards.append((metric, mode == "gain"))
     cells: dict[str, dict] = {}
     for spec in a.cell:
         name, sep, pattern = spec.partition("=")
@@ -113,9 +127,24 @@ def main(argv: list[str] | None = None) -> int:
             verdict = f"{best!r} leads by {diff:+.2f} dB on one seed: screen only, no decision"
         else:
             bar = max(win["sd"], ref["sd"])
+            checks = []
+            for metric, gain in guards:
+                w, r = cells[best][metric], cells[a.reference][metric]
+                d, gbar = w["mean"] - r["mean"], max(w["sd"], r["sd"])
+                ok = d > gbar if gain else d >= -gbar
+                checks.append({"metric": metric, "mode": "gain" if gain else "no fall", "diff": d, "bar": gbar,
+                               "met": ok})
+            failed = [c["metric"] for c in checks if not c["met"]]
             verdict = (f"{best!r} beats {a.reference!r} by {diff:+.2f} dB, "
-                       + (f"beyond the larger sd {bar:.2f}: it replaces the reference" if diff > bar
+                       + (f"beyond the larger sd {bar:.2f}" if diff > bar
                           else f"inside the larger sd {bar:.2f}: no gain, the reference stands"))
+            if diff > bar:
+                verdict += (f"; guards not met: {', '.join(failed)}: the reference stands" if failed
+                            else ": it replaces the reference")
+            for c in checks:
+                verdict += (f"\n  guard {c['metric']} ({c['mode']}): {c['diff']:+.2f} dB against "
+                            f"{'+' if c['mode'] == 'gain' else '-'}{c['bar']:.2f}: {'met' if c['met'] else 'NOT met'}")
+            out["guards"] = checks
         out.update(reference=a.reference, best=best, diff=diff, verdict=verdict)
         print("\n" + verdict)
     if a.json is not None:
