@@ -1,0 +1,173 @@
+"""AutoSplat runs on a generated PandaSet-format street scored on the generator's instance masks
+(issue 36, "exact and noisy boxes side by side"; bench/notes/autosplat_moving_objects.md, "The
+PandaSet-format path").
+
+A PandaSet folder has no instance masks, so a run on it (``--data pandaset:DIR``) scores its
+objects on the pixels whose ray hits a track's box (:func:`clsplat.models.autosplat.object_report.
+track_masks`): a box also holds road and façade around a pedestrian, and with tracker-noise boxes the
+scored pixels are the noisy box's, not the object's. The folders written by
+``autosplat_pandaset.py --world busy`` come from a generated street, so the object's true pixels can
+be had again: this script regenerates the street (the folder's seed and world, flat ground, as the
+writer drew it) at the run's image size with one ray a pixel, takes its instance masks, and scores
+each run's held-out renders against the run's own truth (the written JPEGs at the run's scale) on
+
+* ``inst``: each truly moving track's instance pixels (the exact street's ``moving_track_ids``),
+  pooled per class (car / pedestrian / other), and the parked cars' (``parked``);
+* ``box``: the run's own box pixels of the tracks the run decomposed, pooled per class: what
+  ``metrics.json`` reports (printed beside it as a check; ``metrics.json`` counts a pixel in two
+  boxes once per track, this script once per class, so the two differ by a few hundredths).
+
+The image column is ``metrics.json``'s ``all.psnr`` (the mean over held-out images, the figure the
+issue's gaps start from; the pooled image PSNR in brackets); "image − inst" is that minus the
+instance-pixel class PSNR.
+
+Instance ids are the generator's track ids; the run's track ids are matched through the cuboids'
+``uuid`` (``synthetic-<seed>-<track>``, written by :func:`clsplat.data.pandaset.write_pandaset`).
+
+    .venv/bin/python bench/experiments/autosplat_pandaset_rescore.py RUN [RUN ...] [--json OUT.json]
+
+Prints one markdown row per run (held-out PSNR, dB).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+PARTS = ("image", "inst/car", "inst/pedestrian", "inst/other", "inst/objects", "inst/parked",
+         "box/car", "box/pedestrian", "box/other", "box/objects")
+
+
+def _psnr(sse: float, n: int) -> float | None:
+    return None if n == 0 else float(-10 * np.log10(max(sse / n, 1e-12)))
+
+
+def _street(seed: int, world: str, height: int, width: int, frames: int, dt: float, cameras: tuple[str, ...]):
+    """The generated street the writer drew (flat ground unless classic), at ``height x width``, one ray, no LiDAR."""
+    from clsplat.data.synthetic import SyntheticConfig, draw_world, generate_sequence
+    cfg = SyntheticConfig(height=height, width=width, num_frames=frames, seed=seed, dt=dt, cameras=cameras,
+                          world=world, lidar=False)
+    if world == "classic":   # the writer's classic street: the generator's own ground
+        return generate_sequence(cfg)
+    return generate_sequence(cfg, world_params=replace(draw_world(seed, world), grade=0.0, vcurv=0.0, crossfall=0.0))
+
+
+def analyse(run: Path, world: str, cache: dict) -> dict:
+    """``{"run", "metrics": {part: psnr}, "pixels": {part: n}, "inside": share}`` of one run."""
+    from clsplat.models.autosplat.evaluate import trainer_from_checkpoint
+    from clsplat.models.autosplat.init import moving_track_ids
+    from clsplat.models.autosplat.object_report import object_class, track_masks
+    from clsplat.models.common.train import load_checkpoint
+
+    m = json.loads((run / "metrics.json").read_text())
+    spec = m.get("protocol", m).get("data", "")
+    if not spec.startswith("pandaset:"):
+        raise ValueError(f"{run}: not a run on pandaset:DIR data ({spec!r})")
+    ck = load_checkpoint(run / "checkpoint.pt", "autosplat")
+    tr = trainer_from_checkpoint(ck, run / "checkpoint.pt", run, None, out_dir=Path("/tmp"))
+    d = tr.data
+    folder = Path(spec.split(":", 1)[1])
+    g = re.search(r"_s(\d+)$", folder.name)
+    seed = int(g.group(1)) if g else tr.preset.seed
+    f0, f1 = d.seq.frames[0].timestamp, d.seq.frames[-1].timestamp
+    dt = (f1 - f0) / max(1, len(d.seq.frames) - 1)
+    key = (seed, world, d.height, d.width, len(d.seq.frames), round(dt, 6), tuple(d.cameras))
+    if key not in cache:
+        cache[key] = _street(*key)
+    gen = cache[key]
+    true_moving = set(moving_track_ids(gen, tr.preset.dynamic_threshold))
+    kind_true = {}
+    for f in gen.frames:
+        for b in f.boxes:
+            c = object_class(b.label)
+            kind_true[b.track_id] = c if b.track_id in true_moving else ("parked" if c == "car" else "static")
+    # the run's track id -> the generator's, through the uuid
+    to_gen = {}
+    for f in d.seq.frames:
+        for b in f.boxes:
+            u = re.fullmatch(rf"synthetic-{seed}-(\d+)", str(b.uuid or ""))
+            if u:
+                to_gen[b.track_id] = int(u.group(1))
+    run_moving = moving_track_ids(d.seq, tr.preset.dynamic_threshold)
+    kind_run = {}
+    for f in d.seq.frames:
+        for b in f.boxes:
+            kind_run[b.track_id] = object_class(b.label)
+    sse = {p: 0.0 for p in PARTS}
+    num = {p: 0 for p in PARTS}
+    inside = [0, 0]
+    for i in d.test_frames:
+        with torch.no_grad():
+            r = tr.render_frame(i).numpy().astype(np.float64)
+        t = np.clip(d.images[i].numpy().astype(np.float64), 0, 1)
+        err = ((np.clip(r, 0, 1) - t) ** 2).sum(-1)               # [C, H, W], summed over channels
+        sse["image"] += err.sum()
+        num["image"] += err.size * 3
+        inst = np.stack([gen.frames[i].instances[c] for c in d.cameras])
+        boxm = track_masks(d.seq, i, d.cameras, run_moving)
+        own = {to_gen.get(tid): msk for tid, msk in boxm.items()}
+        union_inst = {k: np.zeros(inst.shape, bool) for k in ("car", "pedestrian", "other", "parked")}
+        for tid in np.unique(inst[inst > 0]):
+            k = kind_true.get(int(tid))
+            if k in union_inst:
+                union_inst[k] |= inst == tid
+            if int(tid) in true_moving and int(tid) in own:
+                inside[0] += int((own[int(tid)] & (inst == tid)).sum())
+                inside[1] += int((inst == tid).sum())
+            elif int(tid) in true_moving:
+                inside[1] += int((inst == tid).sum())
+        union_inst["objects"] = union_inst["car"] | union_inst["pedestrian"] | union_inst["other"]
+        for k, msk in union_inst.items():
+            sse[f"inst/{k}"] += err[msk].sum()
+            num[f"inst/{k}"] += int(msk.sum()) * 3
+        union_box = {k: np.zeros(inst.shape, bool) for k in ("car", "pedestrian", "other")}
+        for tid, msk in boxm.items():
+            union_box[kind_run[tid]] |= msk
+        union_box["objects"] = union_box["car"] | union_box["pedestrian"] | union_box["other"]
+        for k, msk in union_box.items():
+            sse[f"box/{k}"] += err[msk].sum()
+            num[f"box/{k}"] += int(msk.sum()) * 3
+    pc = (m.get("objects") or {}).get("per_class", {})
+    return {"run": run.name, "metrics": {p: _psnr(sse[p], num[p]) for p in PARTS},
+            "pixels": {p: num[p] // 3 for p in PARTS}, "inside": inside[0] / max(1, inside[1]),
+            "metrics_json": {"image": m["all"]["psnr"], "objects": m["all"].get("psnr_objects"),
+                             **{c: pc[c]["psnr"] for c in ("car", "pedestrian", "other") if c in pc and pc[c]["pixels"]}},
+            "moving": {"true": len(true_moving), "run": len(run_moving),
+                       "run_not_true": len({to_gen.get(t) for t in run_moving} - true_moving)}}
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("runs", nargs="+", type=Path)
+    ap.add_argument("--world", default=None, help="the world the folders were written from (default: busy, or "
+                    "classic where the folder's name holds 'classic')")
+    ap.add_argument("--json", type=Path, default=None, help="write the figures here too")
+    a = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    cache: dict = {}
+    out = [analyse(r, a.world or ("classic" if "classic" in r.name else "busy"), cache) for r in a.runs]
+    f = lambda x: "–" if x is None else f"{x:.2f}"  # noqa: E731
+    print("| run | image (pooled) | instance px: car / pedestrian / other / all moving / parked cars | image − inst car / ped "
+          "| box px (metrics.json's): car / pedestrian / other / all | metrics.json car / ped / other / objects "
+          "| moving tracks: true / run's (run's not truly moving) | instance px inside own box |")
+    print("|---" * 8 + "|")
+    for o in out:
+        p, j, mv = o["metrics"], o["metrics_json"], o["moving"]
+        gap = lambda k: "–" if p[k] is None else f"{j['image'] - p[k]:.2f}"  # noqa: E731
+        print(f"| {o['run']} | {f(j['image'])} ({f(p['image'])}) | " + " / ".join(f(p[f'inst/{k}']) for k in ("car", "pedestrian", "other", "objects", "parked"))
+              + f" | {gap('inst/car')} / {gap('inst/pedestrian')} | "
+              + " / ".join(f(p[f'box/{k}']) for k in ("car", "pedestrian", "other", "objects"))
+              + " | " + " / ".join(f(j.get(k)) for k in ("car", "pedestrian", "other", "objects"))
+              + f" | {mv['true']} / {mv['run']} ({mv['run_not_true']}) | {o['inside']:.3f} |")
+    if a.json:
+        a.json.write_text(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
