@@ -436,6 +436,25 @@ def test_pose_road_anchor_trains_the_pose_on_the_road_with_the_prior_and_the_dep
         TINY.replace(pose_road_anchor=True)                    # tiny has no ground prior
 
 
+def test_pose_road_cap_sets_the_anchors_road_apart_from_the_depths_prior(sample):
+    """pose_road_cap: the pose's road term is the one a model with ground_prior_cap at that value
+    computes (same weights), whatever the depth's cap; None keeps the depth's cap."""
+    kw = dict(pose_road_anchor=True, pose_zero_init=True, pose_translation_scale=1.0)
+    torch.manual_seed(0)
+    m20 = DrivingForward(TINY.replace(ground_prior_cap=20.0, **kw))
+    m10 = DrivingForward(TINY.replace(ground_prior_cap=10.0, **kw))
+    split = DrivingForward(TINY.replace(ground_prior_cap=10.0, pose_road_cap=20.0, **kw))
+    m10.load_state_dict(m20.state_dict())
+    split.load_state_dict(m20.state_dict())
+    args = (sample["images"], sample["images"], sample["Ks"], sample["cam_to_ego"])
+    r20, r10, rs = (float(m.training_losses(*args)["reproj_pose"]) for m in (m20, m10, split))
+    assert rs == r20 and r10 != r20
+    with pytest.raises(ValueError, match="pose_road_cap"):
+        TINY.replace(ground_prior_cap=10.0, pose_road_cap=20.0)          # no anchor: nothing to set
+    with pytest.raises(ValueError, match="pose_road_cap"):
+        TINY.replace(ground_prior_cap=10.0, pose_road_cap=1.0, **kw)     # below min_depth
+
+
 @pytest.mark.parametrize("anchor", [True, False])
 def test_pose_sign_test_picks_the_branch_of_lower_loss(sample, anchor):
     """pose_sign_test: a pose network started at the reversed true motion flips its translation's

@@ -253,8 +253,9 @@ class DrivingForward(nn.Module):
         if anchor:
             # the pose learns from the road alone, warped with the ground prior (calibration), so
             # its scale is the rig's; the depth's temporal terms see the motion as a constant
-            prior = ground_prior_depth(Ks, E, p.height, p.width, p.ground_prior_cap)
-            road = (prior < p.ground_prior_cap).to(prior.dtype)
+            cap = p.ground_prior_cap if p.pose_road_cap is None else p.pose_road_cap
+            prior = ground_prior_depth(Ks, E, p.height, p.width, cap)
+            road = (prior < cap).to(prior.dtype)
             pose_term = temporal_loss(tgt, srcs, prior, Ks, Tc, noise, automask, p.automask_margin, road)
             Tc, M = [t.detach() for t in Tc], [m.detach() for m in M]
         if sign_test and step < p.pose_sign_test:

@@ -87,6 +87,10 @@ class DFPreset(Preset):
             prior's depth: the rig's calibration gives the motion its metric scale. The depth's
             temporal terms and the render then see the motion as a constant. (Issue 32: with the pose learning
             from the predicted depth, the pose and the depth drift to a common wrong scale.)
+        pose_road_cap: the road anchor's own cap: its road pixels are where the ground prior is
+            below this many metres, warped with the prior capped there; None (the default): the
+            depth's ``ground_prior_cap``. (Issue 32: the depth's cap 10 also shrank the pose's road
+            to the nearest 10 m and the pose stopped learning; None in every preset.)
         min_depth, max_depth, focal_ref: depth = 1/(1/max + (1/min - 1/max) sigma) * fx / focal_ref.
         gs_encoder_channels, gs_decoder_channels, gs_head_channels: Gaussian network widths.
         sh_degree, sh_damping, sh_damping_decay: SH degree predicted and rendered; degree l >= 1 is
@@ -188,6 +192,7 @@ class DFPreset(Preset):
     pose_corr_mode: str = "bev"
     pose_corr_head: str = "conv"
     pose_road_anchor: bool = False
+    pose_road_cap: float | None = None
     min_depth: float = 1.5
     max_depth: float = 80.0
     focal_ref: float = 300.0
@@ -270,6 +275,11 @@ class DFPreset(Preset):
         if not isinstance(self.pose_road_anchor, bool) or (self.pose_road_anchor and self.ground_prior_cap is None):
             raise ValueError(f"preset {self.name}: pose_road_anchor must be True or False and needs ground_prior_cap, "
                              f"got {self.pose_road_anchor!r} with ground_prior_cap {self.ground_prior_cap!r}")
+        rc = self.pose_road_cap
+        if rc is not None and (isinstance(rc, bool) or not isinstance(rc, (int, float)) or not self.min_depth < rc < float("inf")
+                               or not self.pose_road_anchor):
+            raise ValueError(f"preset {self.name}: pose_road_cap must be None or a finite number above min_depth, "
+                             f"and needs pose_road_anchor, got {rc!r}")
         if self.pose_corr_head not in ("conv", "flow"):
             raise ValueError(f"preset {self.name}: pose_corr_head must be 'conv' or 'flow', got {self.pose_corr_head!r}")
         if self.pose_corr_mode == "camera_only" and (self.pose_corr_radius == 0 or self.pose_translation_init is not None):
