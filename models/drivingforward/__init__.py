@@ -5,6 +5,7 @@ trained self-supervised.
     presets     tiny / small / paper (DrivingForwardPreset, registered under "drivingforward")
     depth       the depth network (ResNet-18 encoder, scale-aware decoder, ground prior)
     pose        the pose network (one rig motion from all cameras fused in a bird's-eye grid)
+    ground_motion  the rig motion fitted to the road's flow or images through the ground plane (a probe, issue 32)
     gaussian    the Gaussian network (per-pixel rotation, scale, opacity, colour)
     fusion      cross-view and cross-frame fusion of the per-view features
     model       DrivingForward (reconstruct -> GaussianSet; the training losses)

@@ -1,0 +1,281 @@
+"""The rig's ego motion from the road's optical flow: a robust plane-induced fit (issue 32).
+
+No learning and no ground truth: the calibration a user has (intrinsics, extrinsics, the ego
+frame standing on the ground, z up, z = 0 the road: the named prior of
+:func:`~clsplat.models.drivingforward.depth.ground_prior_depth`) predicts, for every pixel whose
+ray meets the ground, the 3D point it sees. A rig motion ``M`` (ego coordinates at the earlier
+instant to ego coordinates at the later one, ``p_later = M p_earlier``, the convention of
+:func:`~clsplat.models.drivingforward.data.gt_ego_motion`) moves that point to a known pixel of the
+later image in the same camera: the plane-induced flow :func:`plane_flow`. :func:`fit_ground_motion`
+finds the motion whose plane-induced flow best explains a measured flow on those pixels, over all
+cameras jointly, by iteratively reweighted Gauss-Newton from zero motion (Huber or Cauchy weights,
+their scale re-estimated from the residuals' median at every step): pixels that are not road
+(parked cars, kerbs, facades, moving vehicles) disagree with the plane and lose their weight.
+
+:func:`fit_ground_motion_direct` is the direct form: the same motion model aligns the later
+images with the earlier ones on the ground pixels (a parametric Lucas-Kanade over all cameras,
+coarse to fine), so untextured road carries no weight and a lane marking or a kerb constrains the
+flow across it.
+
+Motion parameters ``theta [6]`` = ego-frame axis-angle ``(wx, wy, wz)`` then translation
+``(tx, ty, tz)``; ``dof`` 3 frees ``(wz, tx, ty)`` (planar motion), 4 adds ``tz``, 6 frees all.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from ..common.geometry import se3_exp
+from .depth import ground_prior_depth
+from .fusion import scale_intrinsics
+
+__all__ = ["plane_flow", "fit_ground_motion", "fit_ground_motion_direct", "ground_points", "DOF_INDEX"]
+
+#: central-difference step of the Jacobian (rad / m; float64: truncation error ~1e-12 relative)
+_FD_STEP = 1e-6
+#: the free entries of ``theta`` for each ``dof``
+DOF_INDEX = {3: (2, 3, 4), 4: (2, 3, 4, 5), 6: (0, 1, 2, 3, 4, 5)}
+
+
+def ground_points(Ks: Tensor, depth: Tensor) -> tuple[Tensor, Tensor]:
+    """Every pixel centre and the camera-frame point at ``depth`` along its ray.
+
+    Ks: ``[V, 3, 3]`` at the map's resolution; depth: ``[V, 1, h, w]`` (z-depth, m) ->
+    ``(uv [V, 2, h*w]`` pixel-centre coordinates, ``X [V, 3, h*w]`` camera-frame points).
+    """
+    V, _, h, w = depth.shape
+    v, u = torch.meshgrid(torch.arange(h, dtype=Ks.dtype, device=Ks.device) + 0.5,
+                          torch.arange(w, dtype=Ks.dtype, device=Ks.device) + 0.5, indexing="ij")
+    pix = torch.stack([u, v, torch.ones_like(u)], 0).reshape(3, -1)                   # [3, hw]
+    rays = torch.linalg.inv(Ks) @ pix                                                 # [V, 3, hw], z = 1
+    return pix[:2].expand(V, 2, h * w), rays * depth.reshape(V, 1, h * w).to(Ks.dtype)
+
+
+def plane_flow(theta: Tensor, Ks: Tensor, cam_to_ego: Tensor, uv: Tensor, X: Tensor) -> Tensor:
+    """Flow of camera-frame points ``X`` under the rig motion ``theta``.
+
+    theta: ``[6]`` (axis-angle, translation; ego frame, earlier -> later coordinates);
+    Ks ``[V, 3, 3]``; cam_to_ego ``[V, 4, 4]``; uv ``[V, 2, N]`` the points' pixels at the earlier
+    instant; X ``[V, 3, N]`` -> ``[V, 2, N]`` pixel displacement to the later image.
+    """
+    M = se3_exp(theta[:3], theta[3:])
+    T = torch.linalg.inv(cam_to_ego) @ M @ cam_to_ego                                  # [V, 4, 4]
+    Y = T[:, :3, :3] @ X + T[:, :3, 3:]
+    q = Ks @ Y
+    return q[:, :2] / q[:, 2:].clamp_min(1e-6) - uv
+
+
+def fit_ground_motion(flow: Tensor, Ks: Tensor, cam_to_ego: Tensor, ground_depth: Tensor,
+                      weight: Tensor | None = None, dof: int = 6, loss: str = "huber",
+                      iters: int = 10) -> tuple[Tensor, Tensor]:
+    """The rig motion that best explains ``flow`` on the ground prior's pixels.
+
+    Args:
+        flow: ``[V, 2, h, w]`` measured displacements (pixels of that resolution) from the earlier
+            to the later image of each camera.
+        Ks: ``[V, 3, 3]`` at that resolution; cam_to_ego: ``[V, 4, 4]`` (ego frame on the ground).
+        ground_depth: ``[V, 1, h, w]`` depth of the ground along each pixel's ray; pixels where it
+            is not finite or not positive take no part.
+        weight: ``[V, 1, h, w]`` >= 0, a pixel's prior weight (0: left out); None: all ones.
+        dof: 3, 4 or 6 (:data:`DOF_INDEX`); loss: "huber", "cauchy" or "l2".
+        iters: Gauss-Newton steps from zero motion.
+    Returns:
+        ``(M [4, 4]`` ego motion, earlier -> later ego coordinates, float64; ``w [V, 1, h, w]``
+        the final robust weights (0 where left out)).
+    """
+    if dof not in DOF_INDEX:
+        raise ValueError(f"dof: expected one of {sorted(DOF_INDEX)}, got {dof!r}")
+    if loss not in ("huber", "cauchy", "l2"):
+        raise ValueError(f"loss: expected 'huber', 'cauchy' or 'l2', got {loss!r}")
+    if flow.ndim != 4 or flow.shape[1] != 2 or ground_depth.shape != (flow.shape[0], 1, *flow.shape[-2:]):
+        raise ValueError(f"flow / ground_depth: expected [V, 2, h, w] / [V, 1, h, w], got "
+                         f"{list(flow.shape)} / {list(ground_depth.shape)}")
+    dt = torch.float64
+    V, _, h, w = flow.shape
+    K, E = Ks.to(dt), cam_to_ego.to(dt)
+    Z = ground_depth.to(dt)
+    prior = torch.ones_like(Z) if weight is None else weight.to(dt)
+    ok = torch.isfinite(Z) & (Z > 0) & (prior > 0) & torch.isfinite(flow.to(dt)).all(1, keepdim=True)
+    uv, X = ground_points(K, torch.where(ok, Z, torch.ones_like(Z)))
+    keep = ok.reshape(V, -1)
+    obs = flow.to(dt).reshape(V, 2, -1)
+    pw = torch.where(ok, prior, torch.zeros_like(prior)).reshape(V, -1)
+    free = list(DOF_INDEX[dof])
+    theta = torch.zeros(6, dtype=dt)
+    rw = keep.to(dt)
+    if not bool(keep.any()):
+        return torch.eye(4, dtype=dt), rw.reshape(V, 1, h, w)
+
+    def residual(p: Tensor) -> Tensor:
+        full = torch.zeros(6, dtype=dt).index_put((torch.tensor(free),), p)
+        return (plane_flow(full, K, E, uv, X) - obs)[:, :, keep.any(0)]                 # [V, 2, n]
+
+    for _ in range(iters):
+        p = theta[free]
+        r = residual(p)                                                                 # [V, 2, n]
+        J = torch.stack([(residual(p + d) - residual(p - d)) / (2 * _FD_STEP)          # [V, 2, n, k]
+                         for d in _FD_STEP * torch.eye(len(free), dtype=dt)], -1)
+        e = r.norm(dim=1)                                                               # [V, n]
+        m = keep[:, keep.any(0)]
+        if loss == "l2":
+            rob = torch.ones_like(e)
+        else:
+            scale = (1.4826 * e[m].median()).clamp_min(1e-6)
+            if loss == "huber":
+                c = 1.345 * scale
+                rob = torch.where(e <= c, torch.ones_like(e), c / e.clamp_min(1e-12))
+            else:
+                c = 2.385 * scale
+                rob = 1.0 / (1.0 + (e / c) ** 2)
+        wt = rob * pw[:, keep.any(0)] * m
+        Jw = (J * wt[:, None, :, None]).reshape(-1, len(free))
+        A = Jw.T @ J.reshape(-1, len(free))
+        b = Jw.T @ r.reshape(-1)
+        step = -torch.linalg.solve(A + 1e-9 * torch.eye(len(free), dtype=dt), b)
+        theta = theta.index_put((torch.tensor(free),), p + step)
+        rw = torch.zeros(V, h * w, dtype=dt)
+        rw[:, keep.any(0)] = wt
+        if float(step.abs().max()) < 1e-7:
+            break
+    return se3_exp(theta[:3], theta[3:]).detach(), rw.reshape(V, 1, h, w)
+
+
+def _robust_weights(e: Tensor, loss: str) -> Tensor:
+    """IRLS weights of residual magnitudes ``e`` (any shape): Huber / Cauchy at a scale from their
+    median absolute value (1.4826 MAD), or ones."""
+    if loss == "l2":
+        return torch.ones_like(e)
+    scale = (1.4826 * e.median()).clamp_min(1e-6)
+    if loss == "huber":
+        c = 1.345 * scale
+        return torch.where(e <= c, torch.ones_like(e), c / e.clamp_min(1e-12))
+    c = 2.385 * scale
+    return 1.0 / (1.0 + (e / c) ** 2)
+
+
+def _sample(img: Tensor, uv: Tensor) -> tuple[Tensor, Tensor]:
+    """Bilinear samples of ``img [V, C, h, w]`` at pixel coordinates ``uv [V, 2, N]`` (pixel-centre
+    convention) -> ``(values [V, C, N]``, ``inside [V, N]``)."""
+    h, w = img.shape[-2:]
+    gx = 2 * uv[:, 0] / w - 1
+    gy = 2 * uv[:, 1] / h - 1
+    out = torch.nn.functional.grid_sample(img, torch.stack([gx, gy], -1)[:, None], mode="bilinear",
+                                          padding_mode="border", align_corners=False)[:, :, 0]
+    inside = (uv[:, 0] > 0.5) & (uv[:, 0] < w - 0.5) & (uv[:, 1] > 0.5) & (uv[:, 1] < h - 0.5)
+    return out, inside
+
+
+def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_ego: Tensor, cap: float,
+                             levels: tuple[int, ...] = (1,), dof: int = 6, loss: str = "huber",
+                             iters: int = 8, search: tuple[float, float, int] | None = (-3.0, 3.0, 61),
+                             weight: Tensor | None = None, tau: float = 0.05) -> Tensor:
+    """The rig motion that best aligns the later images with the earlier ones on the ground.
+
+    A direct (photometric) form of :func:`fit_ground_motion`: every pixel whose ray meets the ground
+    prior closer than ``cap`` is moved by the plane-induced flow of the motion and the later grey
+    image is read there; the motion minimises the robust sum of ``I_later(x + flow) - I_earlier(x)``
+    over all cameras (Gauss-Newton on the image gradient, so an untextured pixel carries no weight
+    and an edge constrains the flow across it only), over ``levels`` in order (images averaged over
+    ``l x l`` blocks; default: full resolution only, since on a low-contrast road the coarse levels'
+    cost is lowest at zero motion). ``search``: before the first level, the forward translation
+    (ego x, metres per frame interval, ``(lo, hi, count)``) is chosen from a grid by the mean
+    absolute residual truncated at ``tau`` (grey levels in [0, 1]: a pixel worse than that, or
+    moved out of view, counts as unmatched) at the first level, then from 21 values within one grid
+    step of the best (a generic bound on the motion between frames, like the pose network's own
+    clamp; None: start from zero motion).
+
+    Args:
+        earlier, later: ``[V, 3, H, W]`` images in [0, 1]; Ks ``[V, 3, 3]`` at that size;
+            cam_to_ego ``[V, 4, 4]`` (ego frame on the ground); cap: metres.
+        weight: ``[V, 1, H, W]`` >= 0 prior pixel weights (0: left out; a block counts at a level
+            only if all its pixels count); None: ones.
+    Returns:
+        ``M [4, 4]`` float64, ego coordinates at the earlier instant to the later one.
+    """
+    if dof not in DOF_INDEX:
+        raise ValueError(f"dof: expected one of {sorted(DOF_INDEX)}, got {dof!r}")
+    if loss not in ("huber", "cauchy", "l2"):
+        raise ValueError(f"loss: expected 'huber', 'cauchy' or 'l2', got {loss!r}")
+    if earlier.shape != later.shape or earlier.ndim != 4 or earlier.shape[1] != 3:
+        raise ValueError(f"earlier / later: expected two [V, 3, H, W] images, got {list(earlier.shape)} / "
+                         f"{list(later.shape)}")
+    if not cap > 0:
+        raise ValueError(f"cap: expected a positive number of metres, got {cap!r}")
+    if not tau > 0:
+        raise ValueError(f"tau: expected a positive grey-level difference, got {tau!r}")
+    dt = torch.float64
+    F_ = torch.nn.functional
+    V, _, H, W = earlier.shape
+    g1, g2 = earlier.to(dt).mean(1, keepdim=True), later.to(dt).mean(1, keepdim=True)
+    E = cam_to_ego.to(dt)
+    pw_full = torch.ones(V, 1, H, W, dtype=dt) if weight is None else weight.to(dt)
+    free = list(DOF_INDEX[dof])
+    idx = (torch.tensor(free),)
+    theta = torch.zeros(6, dtype=dt)
+    kx = torch.tensor([[[[-0.5, 0.0, 0.5]]]], dtype=dt)
+
+    def setup(level: int):
+        a = F_.avg_pool2d(g1, level) if level > 1 else g1
+        b = F_.avg_pool2d(g2, level) if level > 1 else g2
+        K = scale_intrinsics(Ks.to(dt), 1.0 / level)
+        h, w = a.shape[-2:]
+        Z = ground_prior_depth(K, E, h, w, cap)
+        pw = F_.avg_pool2d(pw_full, level) if level > 1 else pw_full
+        pw = pw * (pw > 1 - 1e-9) * (Z < cap)
+        uv, X = ground_points(K, Z)
+        gx = F_.conv2d(F_.pad(b, (1, 1, 0, 0), mode="replicate"), kx)
+        gy = F_.conv2d(F_.pad(b, (0, 0, 1, 1), mode="replicate"), kx.transpose(-1, -2))
+        return a.reshape(V, 1, -1), torch.cat([b, gx, gy], 1), K, uv, X, pw.reshape(V, -1)
+
+    def residual(th: Tensor, lv) -> tuple[Tensor, Tensor, Tensor]:
+        a, b3, K, uv, X, pw = lv
+        q = uv + plane_flow(th, K, E, uv, X)
+        s, inside = _sample(b3, q)
+        return s[:, 0] - a[:, 0], s[:, 1:], pw * inside
+
+    def cost(th: Tensor, lv) -> float:
+        """Mean truncated absolute residual over the prior's pixels, ``min(|r|, tau)``; a pixel moved
+        out of the image counts as unmatched (``tau``), so a motion can lower the cost neither by
+        moving pixels out of view nor through the pixels that are not on the ground."""
+        r, _, m = residual(th, lv)
+        pw = lv[5] > 0
+        if not bool(pw.any()):
+            return float("inf")
+        e = torch.where(m > 0, r.abs().clamp(max=tau), torch.full_like(r, tau))[pw]
+        return float(e.mean())
+
+    for k, level in enumerate(levels):
+        lv = setup(level)
+        if k == 0 and search is not None:
+            lo, hi, count = float(search[0]), float(search[1]), int(search[2])
+            step_m = (hi - lo) / max(count - 1, 1)
+            best = None
+            for grid in (torch.linspace(lo, hi, count, dtype=dt), None):
+                if grid is None:
+                    grid = float(best[1][3]) + torch.linspace(-step_m, step_m, 21, dtype=dt)
+                for tx in grid:
+                    th = theta.clone()
+                    th[3] = tx
+                    c = cost(th, lv)
+                    if best is None or c < best[0]:
+                        best = (c, th)
+            theta = best[1]
+        for _ in range(iters):
+            r, grad, m = residual(theta, lv)                                            # [V, N], [V, 2, N]
+            if not bool((m > 0).any()):
+                break
+            cols = []
+            for d in _FD_STEP * torch.eye(6, dtype=dt)[free]:
+                dflow = (plane_flow(theta + d, lv[2], E, lv[3], lv[4]) - plane_flow(theta - d, lv[2], E, lv[3], lv[4])) \
+                    / (2 * _FD_STEP)
+                cols.append((grad * dflow).sum(1))                                      # [V, N]
+            J = torch.stack(cols, -1)[m > 0]                                            # [n, k]
+            rr = r[m > 0]
+            wt = _robust_weights(rr.abs(), loss) * m[m > 0]
+            A = (J * wt[:, None]).T @ J
+            bvec = (J * wt[:, None]).T @ rr
+            step = -torch.linalg.solve(A + 1e-9 * torch.eye(len(free), dtype=dt) * (1 + A.diagonal().max()), bvec)
+            theta = theta.index_put(idx, theta[free] + step)
+            if float(step.abs().max()) < 1e-7:
+                break
+    return se3_exp(theta[:3], theta[3:])

@@ -1,0 +1,111 @@
+"""The road-flow ego-motion fit (``models/drivingforward/ground_motion.py``): it recovers a known
+rig motion from a synthetic plane-induced flow (with and without outliers) and from images of a textured
+ground (the direct form), and refuses bad input."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from clsplat.models.common.geometry import axis_angle_to_matrix, se3_exp
+from clsplat.models.drivingforward.depth import ground_prior_depth
+from clsplat.models.drivingforward.ground_motion import (fit_ground_motion, fit_ground_motion_direct, ground_points,
+                                                         plane_flow)
+
+
+def _rig() -> tuple[torch.Tensor, torch.Tensor]:
+    """Three cameras 1.6 m up (front, left, back), OpenCV axes, 16 x 28 pixels."""
+    K = torch.tensor([[20.0, 0, 14], [0, 20.0, 8], [0, 0, 1]], dtype=torch.float64).expand(3, 3, 3).clone()
+    base = torch.tensor([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]], dtype=torch.float64)   # cam axes in ego (fwd)
+    E = []
+    for yaw in (0.0, math.pi / 2, math.pi):
+        c, s = math.cos(yaw), math.sin(yaw)
+        Rz = torch.tensor([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=torch.float64)
+        T = torch.eye(4, dtype=torch.float64)
+        T[:3, :3] = Rz @ base
+        T[:3, 3] = torch.tensor([1.5 * c, 0.9 * s, 1.6])
+        E.append(T)
+    return K, torch.stack(E)
+
+
+def _truth() -> torch.Tensor:
+    return torch.tensor([0.002, -0.003, 0.02, -1.1, 0.08, 0.01], dtype=torch.float64)
+
+
+@pytest.mark.parametrize("dof", [4, 6])
+def test_recovers_a_known_motion_from_exact_plane_flow(dof: int) -> None:
+    K, E = _rig()
+    Z = ground_prior_depth(K, E, 16, 28, 20.0)
+    road = Z < 20.0
+    theta = _truth() if dof == 6 else _truth() * torch.tensor([0, 0, 1, 1, 1, 1.0])
+    uv, X = ground_points(K, Z)
+    flow = plane_flow(theta, K, E, uv, X).reshape(3, 2, 16, 28)
+    M, _ = fit_ground_motion(flow, K, E, torch.where(road, Z, torch.full_like(Z, float("nan"))), dof=dof, loss="l2")
+    assert torch.allclose(M[:3, 3], theta[3:], atol=1e-6)
+    assert torch.allclose(M[:3, :3], axis_angle_to_matrix(theta[:3]), atol=1e-8)
+
+
+def test_robust_fit_ignores_outliers_that_least_squares_does_not() -> None:
+    K, E = _rig()
+    Z = ground_prior_depth(K, E, 16, 28, 20.0)
+    Zr = torch.where(Z < 20.0, Z, torch.full_like(Z, float("nan")))
+    theta = _truth()
+    uv, X = ground_points(K, Z)
+    flow = plane_flow(theta, K, E, uv, X).reshape(3, 2, 16, 28)
+    g = torch.Generator().manual_seed(0)
+    flow = flow + 0.02 * torch.randn(flow.shape, generator=g, dtype=flow.dtype)
+    bad = torch.rand(3, 1, 16, 28, generator=g) < 0.2                     # a fifth of the pixels: "zero flow"
+    flow = torch.where(bad, torch.zeros_like(flow), flow)
+    t_err = {}
+    for loss in ("l2", "huber", "cauchy"):
+        M, w = fit_ground_motion(flow, K, E, Zr, dof=6, loss=loss)
+        t_err[loss] = float((M[:3, 3] - theta[3:]).norm() / theta[3:].norm())
+    assert t_err["cauchy"] < 0.02 and t_err["huber"] < 0.05
+    assert t_err["l2"] > 2 * t_err["huber"]
+
+
+def test_zero_flow_gives_zero_motion_and_bad_input_is_refused() -> None:
+    K, E = _rig()
+    Z = ground_prior_depth(K, E, 16, 28, 20.0)
+    M, _ = fit_ground_motion(torch.zeros(3, 2, 16, 28, dtype=torch.float64), K, E, Z)
+    assert torch.allclose(M, torch.eye(4, dtype=torch.float64), atol=1e-9)
+    with pytest.raises(ValueError, match="dof"):
+        fit_ground_motion(torch.zeros(3, 2, 16, 28), K, E, Z, dof=5)
+    with pytest.raises(ValueError, match="loss"):
+        fit_ground_motion(torch.zeros(3, 2, 16, 28), K, E, Z, loss="tukey")
+    with pytest.raises(ValueError, match="ground_depth"):
+        fit_ground_motion(torch.zeros(3, 2, 16, 28), K, E, Z[:, :, :8])
+
+
+def _render_ground(K: torch.Tensor, E: torch.Tensor, M: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """``[V, 3, h, w]`` images of a textured ground plane seen after the ego motion ``M`` (earlier ->
+    later ego coordinates): each pixel's ground point is taken back to the earlier ego frame and
+    the texture read there; the sky (no ground within 200 m) is a constant grey."""
+    Z = ground_prior_depth(K, E, h, w, 200.0)
+    uv, X = ground_points(K, Z)
+    P = E[:, :3, :3] @ X + E[:, :3, 3:]                                   # later ego frame
+    Minv = torch.linalg.inv(M)
+    Q = Minv[:3, :3] @ P + Minv[:3, 3:].unsqueeze(0)                      # earlier ego frame
+    x, y = Q[:, 0], Q[:, 1]
+    tex = 0.5 + 0.2 * torch.sin(0.8 * x) * torch.cos(0.7 * y) + 0.12 * torch.sin(0.45 * x + 1.7 * y) \
+        + 0.08 * torch.cos(1.3 * x - 0.4 * y)
+    img = torch.where(Z.reshape(Z.shape[0], -1) < 200.0, tex, torch.full_like(tex, 0.8))
+    return img.reshape(-1, 1, h, w).expand(-1, 3, h, w).clamp(0, 1)
+
+
+@pytest.mark.parametrize("forward", [0.9, -0.4])
+def test_direct_fit_recovers_a_known_motion_from_images_of_a_textured_ground(forward: float) -> None:
+    K, E = _rig()
+    K = K.clone()
+    K[:, :2] *= 2.0                                                        # 32 x 56 images
+    theta = torch.tensor([0.0, 0.0, 0.015, forward, 0.05, 0.0], dtype=torch.float64)
+    M = se3_exp(theta[:3], theta[3:])
+    earlier = _render_ground(K, E, torch.eye(4, dtype=torch.float64), 32, 56)
+    later = _render_ground(K, E, M, 32, 56)
+    fit = fit_ground_motion_direct(earlier, later, K, E, 12.0, levels=(1,), dof=3)
+    assert float((fit[:3, 3] - theta[3:]).norm()) < 0.01 * abs(forward), fit[:3, 3]
+    standing = fit_ground_motion_direct(earlier, earlier, K, E, 20.0, levels=(1,), dof=3)
+    assert float(standing[:3, 3].norm()) < 1e-3
+    with pytest.raises(ValueError, match="tau"):
+        fit_ground_motion_direct(earlier, later, K, E, 20.0, tau=0.0)
