@@ -133,3 +133,24 @@ def test_semseg_labels_follow_the_points(tmp_path):
     pd.DataFrame({"class": np.zeros(3, np.int64)}).to_pickle(root / "annotations/semseg/01.pkl.gz", compression="gzip")
     with pytest.raises(ValueError, match="one row per LiDAR point"):
         load_pandaset(root)
+
+
+def test_tracker_noise_boxes_are_the_written_cuboids(tmp_path):
+    """Issue 36's noisy PandaSet-format streets: after ``add_tracker_noise`` the cuboids written and
+    read back are the tracker's boxes (yaw-only, so PandaSet can hold them), not the exact ones kept
+    in ``metadata["exact_boxes"]``; uuids, sizes and track ids are unchanged."""
+    from clsplat.data.synthetic.views import TrackerNoise, add_tracker_noise
+    seq = generate_sequence(height=16, width=32, num_frames=3, seed=2, lidar=False)
+    add_tracker_noise(seq, TrackerNoise(), seed=2)
+    got = load_pandaset(write_pandaset(seq, tmp_path / "001"), load_lidar=False)
+    moved = 0.0
+    for k, (fa, fb) in enumerate(zip(seq.frames, got.frames)):
+        noisy = {b.uuid: b for b in fa.boxes}
+        exact = {b.uuid: b for b in seq.metadata["exact_boxes"][k].values()}
+        assert {b.uuid for b in fb.boxes} == set(noisy) == set(exact)
+        for b in fb.boxes:
+            a = noisy[b.uuid]
+            assert np.allclose(b.center, a.center, atol=1e-9) and np.allclose(b.size, exact[b.uuid].size)
+            assert np.allclose(quat_to_rotmat(b.quat), quat_to_rotmat(a.quat), atol=1e-9)
+            moved = max(moved, float(np.linalg.norm(b.center - exact[b.uuid].center)))
+    assert moved > 0.01
