@@ -25,8 +25,11 @@ Instance ids are the generator's track ids; the run's track ids are matched thro
 ``uuid`` (``synthetic-<seed>-<track>``, written by :func:`clsplat.data.pandaset.write_pandaset`).
 
     .venv/bin/python bench/experiments/autosplat_pandaset_rescore.py RUN [RUN ...] [--json OUT.json]
+    .venv/bin/python bench/experiments/autosplat_pandaset_rescore.py --from-json OUT.json [...]
 
-Prints one markdown row per run (held-out PSNR, dB).
+Prints one markdown row per run (held-out PSNR, dB), then, for runs named
+``PREFIX_<street>_<config>_s<seed>``, the mean (min..max) over seeds per street and config.
+``--from-json`` reads the ``--json`` files of earlier calls instead of runs (tables only).
 """
 from __future__ import annotations
 
@@ -148,10 +151,14 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--world", default=None, help="the world the folders were written from (default: busy, or "
                     "classic where the folder's name holds 'classic')")
     ap.add_argument("--json", type=Path, default=None, help="write the figures here too")
+    ap.add_argument("--from-json", action="store_true", help="RUNS are --json files of earlier calls: tables only")
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
     cache: dict = {}
-    out = [analyse(r, a.world or ("classic" if "classic" in r.name else "busy"), cache) for r in a.runs]
+    if a.from_json:
+        out = [o for fj in a.runs for o in json.loads(fj.read_text())]
+    else:
+        out = [analyse(r, a.world or ("classic" if "classic" in r.name else "busy"), cache) for r in a.runs]
     f = lambda x: "–" if x is None else f"{x:.2f}"  # noqa: E731
     print("| run | image (pooled) | instance px: car / pedestrian / other / all moving / parked cars | image − inst car / ped "
           "| box px (metrics.json's): car / pedestrian / other / all | metrics.json car / ped / other / objects "
@@ -167,6 +174,33 @@ def main(argv: list[str] | None = None) -> None:
               + f" | {mv['true']} / {mv['run']} ({mv['run_not_true']}) | {o['inside']:.3f} |")
     if a.json:
         a.json.write_text(json.dumps(out, indent=1))
+    _seeds(out)
+
+
+def _seeds(out: list[dict]) -> None:
+    """Runs named ``PREFIX_<street>_<config>_s<seed>`` grouped by street and config: mean (min..max)."""
+    import statistics
+    name = re.compile(r"^[^_]+_(?P<street>[^_]+)_(?P<config>.+)_s(?P<seed>\d+)$")
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for o in out:
+        g = name.match(o["run"])
+        if g:
+            groups.setdefault((g["street"], g["config"]), []).append(o)
+
+    def agg(v: list) -> str:
+        v = [x for x in v if x is not None]
+        return "–" if not v else f"{statistics.mean(v):.2f} ({min(v):.2f}..{max(v):.2f})" if len(v) > 1 else f"{v[0]:.2f}"
+
+    cols = {"image": lambda o: o["metrics_json"]["image"]}
+    for k in ("car", "pedestrian", "other", "objects", "parked"):
+        cols[f"inst {k}"] = lambda o, k=k: o["metrics"][f"inst/{k}"]
+    for k in ("car", "pedestrian", "objects"):
+        cols[f"image − inst {k}"] = lambda o, k=k: (None if o["metrics"][f"inst/{k}"] is None
+                                                   else o["metrics_json"]["image"] - o["metrics"][f"inst/{k}"])
+    print("\n| street | config | runs | " + " | ".join(cols) + " |")
+    print("|---" * (3 + len(cols)) + "|")
+    for (street, cfg), rs in sorted(groups.items()):
+        print(f"| {street} | {cfg} | {len(rs)} | " + " | ".join(agg([f(o) for o in rs]) for f in cols.values()) + " |")
 
 
 if __name__ == "__main__":
