@@ -84,6 +84,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--geo-direct", type=int, nargs="*", default=None, metavar="LEVEL",
                    help="--geometric by direct alignment of the images on the ground instead of the correlation's "
                         "flow (fit_ground_motion_direct), over these levels in order (default: 1, full resolution)")
+    p.add_argument("--geo-search", type=int, default=61, metavar="COUNT",
+                   help="--geo-direct: forward translations tried over -3..3 m before Gauss-Newton (default 61)")
     p.add_argument("--size", type=int, nargs=2, metavar=("H", "W"), default=None,
                    help="render / read the streets at H x W instead of the preset's size (multiples of 8 and of "
                         "the levels; a synthetic-cache holds only the sizes it was filled at: use --data synthetic)")
@@ -96,6 +98,8 @@ def main(argv: list[str] | None = None) -> int:
         if any(v < 1 for v in a.geo_direct):
             p.error(f"--geo-direct: levels must be positive ints, got {a.geo_direct}")
         a.geometric = True
+    if a.geo_search < 2:
+        p.error(f"--geo-search: expected at least 2 values, got {a.geo_search}")
     if a.geo_mask != "none" and not a.geometric:
         p.error("--geo-mask: only with --geometric")
 
@@ -236,7 +240,7 @@ def main(argv: list[str] | None = None) -> int:
                         w1 = (~movers if a.geo_mask == "movers" else road).double()
                     Mg = fit_ground_motion_direct(s["images"][1], s["images"][2], s["Ks"], E, geo_cap,
                                                   levels=tuple(a.geo_direct), dof=a.geo_dof, loss=a.geo_loss,
-                                                  weight=w1)
+                                                  weight=w1, search=(-3.0, 3.0, a.geo_search))
                     rw = torch.zeros(1)
                 else:
                     Mg, rw = fit_ground_motion(flow, Kl, E, Zg, wgt, dof=a.geo_dof, loss=a.geo_loss)
@@ -310,7 +314,7 @@ def main(argv: list[str] | None = None) -> int:
     results["constant"] = report(f"constant motion (train mean {np.linalg.norm(c):.3f} m) on val",
                                  np.broadcast_to(c, Tv.shape), Tv, "val")
     if a.geometric:
-        tag = f"geometric ({'direct, levels ' + ' '.join(map(str, a.geo_direct)) + ', ' if a.geo_direct else ''}" \
+        tag = f"geometric ({'direct, levels ' + ' '.join(map(str, a.geo_direct)) + f', search {a.geo_search}, ' if a.geo_direct else ''}" \
               f"{a.geo_dof} dof, {a.geo_loss}, cap {geo_cap:g} m, " \
               f"{'edge kept' if a.geo_keep_edge else 'edge left out'}, mask {a.geo_mask}" \
               f"{', EXACT FLOW (bound)' if a.true_flow else ''}) on val"
