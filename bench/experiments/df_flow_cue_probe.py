@@ -48,6 +48,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--preset", default="small")
     p.add_argument("--train", type=int, default=100, help="training windows of the fit")
     p.add_argument("--val", type=int, default=40, help="validation windows it is scored on")
+    p.add_argument("--val-start", type=int, default=0, metavar="K",
+                   help="score validation windows K .. K+val-1 (fresh windows for a choice made on the first ones)")
     p.add_argument("--radius", type=int, default=3)
     p.add_argument("--level", type=int, default=4)
     p.add_argument("--temperature", type=float, default=0.1, help="of the correlation's soft-argmax")
@@ -98,6 +100,8 @@ def main(argv: list[str] | None = None) -> int:
         if any(v < 1 for v in a.geo_direct):
             p.error(f"--geo-direct: levels must be positive ints, got {a.geo_direct}")
         a.geometric = True
+    if a.val_start < 0:
+        p.error(f"--val-start: expected a non-negative window index, got {a.val_start}")
     if a.geo_search < 2:
         p.error(f"--geo-search: expected at least 2 values, got {a.geo_search}")
     if a.geo_mask != "none" and not a.geometric:
@@ -193,9 +197,9 @@ def main(argv: list[str] | None = None) -> int:
             f = f + torch.cat([(a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det], 1)
         return (F_.avg_pool2d(f, level) / level).to(flow.dtype)
 
-    def design(split: str, n: int):
+    def design(split: str, n: int, start: int = 0):
         X, Y = [], []
-        for i in range(n):
+        for i in range(start, start + n):
             s = load_triplet(src, i, preset, split)
             E = s["cam_to_ego"].double()
             R = E[:, :3, :3]
@@ -252,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
         return np.concatenate(X), np.concatenate(Y)
 
     Xt, Yt = design("train", a.train)
-    Xv, Yv = design("val", a.val)
+    Xv, Yv = design("val", a.val, a.val_start)
     def fit(X, Y, alpha):
         return np.linalg.solve(X.T @ X + alpha * np.eye(X.shape[1]), X.T @ Y)
 
