@@ -109,3 +109,11 @@ def test_direct_fit_recovers_a_known_motion_from_images_of_a_textured_ground(for
     assert float(standing[:3, 3].norm()) < 1e-3
     with pytest.raises(ValueError, match="tau"):
         fit_ground_motion_direct(earlier, later, K, E, 20.0, tau=0.0)
+
+
+def test_direct_fit_without_a_ground_pixel_returns_no_motion() -> None:
+    """Every pixel weighted out: nothing to align, so the identity, not the search grid's first value."""
+    K, E = _rig()
+    img = torch.rand(3, 3, 16, 28, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    M = fit_ground_motion_direct(img, img.flip(-1), K, E, cap=20.0, weight=torch.zeros(3, 1, 16, 28))
+    assert torch.equal(M, torch.eye(4, dtype=torch.float64))

@@ -106,9 +106,12 @@ def fit_ground_motion(flow: Tensor, Ks: Tensor, cam_to_ego: Tensor, ground_depth
     if not bool(keep.any()):
         return torch.eye(4, dtype=dt), rw.reshape(V, 1, h, w)
 
+    seen = keep.any(0)                                                                  # [h*w]
+    m = keep[:, seen]
+
     def residual(p: Tensor) -> Tensor:
         full = torch.zeros(6, dtype=dt).index_put((torch.tensor(free),), p)
-        return (plane_flow(full, K, E, uv, X) - obs)[:, :, keep.any(0)]                 # [V, 2, n]
+        return (plane_flow(full, K, E, uv, X) - obs)[:, :, seen]                        # [V, 2, n]
 
     for _ in range(iters):
         p = theta[free]
@@ -116,36 +119,25 @@ def fit_ground_motion(flow: Tensor, Ks: Tensor, cam_to_ego: Tensor, ground_depth
         J = torch.stack([(residual(p + d) - residual(p - d)) / (2 * _FD_STEP)          # [V, 2, n, k]
                          for d in _FD_STEP * torch.eye(len(free), dtype=dt)], -1)
         e = r.norm(dim=1)                                                               # [V, n]
-        m = keep[:, keep.any(0)]
-        if loss == "l2":
-            rob = torch.ones_like(e)
-        else:
-            scale = (1.4826 * e[m].median()).clamp_min(1e-6)
-            if loss == "huber":
-                c = 1.345 * scale
-                rob = torch.where(e <= c, torch.ones_like(e), c / e.clamp_min(1e-12))
-            else:
-                c = 2.385 * scale
-                rob = 1.0 / (1.0 + (e / c) ** 2)
-        wt = rob * pw[:, keep.any(0)] * m
+        wt = _robust_weights(e, loss, e[m]) * pw[:, seen] * m
         Jw = (J * wt[:, None, :, None]).reshape(-1, len(free))
         A = Jw.T @ J.reshape(-1, len(free))
         b = Jw.T @ r.reshape(-1)
         step = -torch.linalg.solve(A + 1e-9 * torch.eye(len(free), dtype=dt), b)
         theta = theta.index_put((torch.tensor(free),), p + step)
         rw = torch.zeros(V, h * w, dtype=dt)
-        rw[:, keep.any(0)] = wt
+        rw[:, seen] = wt
         if float(step.abs().max()) < 1e-7:
             break
     return se3_exp(theta[:3], theta[3:]).detach(), rw.reshape(V, 1, h, w)
 
 
-def _robust_weights(e: Tensor, loss: str) -> Tensor:
-    """IRLS weights of residual magnitudes ``e`` (any shape): Huber / Cauchy at a scale from their
-    median absolute value (1.4826 MAD), or ones."""
+def _robust_weights(e: Tensor, loss: str, ref: Tensor | None = None) -> Tensor:
+    """IRLS weights of residual magnitudes ``e`` (any shape): Huber / Cauchy at a scale from the
+    median of ``ref`` (default ``e``; 1.4826 MAD), or ones."""
     if loss == "l2":
         return torch.ones_like(e)
-    scale = (1.4826 * e.median()).clamp_min(1e-6)
+    scale = (1.4826 * (e if ref is None else ref).median()).clamp_min(1e-6)
     if loss == "huber":
         c = 1.345 * scale
         return torch.where(e <= c, torch.ones_like(e), c / e.clamp_min(1e-12))
@@ -190,7 +182,8 @@ def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_
         weight: ``[V, 1, H, W]`` >= 0 prior pixel weights (0: left out; a block counts at a level
             only if all its pixels count); None: ones.
     Returns:
-        ``M [4, 4]`` float64, ego coordinates at the earlier instant to the later one.
+        ``M [4, 4]`` float64, ego coordinates at the earlier instant to the later one; the identity
+        where no pixel sees the ground within ``cap`` (no evidence of motion).
     """
     if dof not in DOF_INDEX:
         raise ValueError(f"dof: expected one of {sorted(DOF_INDEX)}, got {dof!r}")
@@ -244,9 +237,13 @@ def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_
         e = torch.where(m > 0, r.abs().clamp(max=tau), torch.full_like(r, tau))[pw]
         return float(e.mean())
 
-    for k, level in enumerate(levels):
+    searched = False
+    for level in levels:
         lv = setup(level)
-        if k == 0 and search is not None:
+        if not bool((lv[5] > 0).any()):  # no ground pixel at this level: nothing to align (a search
+            continue                     # would pick its grid's first value from equal costs)
+        if not searched and search is not None:
+            searched = True
             lo, hi, count = float(search[0]), float(search[1]), int(search[2])
             step_m = (hi - lo) / max(count - 1, 1)
             best = None
