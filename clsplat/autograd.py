@@ -52,6 +52,9 @@ class Settings:
     # a new buffer (_array). Differentiable outputs are not held: output -> grad_fn -> ctx ->
     # Settings -> array -> output would be a cycle the GC cannot free.
     arrays: dict | None = None
+    # rects' data_ptr -> stages.EarlyTiles: a small call's tile lists, launched by ProjectFn
+    # right behind the projection (one wait for both), for RasterizeFn to take
+    early: dict | None = None
 
 
 def _array(s: Settings, t: torch.Tensor, read_only: bool = False) -> DeviceArray:
@@ -81,14 +84,22 @@ class ProjectFn(torch.autograd.Function):
         p = stages.project(rt, s.cfg, *inputs.values(), s.width, s.height, s.tile_size,
                            near_plane=s.near_plane, far_plane=s.far_plane, eps2d=s.eps2d,
                            radius_clip=s.radius_clip, antialiased=s.antialiased, events=s.events)
+        # a small call's tile lists, queued behind the projection: read back with it
+        early = stages.early_tile_lists(rt, s.cfg, p.rects, p.depths, s.width, s.height,
+                                        s.tile_size, events=s.events)
         # (aliases: autograd sets its node on the tensors returned, never on a pooled array's own)
         outs = [t.detach() for t in read_back(p.means2d, p.conics, p.depths, p.opacities, p.radii,
-                                                p.rects, p.extents)]
+                                                p.rects, p.extents,
+                                                *((early.offsets,) if early else ()))[:7]]
         p.rects.read_only = True  # no later command writes the rectangles: read without a wait
         if s.arrays is None:
             s.arrays = {}
         s.arrays.update((a.tensor.data_ptr(), a) for a in (p.radii, p.rects, p.extents)
                         if a.tensor.numel())
+        if early is not None:
+            if s.early is None:
+                s.early = {}
+            s.early[p.rects.tensor.data_ptr()] = early
         ctx.mark_non_differentiable(*outs[4:])
         ctx.save_for_backward(means, quats, scales, opacities, viewmats, Ks, outs[4])
         ctx.s = s
@@ -181,9 +192,14 @@ class RasterizeFn(torch.autograd.Function):
         want_grad = any(ctx.needs_input_grad[:4])  # False under no_grad or for constants
         per_isect = plan.intersection_bytes(feats.shape[-1], feats.element_size(), grad=want_grad,
                                             absgrad=s.absgrad)
-        offsets, keys = stages.tile_lists(rt, cfg, a["rects"], arr(depths.detach()), s.width,
+        d = arr(depths.detach())
+        early = s.early.pop(rects.data_ptr(), None) if s.early else None
+        if early is not None and (early.rects is not a["rects"] or early.depths is not d):
+            early = None  # (not this projection's: the lists are built here)
+        offsets, keys = stages.tile_lists(rt, cfg, a["rects"], d, s.width,
                                           s.height, s.tile_size, events=s.events,
-                                          per_intersection=per_isect, reserve=s.pixel_reserve)
+                                          per_intersection=per_isect, reserve=s.pixel_reserve,
+                                          early=early)
         out, T, last = stages.composite(rt, cfg, a["means2d"], a["conics"], a["opacities"],
                                         a["extents"], a["feats"], offsets, keys, s.width, s.height,
                                         s.tile_size, save_last=want_grad, events=s.events)
@@ -215,14 +231,10 @@ class RasterizeFn(torch.autograd.Function):
         v_out = rt.staged(v_out, tuple(out_t.shape), out_t.dtype)
         v_T = rt.staged(v_T, tuple(T_t.shape), T_t.dtype)
         absgrad = s.absgrad and geom
-        CH = fwd["feats"].tensor.shape[-1]
         with rt.scratch() as alloc:  # the slots live only until the reduce is read back
-            slots, offs = stages.composite_bwd(rt, cfg, fwd, v_out, v_T,
-                                               s.width, s.height, s.tile_size, geom=geom,
-                                               color=color, absgrad=absgrad, divide=s.bwd_divide,
-                                               events=s.events, alloc=alloc)
-            r = stages.reduce_slots(rt, cfg, fwd["rects"], offs, slots, CH, geom=geom,
-                                    color=color, absgrad=absgrad, events=s.events)
+            r = stages.composite_bwd_reduced(rt, cfg, fwd, v_out, v_T, s.width, s.height,
+                                             s.tile_size, geom=geom, color=color, absgrad=absgrad,
+                                             divide=s.bwd_divide, events=s.events, alloc=alloc)
             g = dict(zip(r, read_back(*r.values())))
         if absgrad:
             if s.absgrad_sink is not None:

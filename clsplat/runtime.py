@@ -784,6 +784,16 @@ class DeviceArray:
         (a map and unmap on the zero-copy path, a copy otherwise)."""
         return read_back(self)[0]
 
+    def prefix(self, n: int) -> "DeviceArray":
+        """The first ``n`` entries of this 1-D array: a DeviceArray whose tensor is a view of
+        this one's and whose buffer is this one's (no new buffer; kernels given it may read
+        past ``n``). It holds this array's memory while it lives (a pooled array is not handed
+        out again meanwhile: the view and the buffer reference count)."""
+        v = DeviceArray.__new__(DeviceArray)
+        v.rt, v.tensor, v.buffer = self.rt, self.tensor[:n], self.buffer
+        v.zero_copy, v.synced_at, v.read_only = self.zero_copy, self.synced_at, self.read_only
+        return v
+
 
 def read_back(*arrays: DeviceArray) -> list[torch.Tensor]:
     """The tensors of ``arrays`` (one runtime) with every queued command finished and the

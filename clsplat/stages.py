@@ -22,7 +22,7 @@ from .plan import check_intersection_memory
 from .runtime import DeviceArray, Runtime
 
 __all__ = ["Projection", "project", "sh_colors", "bin_tiles", "sort_segments", "depth_tiles",
-           "tile_lists", "tile_ranges",
+           "tile_lists", "tile_ranges", "EarlyTiles", "early_tile_lists", "EARLY_TILES_MAX",
            "composite", "LOCAL_1D"]
 
 LOCAL_1D = 64  # work-group size of the per-Gaussian stages; any size works, 64 suits both kinds
@@ -312,6 +312,14 @@ ORDER_PACK_MAX = (1 << ORDER_PACK_BITS) - 1
 #: calls of the stage alone, wall): at 10k pairs 0.8 ms against the chunked passes' 1.6 ms and
 #: the per-tile sort's 1.8 ms; at 30k 2.0 against 2.8 ms; at 100k 12.8 against 6.1 ms.
 ORDER_SMALL = 1 << 15
+#: Small calls: up to this many (camera, Gaussian, tile) slots, C * N pairs times one camera's
+#: tiles (the most intersections the call can have), :func:`early_tile_lists` builds the tile
+#: lists right after the projection, into keys of that size, before the host has read the
+#: rectangles back: the forward then waits on the queue once for both (and never between the
+#: sort and the compositor), where it waited after each. 64k slots keep the keys (512 KiB)
+#: within the array pool (:data:`clsplat.runtime.POOL_ARRAY_BYTES`), so their memory needs no
+#: check; the tiny call of ``clsplat bench percall`` (100 Gaussians, 64 x 48) has 1200.
+EARLY_TILES_MAX = 1 << 16
 
 
 def _order_chunks(rt: Runtime, cfg: RenderConfig, n: int, n_bins: int, total: int) -> int:
@@ -372,9 +380,69 @@ def _counting_pass(rt: Runtime, cfg: RenderConfig, k: Callable[[str], cl.Kernel]
     _record(events, name, rt.launch(k(scatter), n_chunks, local, *head, *args))
 
 
+def _order_defines(cfg: RenderConfig, serial: bool) -> dict:
+    """The build parameters of kernels/order.cl."""
+    return {"REAL_DOUBLE": cfg.precision == "float64", "RADIX_BITS": ORDER_RADIX_BITS,
+            "HIST_CHUNK_MAJOR": serial, "PACK_BITS": ORDER_PACK_BITS}
+
+
+def _order_small(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: DeviceArray,
+                 n: int, tiles_x: int, tiles_y: int, offsets: DeviceArray, keys: DeviceArray,
+                 events) -> None:
+    """Launch kernels/order.cl's order_small (the whole stage in one work-item) for at most
+    ``n`` pairs that touch a tile: offsets [C*T+1] and keys (at least M) written on the device."""
+    C, N = depths.tensor.shape
+    n_tiles = C * tiles_x * tiles_y
+    # scratch used inside the one launch only (the in-order queue runs launches one at a
+    # time): kept in the render plan, one set per power-of-two size bucket and tile count
+    cap, n_cnt = max(1024, 1 << (n - 1).bit_length()), max(1 << ORDER_RADIX_BITS, n_tiles)
+    scratch = rt.plan(("order_small_scratch", cap, n_cnt), lambda: (
+        rt.empty((cap,), torch.int64, zero=False), rt.empty((cap,), torch.int64, zero=False),
+        rt.empty((n_cnt,), torch.int32, zero=False)))
+    _record(events, "sort_small", rt.launch(
+        rt.kernel("order", "order_small", _order_defines(cfg, True)), 1, 1, np.int32(C * N),
+        np.int32(N), np.int32(tiles_x), np.int32(tiles_y), np.int32(n_tiles), rects.buffer,
+        depths.buffer, scratch[0].buffer, scratch[1].buffer, scratch[2].buffer, offsets.buffer,
+        keys.buffer))
+
+
+@dataclass
+class EarlyTiles:
+    """Tile lists launched by :func:`early_tile_lists` for the projection's ``rects`` and
+    ``depths``: ``offsets`` [C*T+1] int32 and ``keys`` [C*N*T] int64, of which the first M
+    (``offsets[-1]``) are the lists; :func:`depth_tiles` checks and trims them."""
+
+    rects: DeviceArray
+    depths: DeviceArray
+    offsets: DeviceArray
+    keys: DeviceArray
+
+
+def early_tile_lists(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: DeviceArray,
+                     width: int, height: int, tile_size: int,
+                     events: list | None = None) -> EarlyTiles | None:
+    """For a small call (:data:`EARLY_TILES_MAX`) on a device that computes in the pool's host
+    memory, where :func:`depth_tiles` would run order_small: launch it now, queued behind the
+    projection that writes ``rects`` and ``depths``, without reading anything back. None where
+    the call is not small (the tile lists are built by :func:`tile_lists` as before)."""
+    C, N = depths.tensor.shape
+    tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
+    slots = C * N * tiles_x * tiles_y
+    if not (rt.pools and cfg.sort_impl == "depth" and cfg.sort_chunks is None
+            and _sort_serial(rt, cfg) and 0 < C * N <= ORDER_SMALL and slots <= EARLY_TILES_MAX
+            and max(tiles_x, C * tiles_y) <= ORDER_PACK_MAX):
+        return None
+    # (every entry of the offsets is written; of the keys, the first M)
+    offsets = rt.empty((C * tiles_x * tiles_y + 1,), torch.int32, zero=False)
+    keys = rt.empty((slots,), torch.int64, zero=False)
+    _order_small(rt, cfg, rects, depths, C * N, tiles_x, tiles_y, offsets, keys, events)
+    return EarlyTiles(rects, depths, offsets, keys)
+
+
 def depth_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: DeviceArray,
                 width: int, height: int, tile_size: int, events: list | None = None,
-                per_intersection: int = 16, reserve: int = 0) -> tuple[DeviceArray, DeviceArray]:
+                per_intersection: int = 16, reserve: int = 0,
+                early: EarlyTiles | None = None) -> tuple[DeviceArray, DeviceArray]:
     """Tile lists in depth order, from one depth sort of the pairs (kernels/order.cl).
 
     rects [C,N,4] int32 and depths [C,N] from :func:`project`; ``per_intersection`` and
@@ -384,7 +452,9 @@ def depth_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Devi
 
     Returns ``tile_offsets`` [C*T+1] int32 (read back: the tensor holds them) and ``keys``
     [M] int64 holding ulong keys (float32 depth bits << 32 | c*N+g), each segment sorted
-    ascending: the same arrays as :func:`bin_tiles` then :func:`sort_segments`.
+    ascending: the same arrays as :func:`bin_tiles` then :func:`sort_segments`. ``early``:
+    :func:`early_tile_lists`' launch for these ``rects`` and ``depths``, whose offsets are
+    checked and whose keys are trimmed to M here (the same arrays, bit for bit).
     """
     C, N = depths.tensor.shape
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
@@ -394,6 +464,11 @@ def depth_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Devi
     # two key arrays and the sorted rectangles (24); the per-tile sort's 8-byte scratch per
     # intersection (in plan.intersection_bytes) is not allocated
     total, n = _intersections(rt, rects, per_intersection, reserve, per_pair=8, per_touching=24, unused=8)
+    if early is not None:
+        if early.rects is not rects or early.depths is not depths:
+            raise ValueError("early: tile lists launched for other rectangles or depths")
+        check_tile_offsets(early.offsets.host(), total)
+        return early.offsets, early.keys.prefix(total)
     offsets = rt.empty((n_tiles + 1,), torch.int32)
     keys = rt.empty((total,), torch.int64, zero=False)
     if n == 0:
@@ -401,22 +476,11 @@ def depth_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Devi
     # Counters chunk-major in the serial layout (each chunk scans for itself), bin-major in
     # the GPU layout (a scan launch). No pass waits for the host.
     serial = _sort_serial(rt, cfg)
-    defines = {"REAL_DOUBLE": cfg.precision == "float64", "RADIX_BITS": ORDER_RADIX_BITS,
-               "HIST_CHUNK_MAJOR": serial, "PACK_BITS": ORDER_PACK_BITS}
+    defines = _order_defines(cfg, serial)
     k = lambda name: rt.kernel("order", name, defines)  # noqa: E731
     bins = 1 << ORDER_RADIX_BITS
     if cfg.sort_chunks is None and serial and n <= ORDER_SMALL:
-        # scratch used inside the one launch only (the in-order queue runs launches one at a
-        # time): kept in the render plan, one set per power-of-two size bucket and tile count
-        cap, n_cnt = max(1024, 1 << (n - 1).bit_length()), max(bins, n_tiles)
-        scratch = rt.plan(("order_small_scratch", cap, n_cnt), lambda: (
-            rt.empty((cap,), torch.int64, zero=False), rt.empty((cap,), torch.int64, zero=False),
-            rt.empty((n_cnt,), torch.int32, zero=False)))
-        scratch, cnt = scratch[:2], scratch[2]
-        _record(events, "sort_small", rt.launch(
-            k("order_small"), 1, 1, np.int32(C * N), np.int32(N), np.int32(tiles_x),
-            np.int32(tiles_y), np.int32(n_tiles), rects.buffer, depths.buffer, scratch[0].buffer,
-            scratch[1].buffer, cnt.buffer, offsets.buffer, keys.buffer))
+        _order_small(rt, cfg, rects, depths, n, tiles_x, tiles_y, offsets, keys, events)
         check_tile_offsets(offsets.host(), total)
         return offsets, keys
     # the depth sort: pass 0 builds the keys of the pairs that touch a tile, in c*N+g order
@@ -459,16 +523,17 @@ def depth_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Devi
 
 def tile_lists(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: DeviceArray,
                width: int, height: int, tile_size: int, events: list | None = None,
-               per_intersection: int = 16, reserve: int = 0) -> tuple[DeviceArray, DeviceArray]:
+               per_intersection: int = 16, reserve: int = 0,
+               early: EarlyTiles | None = None) -> tuple[DeviceArray, DeviceArray]:
     """Every tile's list of (camera, Gaussian) keys in depth order: (offsets [C*T+1] int32,
     read back; keys [M] int64), by ``cfg.sort_impl``: "depth" (:func:`depth_tiles`) or
     "tiles" (the baseline, :func:`bin_tiles` then :func:`sort_segments`). Same result; the
     baseline also where the depth sort's packed rectangles cannot hold the tile coordinates
-    (:data:`ORDER_PACK_MAX`)."""
+    (:data:`ORDER_PACK_MAX`). ``early``: see :func:`depth_tiles` (only ever made where it runs)."""
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
     if cfg.sort_impl == "depth" and max(tiles_x, depths.tensor.shape[0] * tiles_y) <= ORDER_PACK_MAX:
         return depth_tiles(rt, cfg, rects, depths, width, height, tile_size, events,
-                           per_intersection, reserve)
+                           per_intersection, reserve, early)
     offsets, keys = bin_tiles(rt, cfg, rects, depths, width, height, tile_size, events,
                               per_intersection, reserve)
     # bin_tiles has read the offsets back and nothing writes them after the scan
@@ -731,12 +796,49 @@ def isect_offsets(rt: Runtime, rects: DeviceArray) -> DeviceArray:
     return rt.from_host((np.cumsum(n) - n).astype(np.int32))
 
 
+#: Small calls on PoCL's CPU device: up to this many slot values (intersections x values per
+#: slot), the per-Gaussian backward's last work-item sums them itself (FUSED_REDUCE,
+#: kernels/composite_bwd_gauss.cl) instead of a reduce launch: one launch and one wake-up of
+#: the device's threads fewer (~30-50 us of a tiny call), against one thread summing serially
+#: what the reduce spreads over them (32k additions: a few tens of us at most).
+FUSED_REDUCE_VALUES = 1 << 15
+
+
+def composite_bwd_reduced(rt: Runtime, cfg: RenderConfig, fwd: dict, v_out: DeviceArray,
+                          v_T: DeviceArray, width: int, height: int, tile_size: int, *,
+                          geom: bool, color: bool, absgrad: bool, divide: bool = False,
+                          events: list | None = None,
+                          alloc: Callable[[tuple, torch.dtype], DeviceArray] | None = None) -> dict:
+    """:func:`composite_bwd` then :func:`reduce_slots`: the per-pair gradients by name (as
+    :func:`reduce_slots` returns them). Where the per-Gaussian backward runs on PoCL's CPU
+    device in one launch, without fast maths, with at most :data:`FUSED_REDUCE_VALUES` slot
+    values, that launch sums the slots itself (the same bits: both call kernels/common.h's
+    reduce_pair, and without fast maths its additions are not reordered)."""
+    C, N = fwd["opacities"].tensor.shape
+    CH = fwd["feats"].tensor.shape[-1]
+    G = slot_width(CH, geom, color, absgrad)
+    fuse = (rt.is_pocl_cpu and not cfg.fast_math and backward_gaussian(rt, cfg)
+            and fwd["keys"].tensor.numel() * G <= FUSED_REDUCE_VALUES
+            and (not color or CH <= rt.plan(("gauss_layout", cfg, tile_size, CH),
+                                            lambda: gauss_layout(rt, cfg, tile_size, CH))[1]))
+    if not fuse:
+        slots, offs = composite_bwd(rt, cfg, fwd, v_out, v_T, width, height, tile_size, geom=geom,
+                                    color=color, absgrad=absgrad, divide=divide, events=events,
+                                    alloc=alloc)
+        return reduce_slots(rt, cfg, fwd["rects"], offs, slots, CH, geom=geom, color=color,
+                            absgrad=absgrad, events=events)
+    out, shapes = _reduce_outputs(rt, cfg, C, N, CH, geom, color, absgrad)
+    composite_bwd(rt, cfg, fwd, v_out, v_T, width, height, tile_size, geom=geom, color=color,
+                  absgrad=absgrad, divide=divide, events=events, alloc=alloc, reduce_into=out)
+    return {k: a for k, a in out.items() if shapes[k] is not None}
+
+
 def composite_bwd(rt: Runtime, cfg: RenderConfig, fwd: dict, v_out: DeviceArray,
                   v_T: DeviceArray, width: int, height: int, tile_size: int, *, geom: bool,
                   color: bool, absgrad: bool, divide: bool = False,
                   events: list | None = None,
                   alloc: Callable[[tuple, torch.dtype], DeviceArray] | None = None,
-                  ) -> tuple[DeviceArray, DeviceArray]:
+                  reduce_into: dict | None = None) -> tuple[DeviceArray, DeviceArray]:
     """Per-intersection gradient slots of compositing: ``kernels/composite_bwd_gauss.cl`` (a
     work-item per tile) where :func:`backward_gaussian`, else ``kernels/composite_bwd.cl`` (a
     work-item per row segment); the same slots to rounding, each bitwise reproducible.
@@ -744,6 +846,8 @@ def composite_bwd(rt: Runtime, cfg: RenderConfig, fwd: dict, v_out: DeviceArray,
     ``fwd`` holds the forward's DeviceArrays: means2d, conics, opacities, extents, feats, rects,
     offsets, keys, out (out_feats), T, last. v_out [C,H,W,CH], v_T [C,H,W]. ``alloc(shape,
     dtype)`` makes the zeroed slots array (default ``rt.empty``; e.g. ``Runtime.scratch``'s).
+    ``reduce_into``: :func:`_reduce_outputs`' arrays, which the per-Gaussian kernel's one launch
+    fills itself (FUSED_REDUCE; only as :func:`composite_bwd_reduced` decides).
     Returns (slots [M, G], isect_offsets [C*N]).
     """
     C, N = fwd["opacities"].tensor.shape
@@ -775,25 +879,28 @@ def composite_bwd(rt: Runtime, cfg: RenderConfig, fwd: dict, v_out: DeviceArray,
             "BWD_DIVIDE": divide, "SLOT_G": G, "SLOT_COLOR0": geom_cols}
         if not gauss:
             defines |= {"BATCH": batch, "WAVES": waves}
+        else:
+            defines["FUSED_REDUCE"] = reduce_into is not None
         stage = "composite_bwd_gauss" if gauss else "composite_bwd"
         k = _composite_kernel(rt, cfg, stage, defines, group, tile_size)
+        fused = () if reduce_into is None else (
+            np.int32(C * N), rt.plan(("fused_reduce_count",), lambda: rt.empty((1,), torch.int32)).buffer,
+            *(a.buffer for a in reduce_into.values()))
         _record(events, "composite_bwd", rt.enqueue(
             k, n_items, group, np.int32(width), np.int32(height),
             np.int32(tiles_x), np.int32(tiles_x * tiles_y), np.int32(N), np.int32(ch0),
             f["offsets"].buffer, f["keys"].buffer, f["rects"].buffer, offs.buffer,
             f["means2d"].buffer, f["conics"].buffer, f["opacities"].buffer, f["extents"].buffer,
             f["feats"].buffer, f["out"].buffer, f["T"].buffer, f["last"].buffer, v_out.buffer,
-            v_T.buffer, slots.buffer))
+            v_T.buffer, slots.buffer, *fused))
     return slots, offs
 
 
-def reduce_slots(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, offs: DeviceArray,
-                 slots: DeviceArray, channels: int, *, geom: bool, color: bool, absgrad: bool,
-                 events: list | None = None) -> dict:
-    """Sum each pair's slots into those of v_means2d [C,N,2], v_conics [C,N,3], v_opacities
-    [C,N] (``geom``), absgrad [C,N,2] (``absgrad``) and v_feats [C,N,CH] (``color``) that are
-    built in; returns them by name."""
-    C, N = rects.tensor.shape[:2]
+def _reduce_outputs(rt: Runtime, cfg: RenderConfig, C: int, N: int, channels: int, geom: bool,
+                    color: bool, absgrad: bool) -> tuple[dict, dict]:
+    """(arrays, shapes) of the reduce's outputs, in kernels/common.h's REDUCE_OUT_ARGS order:
+    v_means2d [C,N,2], v_conics [C,N,3], v_opacities [C,N] (``geom``), absgrad [C,N,2]
+    (``absgrad``), v_feats [C,N,CH] (``color``); shape None for those not built in."""
     dt = cfg.dtype
     shapes = {"v_means2d": (C, N, 2) if geom else None, "v_conics": (C, N, 3) if geom else None,
               "v_opacities": (C, N) if geom else None, "absgrad": (C, N, 2) if absgrad else None,
@@ -803,6 +910,17 @@ def reduce_slots(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, offs: Devic
     out = {k: rt.empty(sh, dt, zero=False) if sh is not None else
            rt.plan(("reduce_placeholder", k, dt), lambda: rt.empty((1,), dt, zero=False))
            for k, sh in shapes.items()}
+    return out, shapes
+
+
+def reduce_slots(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, offs: DeviceArray,
+                 slots: DeviceArray, channels: int, *, geom: bool, color: bool, absgrad: bool,
+                 events: list | None = None) -> dict:
+    """Sum each pair's slots into those of v_means2d [C,N,2], v_conics [C,N,3], v_opacities
+    [C,N] (``geom``), absgrad [C,N,2] (``absgrad``) and v_feats [C,N,CH] (``color``) that are
+    built in; returns them by name."""
+    C, N = rects.tensor.shape[:2]
+    out, shapes = _reduce_outputs(rt, cfg, C, N, channels, geom, color, absgrad)
     defines = {"REAL_DOUBLE": cfg.precision == "float64", "CHANNELS": channels,
                "GEOM_GRAD": geom, "COLOR_GRAD": color, "ABSGRAD": absgrad}
     k = rt.kernel("reduce", "reduce_slots", defines)

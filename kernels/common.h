@@ -562,4 +562,39 @@ inline REAL3 camera_centre(__global const REAL *vm) {
     __global const REAL *v_T,          /* [C, H, W] */                                      \
     __global REAL *slots               /* [M, SLOT_G] */
 
+/* ---- each pair's sum of its slots (reduce.cl; composite_bwd_gauss.cl with FUSED_REDUCE) ---- */
+/* REDUCE_G: values per slot of the layout above (geometry, then colour when COLOR_GRAD). Pair
+ * cg's slots are contiguous (isect_offsets[cg] onwards, one per tile of its rectangle), so its
+ * sum is a short loop in a fixed order: deterministic without float atomics, and the same bits
+ * in either kernel. Outputs follow the slot layout, each only when built in. */
+#define REDUCE_G (G_GEOM + (COLOR_GRAD ? CHANNELS : 0))
+#define REDUCE_OUT_ARGS                                                                      \
+    __global REAL *v_means2d,          /* [C, N, 2] */                                      \
+    __global REAL *v_conics,           /* [C, N, 3] */                                      \
+    __global REAL *v_opac,             /* [C, N] */                                         \
+    __global REAL *absgrad,            /* [C, N, 2] */                                      \
+    __global REAL *v_feats             /* [C, N, CHANNELS] */
+
+#ifdef COLOR_GRAD /* (the programs that sum slots: the others lack CHANNELS) */
+inline void reduce_pair(const int cg, __global const int *rects, __global const int *isect_offsets,
+                        __global const REAL *slots, REDUCE_OUT_ARGS) {
+    /* scalar loads: vload4 is an out-of-line call on PoCL's CPU device (see pair_slot) */
+    const int n = (rects[4 * cg + 2] - rects[4 * cg]) * (rects[4 * cg + 3] - rects[4 * cg + 1]);
+    __global const REAL *s = slots + (size_t)isect_offsets[cg] * REDUCE_G;
+    /* One column at a time, summed in tile order: no private array, so any REDUCE_G fits. */
+    for (int j = 0; j < REDUCE_G; ++j) {
+        REAL acc = 0;
+        for (int i = 0; i < n; ++i) acc += s[(size_t)i * REDUCE_G + j];
+#if GEOM_GRAD
+        if (j < 2) v_means2d[2 * cg + j] = acc;
+        else if (j < 5) v_conics[3 * cg + j - 2] = acc;
+        else if (j == 5) v_opac[cg] = acc;
+        else if (j < G_GEOM) absgrad[2 * cg + j - 6] = acc;
+        else
+#endif
+            v_feats[(size_t)cg * CHANNELS + j - G_GEOM] = acc;
+    }
+}
+#endif
+
 #endif /* CLSPLAT_COMMON_H */

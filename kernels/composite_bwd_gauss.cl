@@ -29,11 +29,16 @@
  *
  * Slots: the layout of composite_bwd.cl (SLOT_G values per intersection, colour from column
  * SLOT_COLOR0), reduced per pair by reduce.cl; the caller zeroes them (a sample no pixel reaches
- * is not written).
+ * is not written). With FUSED_REDUCE (small calls on PoCL's CPU device, one launch: see the end
+ * of the kernel) the last work-item to finish sums them here instead.
  *
  * Build parameters: REAL_DOUBLE, TILE, PIX, CHANNELS, CCHUNK, GEOM_GRAD, COLOR_GRAD, ABSGRAD,
- * BWD_DIVIDE, SLOT_G, SLOT_COLOR0, ALPHA_MIN, ALPHA_MAX, CLS_POCL_CPU.
+ * BWD_DIVIDE, SLOT_G, SLOT_COLOR0, ALPHA_MIN, ALPHA_MAX, CLS_POCL_CPU, FUSED_REDUCE.
  */
+
+#if FUSED_REDUCE && (SLOT_G != REDUCE_G || CCHUNK < CHANNELS)
+#error "FUSED_REDUCE needs the whole slot in one launch (the geometry and every channel)"
+#endif
 
 #define NSEG (TILE * TILE / PIX) /* row segments of PIX pixels in a tile */
 #define SEGS_PER_ROW (TILE / PIX)
@@ -53,7 +58,13 @@ inline int2 index_range(REAL c, REAL bound, REAL base, int n) {
 }
 
 __kernel __attribute__((reqd_work_group_size(1, 1, 1)))
-void composite_bwd_gauss(COMPOSITE_BWD_ARGS)
+void composite_bwd_gauss(COMPOSITE_BWD_ARGS
+#if FUSED_REDUCE
+                         , const int CN,      /* C * N */
+                         __global int *done,  /* [1] items finished: 0 before and after a launch */
+                         REDUCE_OUT_ARGS
+#endif
+                         )
 {
     /* Per-segment state: T (running), B (running), the last contributor's position, v_T T_final,
      * v_out of this launch's channels [channel][segment], and each segment's largest last. */
@@ -277,4 +288,17 @@ void composite_bwd_gauss(COMPOSITE_BWD_ARGS)
         for (int ch = 0; ch < CCHUNK && ch0 + ch < CHANNELS; ++ch) slot[SLOT_COLOR0 + ch0 + ch] = VSUM(acc_c[ch]);
 #endif
     }
+#if FUSED_REDUCE
+    /* The work-item that finishes last sums every pair's slots (reduce_pair: reduce.cl's sums,
+     * the same bits), which saves a small call the reduce's launch and its wake-up of the
+     * device's threads (clsplat.stages.FUSED_REDUCE_SLOTS). The count orders each item's slot
+     * writes before its increment and the last item's reads after its own: the driver builds
+     * this only for PoCL's CPU device, whose atomic_inc is a sequentially consistent
+     * read-modify-write on shared memory (OpenCL 1.2 promises no order between work-groups). */
+    if (atomic_inc(done) == (int)get_num_groups(0) - 1) {
+        for (int cg = 0; cg < CN; ++cg)
+            reduce_pair(cg, rects, isect_offsets, slots, v_means2d, v_conics, v_opac, absgrad, v_feats);
+        *done = 0; /* ready for the next launch */
+    }
+#endif
 }

@@ -9,35 +9,15 @@
  * Build parameters: REAL_DOUBLE, CHANNELS, GEOM_GRAD, COLOR_GRAD, ABSGRAD.
  */
 
-/* G_GEOM: common.h, the slot layout the backward compositors write */
-#define G (G_GEOM + (COLOR_GRAD ? CHANNELS : 0))
-
+/* REDUCE_G, REDUCE_OUT_ARGS, reduce_pair: common.h, shared with composite_bwd_gauss.cl's
+ * FUSED_REDUCE (the same sums, launched apart here for renders with many pairs) */
 __kernel void reduce_slots(const int CN,
                            __global const int *rects,          /* [C, N, 4] */
                            __global const int *isect_offsets,  /* [C * N] */
-                           __global const REAL *slots,         /* [M, G] */
-                           __global REAL *v_means2d,           /* [C, N, 2] */
-                           __global REAL *v_conics,            /* [C, N, 3] */
-                           __global REAL *v_opac,              /* [C, N] */
-                           __global REAL *absgrad,             /* [C, N, 2] */
-                           __global REAL *v_feats)             /* [C, N, CHANNELS] */
+                           __global const REAL *slots,         /* [M, REDUCE_G] */
+                           REDUCE_OUT_ARGS)
 {
     const int cg = get_global_id(0);
     if (cg >= CN) return;
-    /* scalar loads: vload4 is an out-of-line call on PoCL's CPU device (common.h: pair_slot) */
-    const int n = (rects[4 * cg + 2] - rects[4 * cg]) * (rects[4 * cg + 3] - rects[4 * cg + 1]);
-    __global const REAL *s = slots + (size_t)isect_offsets[cg] * G;
-    /* One column at a time, summed in tile order: no private array, so any G fits. */
-    for (int j = 0; j < G; ++j) {
-        REAL acc = 0;
-        for (int i = 0; i < n; ++i) acc += s[(size_t)i * G + j];
-#if GEOM_GRAD
-        if (j < 2) v_means2d[2 * cg + j] = acc;
-        else if (j < 5) v_conics[3 * cg + j - 2] = acc;
-        else if (j == 5) v_opac[cg] = acc;
-        else if (j < G_GEOM) absgrad[2 * cg + j - 6] = acc;
-        else
-#endif
-            v_feats[(size_t)cg * CHANNELS + j - G_GEOM] = acc;
-    }
+    reduce_pair(cg, rects, isect_offsets, slots, v_means2d, v_conics, v_opac, absgrad, v_feats);
 }
