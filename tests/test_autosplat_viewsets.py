@@ -325,3 +325,100 @@ def test_eval_autosplat_scale_for_a_checkpoint_outside_its_run(tmp_path):
                      "--out", str(tmp_path / "preset")]) == 0   # tiny's own scale, 0.25: other images
     other = json.loads((tmp_path / "preset" / "metrics.json").read_text())
     assert not np.isclose(other["all"]["psnr"], m["all"]["psnr"])
+
+
+@pytest.fixture(scope="module")
+def divided_street():
+    """Validation street 2 of the ``divided`` world (issue 33: traffic on the ego's right only),
+    16 frames at AutoSplat's 0.2 s, 44 x 80, no LiDAR."""
+    from clsplat.data.synthetic import SyntheticConfig
+    return generate_sequence(SyntheticConfig(height=44, width=80, num_frames=16, seed=2, dt=0.2, world="divided",
+                                             lidar=False))
+
+
+def test_side_on_camera_films_the_far_side_face_level_and_square(divided_street):
+    """Issue 33's side-on far-side view: one camera on the side of the vehicle's box facing away
+    from the ego, as far from its centre plane as the ego, level with the box, looking square at it
+    through its centre at half its height; what it films of the vehicle is that side (its faces
+    within 0.25 m of the box's side: body, cabin, wheels, on the far sign), not the roof, bonnet, front or rear. Farther
+    than the range from the ego, or standing inside a primitive, there is no such view."""
+    from clsplat.models.autosplat.viewsets import SIDE_ON_HEIGHT, _exact_box, side_on_camera
+    seq = divided_street
+    scene = seq.metadata["scene"]
+    checked = 0
+    for f in (0, 5, 10, 15):
+        for t in sorted(scene.moving_ids):
+            c2w = side_on_camera(seq, f, t)
+            box = _exact_box(seq, f, t)
+            Binv = invert_transform(box.box_to_world)
+            ego = Binv @ seq.frames[f].ego_to_world[:, 3]
+            far_rel = np.linalg.norm((invert_transform(seq.frames[f].ego_to_world) @ np.r_[box.center, 1.0])[:2])
+            if far_rel > 30.0:
+                assert c2w is None
+                continue
+            if c2w is None:        # a parked car or tree where the camera would stand
+                continue
+            L, W, H = box.size
+            local = Binv @ c2w
+            near = np.sign(ego[1])
+            assert np.allclose(local[:3, 3], [0.0, -near * max(abs(ego[1]), W), -H / 2 + SIDE_ON_HEIGHT * H])
+            assert np.allclose(local[:3, 1], [0, 0, -1]) and np.allclose(local[:3, 2], [0, near, 0])  # level, square
+            assert np.isclose(np.linalg.det(c2w[:3, :3]), 1.0)
+            K = seq.camera("CAM_FRONT").K
+            p = _local_y_of_vehicle_pixels(scene, K, c2w, seq.frames[f].timestamp, t, box.box_to_world, 80, 44)
+            assert len(p) > 16
+            assert np.all(-near * p[:, 1] > W / 2 - 0.25)           # the far side face, its cabin and wheels
+            assert side_on_camera(seq, f, t, range_m=0.5) is None
+            checked += 1
+    assert checked >= 4
+
+
+def test_the_side_on_far_side_is_unseen_where_the_mirrored_rig_is_not(divided_street):
+    """From the generator's geometry (AutoSplat's split: every 4th frame from 2 held out, six
+    cameras): the side-on views of the far side are mostly unseen (> 85 % here), more than the
+    mirrored rig's vehicle pixels, which show roofs, bonnets, fronts and rears the rig filmed."""
+    from clsplat.models.autosplat.viewsets import MIN_OBJECT_PIXELS, _far_side_views, _generator_views, unseen_pixels
+    from types import SimpleNamespace
+    seq = divided_street
+    cams = ["CAM_FRONT", "CAM_FRONT_LEFT", "CAM_FRONT_RIGHT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT"]
+    run = _geometry_only_run(seq, cams, [i for i in range(16) if i % 4 != 2])
+    run.preset = SimpleNamespace(dynamic_threshold=0.5)
+    shares = {}
+    for mode in ("mirrored", "side-on"):
+        u = n = 0
+        views = _far_side_views(run, mode)
+        assert views and all(len(idx) == (6 if mode == "mirrored" else 1) for *_, idx in views)
+        for f, t, c2w, idx in views:
+            names = [cams[k] for k in idx]
+            gt = _generator_views(run, f, c2w, names)
+            mask = np.stack([g.instance == t for g in gt])
+            keep = mask.reshape(len(names), -1).sum(1) >= MIN_OBJECT_PIXELS
+            un = unseen_pixels(run, f, c2w, gt, cameras=names, only=mask)[0]
+            u, n = u + int(un[keep].sum()), n + int(mask[keep].sum())
+        shares[mode] = u / n
+    assert shares["side-on"] > 0.85 and shares["side-on"] > shares["mirrored"], shares
+
+
+def test_far_side_view_is_mirrored_in_every_preset_and_a_bad_one_is_named():
+    from clsplat.models.autosplat.viewsets import FAR_SIDE_VIEWS
+    from clsplat.models.common.presets import get_preset
+    for name in ("tiny", "demo", "small", "paper"):
+        assert get_preset("autosplat", name).far_side_view == "mirrored", name
+    assert get_preset("autosplat", "tiny").replace(far_side_view="side-on").far_side_view in FAR_SIDE_VIEWS
+    with pytest.raises(ValueError, match="far_side_view: expected one of"):
+        get_preset("autosplat", "tiny").replace(far_side_view="sideways")
+
+
+@pytest.mark.slow   # trains a tiny run
+def test_train_autosplat_scores_the_side_on_far_side(tmp_path):
+    """``--set far_side_view='side-on'`` (issue 33) scores one side-on camera per vehicle and frame
+    (the first camera's intrinsics), says so in the block, and gives each view's unseen share."""
+    out = tmp_path / "run"
+    assert train(["--data", "synthetic:divided", "--seed", "2", "--preset", "tiny", "--steps", "4", "--frames", "0:5",
+                  "--scale", "0.25", "--cameras", "CAM_FRONT", "CAM_FRONT_RIGHT", "--no-progress",
+                  "--views", "far-side", "--set", "far_side_view='side-on'", "--out", str(out)]) == 0
+    fs = json.loads((out / "metrics.json").read_text())["far_side"]
+    assert fs["view"] == "side-on" and fs["views"] > 0 and np.isfinite(fs["psnr_objects"])
+    per = fs["unseen_share"]["per_view"]
+    assert per and all(v["camera"] == "CAM_FRONT" and v["pixels"] >= 16 for v in per)
+    assert fs["unseen_share"]["overall"] > 0.5

@@ -123,7 +123,8 @@ def analyse(world: str, seed: int, scale: float, cameras: list[str], view_set: s
             B = box.box_to_world
             Binv = np.linalg.inv(B)
             ego_box = Binv[:3, :3] @ E[:3, 3] + Binv[:3, 3]
-            dx = float((np.linalg.inv(E) @ np.append(B[:3, 3], 1.0))[0])
+            rel = np.linalg.inv(E) @ np.append(B[:3, 3], 1.0)
+            dx, dist = float(rel[0]), float(np.linalg.norm(rel[:2]))
             place = "alongside" if abs(dx) <= ALONGSIDE_M else ("ahead" if dx > 0 else "behind")
             spec = next(v for v in scene.vehicles if v.track_id == tr)
             parts = scene.vehicle_parts(spec, t_f)
@@ -181,7 +182,7 @@ def analyse(world: str, seed: int, scale: float, cameras: list[str], view_set: s
                 n, u = len(z), int(un.sum())
                 tot_n, tot_u = tot_n + n, tot_u + u
                 view_deg = _view_angle(T, B)
-                res["views"].append({"frame": f, "track": tr, "camera": cam, "place": place, "dx": round(dx, 2),
+                res["views"].append({"frame": f, "track": tr, "camera": cam, "place": place, "dx": round(dx, 2), "dist": round(dist, 2),
                                      "view_deg": round(view_deg, 1), "pixels": n, "unseen": u})
                 s = ~un
                 res["surface_all"].update(surf.tolist())
@@ -222,11 +223,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cameras", nargs="+", default=list(RIG))
     p.add_argument("--view-set", default="mirrored", choices=("mirrored", "side-on"),
                    help="the far-side set's views (AutoSplatPreset.far_side_view)")
+    p.add_argument("--range", type=float, default=None,
+                   help="side-on: keep vehicles within this many metres of the ego (default SIDE_ON_RANGE_M)")
     p.add_argument("--json", type=Path, default=None, help="write every counter here")
     a = p.parse_args(argv)
     dump = {}
     for seed in a.seed:
         t0 = time.perf_counter()
+        if a.range is not None:
+            from clsplat.models.autosplat import viewsets
+            viewsets.SIDE_ON_RANGE_M = a.range
+            viewsets.side_on_camera.__defaults__ = (a.range,)
         r = analyse(a.world, seed, a.scale, a.cameras, a.view_set)
         n, u = r["pixels"], r["unseen"]
         seen = n - u

@@ -122,8 +122,10 @@ def get(m: dict, path: tuple):
     return m
 
 
-def run(out: Path, row: str, seed: int, preset: str, threads: int | None, data: str = "synthetic:views") -> dict:
-    """Train and score one (row, seed) with the CLI; returns its metrics (cached in its folder)."""
+def run(out: Path, row: str, seed: int, preset: str, threads: int | None, data: str = "synthetic:views",
+        sets: list[str] | None = None) -> dict:
+    """Train and score one (row, seed) with the CLI (``sets``: ``FIELD=VALUE`` given to every run as
+    ``--set``, e.g. issue 33's ``far_side_view='side-on'``); returns its metrics (cached in its folder)."""
     d = out / row.replace(", ", "_").replace(" ", "_") / f"seed{seed}"
     if (d / "metrics.json").is_file():
         return json.loads((d / "metrics.json").read_text())
@@ -131,6 +133,8 @@ def run(out: Path, row: str, seed: int, preset: str, threads: int | None, data: 
     cmd = [str(Path(sys.executable).parent / "clsplat"), "train", "autosplat", "--data", data, "--preset", preset,
            "--seed", str(seed), "--views", *views, "--no-progress",
            "--out", str(d), *ROWS[row]] + ([] if threads is None else ["--threads", str(threads)])
+    for kv in sets or []:
+        cmd += ["--set", kv]
     if (d / "checkpoint.pt").is_file() or (d / ".staging").exists():
         cmd.append("--resume")
     t0 = time.perf_counter()
@@ -261,13 +265,16 @@ def main() -> None:
                          "switch off, per seed, with every view set's unseen_share")
     ap.add_argument("--baseline", default="full", choices=list(ROWS),
                     help="the row the paired differences are taken from (default: the full model)")
+    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="FIELD=VALUE",
+                    help="a preset change given to every run (repeatable; use its own --out), e.g. "
+                         "far_side_view='side-on' (issue 33)")
     a = ap.parse_args()
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     if not a.table_only:
         for seed in a.seeds:
             for row in a.rows:
-                run(out, row, seed, a.preset, a.threads, a.data)
+                run(out, row, seed, a.preset, a.threads, a.data, a.sets)
                 table(out, a.seeds)
     print(table(out, a.seeds, a.baseline))
     if a.issue33:

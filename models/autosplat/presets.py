@@ -78,6 +78,11 @@ class AutoSplatPreset(Preset):
     # every optimiser step), only with the flatness switch on: part of the road constraint, so
     # --no-flatness and plain 3DGS do not get it. 0: no floor, as before
     road_opacity_floor: float = 0.0
+    # issue 33: the far-side view set's views (:data:`.viewsets.FAR_SIDE_VIEWS`): "mirrored" (issue
+    # 19: the rig mirrored across each moving vehicle, every camera) or "side-on" (one level camera
+    # per vehicle and frame on the side facing away from the ego, square to it, at half the box's
+    # height: its far side face, not its roof, bonnet, front or rear). Scoring only; training ignores it
+    far_side_view: str = "mirrored"
     object_points: int = 400
     # issue 36: a foreground budget that follows the scene (:func:`.objects.object_budget`), from the
     # tracked boxes' pixels over the training views (boxes, not instance masks: what a user gives).
@@ -193,6 +198,9 @@ class AutoSplatPreset(Preset):
         v = self.road_opacity_floor
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < 1:
             raise bad("road_opacity_floor", "expected an opacity in [0, 1)")
+        from .viewsets import FAR_SIDE_VIEWS
+        if self.far_side_view not in FAR_SIDE_VIEWS:
+            raise bad("far_side_view", f"expected one of {FAR_SIDE_VIEWS}")
         if not 0 < self.phase1_budget_share <= 1:
             raise bad("phase1_budget_share", "expected a share in (0, 1]")
         if self.rasterize_mode not in RASTERIZE_MODES:
