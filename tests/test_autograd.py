@@ -115,6 +115,40 @@ def test_backward_is_bitwise_deterministic(make_scene):
         assert torch.equal(a, b), name
 
 
+@pytest.mark.parametrize("dtype,kw", [
+    (torch.float32, dict(absgrad=True)),
+    (torch.float32, dict(packed=False, render_mode="RGB+D", rasterize_mode="antialiased")),
+    (F64, dict(render_mode="RGB+ED", bwd_divide=True)),
+])
+def test_small_call_paths_give_the_general_paths_bits(make_scene, monkeypatch, dtype, kw):
+    """A small call's tile lists launched behind the projection (stages.early_tile_lists) and
+    the per-Gaussian backward's own sum of the slots (FUSED_REDUCE) give the images, gradients,
+    absgrad and tile lists of the general paths bit for bit; with both off, the launches are the
+    general ones (order_small after a wait, reduce_slots)."""
+    from clsplat import stages
+    rt = clsplat.get_runtime()
+    scene = make_scene(seed=5, N=80, C=2, width=48, height=40, dtype=dtype)
+
+    def run():
+        events = []
+        g, meta = _grads(clsplat.rasterization, scene, events=events, **kw)
+        names = [name for name, _ in events]
+        absg = meta["means2d"].absgrad if kw.get("absgrad") else None
+        return g, meta, absg, names
+
+    g1, m1, a1, names1 = run()
+    monkeypatch.setattr(stages, "EARLY_TILES_MAX", 0)
+    monkeypatch.setattr(stages, "FUSED_REDUCE_VALUES", 0)
+    g2, m2, a2, names2 = run()
+    for name, a, b in zip(NAMES, g1, g2):
+        assert torch.equal(a, b), name
+    assert (a1 is None and a2 is None) or torch.equal(a1, a2)
+    for k in ("isect_offsets", "flatten_ids", "isect_ids"):
+        assert torch.equal(m1[k], m2[k]), k
+    if rt.pools and stages.backward_gaussian(rt, clsplat.RenderConfig()):
+        assert "reduce" not in names1 and "reduce" in names2
+
+
 def test_means2d_retain_grad_and_absgrad(make_scene):
     scene = make_scene(seed=2, N=60, C=2, width=48, height=40)
     xs = _inputs(scene)
