@@ -78,9 +78,11 @@ class DrivingForwardCommands(Family):
                        help="steps between points of the validation learning curve (default 25; 0: none)")
         p.add_argument("--val-scenes", type=positive_int, default=4,
                        help="validation windows behind each point of the learning curve (default 4)")
-        p.add_argument("--pose", choices=("network", "dataset"), default=None,
+        p.add_argument("--pose", choices=("network", "dataset", "geometric"), default=None,
                        help="ego motion of the temporal warps: the pose network (the paper; default: the "
-                            "preset's) or the data's ego poses (the pose network is not trained)")
+                            "preset's), the data's ego poses, or the motion measured from each window's images "
+                            "through the calibration's ground plane (geometric_size: --set "
+                            "'geometric_size=(176, 320)'); the pose network is not trained but with 'network'")
 
     def train_preset(self, args, preset):
         if args.val_every < 0:

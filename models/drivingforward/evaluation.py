@@ -13,7 +13,9 @@ Pose (beside the depth in ``all``): the pose network's camera-0 motion from fram
 the data's (``E_0^-1 M_{t->t+1} E_0``), as the mean over windows of the translation error in metres
 and in % of the true translation, and of the rotation error in degrees (``pose_t_err_m``,
 ``pose_t_err_pct``, ``pose_r_err_deg``; also the mean predicted and true translation norms). A
-model trained with ``pose_source`` "dataset" has no trained pose network, and reports none.
+model trained with ``pose_source`` "dataset" has no trained pose network, and reports none; one
+trained with "geometric" reports the motion its fit measures from the held-out window's images
+(:mod:`~.geometric_pose`) in the same keys.
 
 The oracle-depth baseline of ``make demo`` (:func:`clsplat.pixel_recon.lift_pixels`: every non-sky
 pixel of the input frame lifted at its true depth, one pixel's footprint, opacity 0.95, rendered
@@ -56,6 +58,8 @@ from clsplat.data.synthetic import SPEED_BINS, speed_bin
 from ..common.metrics import depth_metrics, pose_errors, psnr
 from ..common.report import camera_blocks, image_scores, mean_scores, metrics_report, write_metrics
 from .data import camera0_motion, ego_speed, gt_ego_motion, load_triplet
+from .geometric_pose import geometric_size as _geometric_size
+from .geometric_pose import load_window_motions
 
 FAMILY = "drivingforward"
 
@@ -229,7 +233,7 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
     poses: list[dict] = []
     truths: list[Tensor] = []                                  # camera 0's true motion t -> t+1 per window
     speeds: list[float] = []
-    learned_pose = getattr(p, "pose_source", "network") == "network"
+    pose_source = getattr(p, "pose_source", "network")
     first = None
     iterator = range(num_scenes)
     if progress:
@@ -256,8 +260,12 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
         T_true = camera0_motion(s)
         truths.append(T_true)
         speeds.append(ego_speed(s))
-        if learned_pose:
+        if pose_source == "network":
             poses.append(pose_errors(model.pose_net(s["images"][1], s["images"][2], Ks, E), T_true))
+        elif pose_source == "geometric":
+            M_next = load_window_motions(source, i, data_preset, split, cameras, s)[1].double()
+            E0 = E[0].double()
+            poses.append(pose_errors(torch.linalg.inv(E0) @ M_next @ E0, T_true.double()))
         renders.append(r.clamp(0, 1))
         gts.append(s["images"][ti])
         gt_depth = s["depths"][1] if "depths" in s else s.get("lidar_depth")
@@ -320,8 +328,12 @@ def evaluate_model(model, source, num_scenes: int = 4, cameras: Sequence[str] | 
                 "speed_bins": "held-out windows by the ego's true speed t -> t+1: " + ", ".join(
                     f"{n} [{lo:g}, {hi:g}) m/s" for n, (lo, hi) in SPEED_BINS.items()),
                 "pose_source": getattr(p, "pose_source", "network"),
-                "pose": ("pose network, camera 0, t -> t+1, against the data's ego motion; mean over windows"
-                         if poses else "not evaluated (pose_source 'dataset': the pose network is not trained)")}
+                "pose": ({"network": "pose network, camera 0, t -> t+1, against the data's ego motion; mean over "
+                                     "windows",
+                          "geometric": "the images' own motion (ground-plane fit at "
+                                       f"{'x'.join(map(str, _geometric_size(p)))}), camera 0, t -> t+1, against the "
+                                       "data's ego motion; mean over windows"}.get(pose_source)
+                         or "not evaluated (pose_source 'dataset': the pose network is not trained)")}
     out = metrics_report(FAMILY, p.name, step, protocol, all_, per_camera, speed_bins=speed_bins)
     if out_dir is not None:
         od = Path(out_dir)

@@ -209,10 +209,11 @@ class DrivingForward(nn.Module):
             Ks ``[V, 3, 3]``; cam_to_ego ``[V, 4, 4]``; noise ``[V, 2, H, W]`` automask tie-break;
             lpips: LPIPS module for the render loss (None: the term is off and not reported).
             step: the training step (for the preset's warm-ups; None: after them).
-            ego_motion_gt: the data's ego motion ``[M_{t->t-1}, M_{t->t+1}]`` (each ``[4, 4]``, ego
-                coordinates at t to ego at the other frame); required when the preset's
-                ``pose_source`` is "dataset", where it replaces the pose network (which then gets
-                no gradient), else unused.
+            ego_motion_gt: the given ego motion ``[M_{t->t-1}, M_{t->t+1}]`` (each ``[4, 4]``, ego
+                coordinates at t to ego at the other frame): the data's, or the images' own
+                (:mod:`~.geometric_pose`); required when the preset's ``pose_source`` is "dataset"
+                or "geometric", where it replaces the pose network (which then gets no gradient),
+                else unused.
         Returns:
             ``loss`` (weighted total) and the terms ``reproj, smooth, spatial, spatio_temporal, render,
             mse`` (``spatial`` and ``spatio_temporal`` only where their weight is above 0; ``lpips``
@@ -224,11 +225,12 @@ class DrivingForward(nn.Module):
             self.check_views(raw[f], Ks, cam_to_ego, prefix=f"frame {f}: ")
         E = cam_to_ego
         sign_test = p.pose_sign_test is not None and p.pose_source == "network" and step is not None
-        if p.pose_source == "dataset":
-            # given poses: the data's ego motion drives every warp; the pose network is not run
+        if p.pose_source in ("dataset", "geometric"):
+            # given poses (the data's, or measured from the images): they drive every warp; the
+            # pose network is not run
             if ego_motion_gt is None or len(ego_motion_gt) != 2 or any(
                     not isinstance(m, Tensor) or m.shape != (4, 4) for m in ego_motion_gt):
-                raise ValueError("ego_motion_gt: preset pose_source 'dataset' needs the data's ego motion "
+                raise ValueError(f"ego_motion_gt: preset pose_source {p.pose_source!r} needs the given ego motion "
                                  "[M_{t->t-1}, M_{t->t+1}] (two [4, 4] tensors)")
             M = [m.to(Ks.dtype) for m in ego_motion_gt]
             T_next = torch.linalg.inv(E[0]) @ M[1] @ E[0]

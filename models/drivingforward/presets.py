@@ -150,8 +150,17 @@ class DFPreset(Preset):
         jitter: colour jitter (brightness, contrast, saturation, hue) on network inputs only.
         scenes_dt: seconds between frames t-1, t, t+1 of a synthetic sample.
         pose_source: "network" (the paper: the pose network's motion drives the temporal and
-            spatio-temporal warps and the SF render) or "dataset" (the data's ego motion does, and
-            the pose network is not trained; ``--pose dataset``).
+            spatio-temporal warps and the SF render), "dataset" (the data's ego motion does, and
+            the pose network is not trained; ``--pose dataset``) or "geometric" (the motion
+            measured from each window's own images through the calibration's ground plane,
+            :mod:`~.geometric_pose`; no learning, no ground truth; the pose network is not trained;
+            ``--pose geometric``. Issue 32: a departure from the paper, off in every preset).
+        geometric_size: ``(H, W)`` at which "geometric" reads a window's frames (a synthetic
+            street is rendered there as well); None: the preset's own size.
+        geometric_search: forward translations the "geometric" fit tries before Gauss-Newton
+            (issue 32, chosen on validation windows: 301, 0.02 m steps at 0.1 s).
+        geometric_max_speed: m/s; the search spans +- this times the frame interval (a generic
+            bound on a car's motion, 30 m/s = 108 km/h).
         pose_translation_init: initial camera-0 translation (metres, camera frame, earlier ->
             later) of the pose network, set through the decoder's output bias; None: the paper's
             zero-mean initialisation.
@@ -232,6 +241,9 @@ class DFPreset(Preset):
     jitter: tuple[float, float, float, float] = (0.2, 0.2, 0.2, 0.05)
     scenes_dt: float = 0.1
     pose_source: str = "network"
+    geometric_size: tuple[int, int] | None = None
+    geometric_search: int = 301
+    geometric_max_speed: float = 30.0
     pose_translation_init: tuple[float, float, float] | None = None
     detach_render_pose: bool = False
     supersample: int = 1
@@ -293,8 +305,21 @@ class DFPreset(Preset):
             raise ValueError(f"preset {self.name}: automask_margin must be >= 0, got {self.automask_margin!r}")
         if self.lr_warmup < 0:
             raise ValueError(f"preset {self.name}: lr_warmup must be >= 0, got {self.lr_warmup}")
-        if self.pose_source not in ("network", "dataset"):
-            raise ValueError(f"preset {self.name}: pose_source must be 'network' or 'dataset', got {self.pose_source!r}")
+        if self.pose_source not in ("network", "dataset", "geometric"):
+            raise ValueError(f"preset {self.name}: pose_source must be 'network', 'dataset' or 'geometric', "
+                             f"got {self.pose_source!r}")
+        g = self.geometric_size
+        if g is not None and (not isinstance(g, (tuple, list)) or len(g) != 2 or any(
+                isinstance(v, bool) or not isinstance(v, int) or v < 8 for v in g)):
+            raise ValueError(f"preset {self.name}: geometric_size must be None or (H, W), two ints >= 8, got {g!r}")
+        if isinstance(g, list):                          # a checkpoint's JSON record gives a list
+            object.__setattr__(self, "geometric_size", tuple(g))
+        n = self.geometric_search
+        if isinstance(n, bool) or not isinstance(n, int) or n < 2:
+            raise ValueError(f"preset {self.name}: geometric_search must be an int >= 2, got {n!r}")
+        v = self.geometric_max_speed
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < float("inf"):
+            raise ValueError(f"preset {self.name}: geometric_max_speed must be a finite number > 0 (m/s), got {v!r}")
         t = self.pose_translation_init
         if t is not None and (len(t) != 3 or not all(abs(float(v)) <= self.max_translation for v in t)):
             raise ValueError(f"preset {self.name}: pose_translation_init must be None or 3 values within "

@@ -81,6 +81,9 @@ def make_sample_loss(source, preset, seed: int, cameras=None, lpips=None):
         if preset.pose_source == "dataset":
             M = gt_ego_motion(s)
             gt = [M[0], M[2]]
+        elif preset.pose_source == "geometric":
+            from .geometric_pose import load_window_motions
+            gt = load_window_motions(source, index, preset, "train", cameras, s)
         return model.training_losses(s["images"], net, s["Ks"], s["cam_to_ego"], noise, lpips, step, gt)
 
     return sample_loss

@@ -1,0 +1,75 @@
+"""The pose source "geometric": a window's rig motion measured from its own images (issue 32).
+
+No learning and no ground truth. :func:`~.ground_motion.fit_ground_motion_direct` aligns frame t
+with frames t-1 and t+1 of every camera at once, on the pixels where the calibration's ground
+plane (intrinsics, extrinsics, the ego frame standing on the road: the named prior of
+:func:`~.depth.ground_prior_depth`) lies within the preset's ``ground_prior_cap`` (20 m without one).
+It reads the frames at ``geometric_size``: at ``small``'s 64x112 a road pixel 10 m ahead covers
+~0.8 m and the road's texture carries no motion, while at 176x320 the fit measured validation
+windows to a median of 1-3 % per moving speed bin (bench/notes/drivingforward_varied_world.md, "A
+geometric pose from the road's flow"). Its motions replace the pose network's in the temporal
+warps and the render, as the data's own do under "dataset"; the pose network is not trained.
+
+The fit's forward-translation search spans ``+- geometric_max_speed x`` the frame interval (the
+sample's timestamps) in ``geometric_search`` steps: a generic bound on a car's motion, not the data's.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Sequence
+
+import torch
+from torch import Tensor
+
+from .data import load_triplet
+from .ground_motion import fit_ground_motion_direct
+
+__all__ = ["GROUND_CAP_DEFAULT", "geometric_size", "window_motions", "load_window_motions"]
+
+#: metres of ground the fit reads when the preset has no ground_prior_cap (the probe's setting)
+GROUND_CAP_DEFAULT = 20.0
+
+
+def geometric_size(preset) -> tuple[int, int]:
+    """``(H, W)`` of the images the fit reads: the preset's ``geometric_size``, else its own size."""
+    return tuple(preset.geometric_size) if preset.geometric_size is not None else (preset.height, preset.width)
+
+
+def window_motions(sample: dict, preset) -> list[Tensor]:
+    """The rig's motion from frame t to t-1 and to t+1 of a triplet, from its images.
+
+    Args:
+        sample: :func:`~.data.load_triplet`'s dict (``images [3, V, 3, H, W]``, ``Ks``,
+            ``cam_to_ego``, ``timestamps [3]``), at any size.
+        preset: gives ``ground_prior_cap``, ``geometric_search``, ``geometric_max_speed``.
+    Returns:
+        ``[M_{t->t-1}, M_{t->t+1}]``, each ``[4, 4]`` in the images' dtype: ego coordinates at t to
+        ego coordinates at the other frame (:func:`~.data.gt_ego_motion`'s convention).
+    """
+    images, ts = sample["images"], sample["timestamps"].double()
+    cap = preset.ground_prior_cap if preset.ground_prior_cap is not None else GROUND_CAP_DEFAULT
+    E = sample["cam_to_ego"].double()
+    out = []
+    for other in (0, 2):
+        dt = abs(float(ts[other] - ts[1]))
+        if not dt > 0:
+            raise ValueError(f"timestamps: frames t-1, t, t+1 must have distinct times, got {ts.tolist()}")
+        bound = preset.geometric_max_speed * dt
+        M = fit_ground_motion_direct(images[1], images[other], sample["Ks"], E, cap,
+                                     search=(-bound, bound, preset.geometric_search))
+        out.append(M.to(images.dtype))
+    return out
+
+
+def load_window_motions(source, index: int, preset, split: str = "train", cameras: Sequence[str] | None = None,
+                        sample: dict | None = None) -> list[Tensor]:
+    """:func:`window_motions` of window ``index``, its frames read at :func:`geometric_size`.
+
+    ``sample``: the window already loaded at the preset's size, reused when that is the fit's size
+    (else the window is read again at the fit's size: a synthetic street is rendered there).
+    """
+    size = geometric_size(preset)
+    if sample is None or size != (preset.height, preset.width):
+        sample = load_triplet(source, index, dataclasses.replace(preset, height=size[0], width=size[1]),
+                              split, cameras)
+    return window_motions(sample, preset)

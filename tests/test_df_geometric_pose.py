@@ -1,0 +1,99 @@
+"""models/drivingforward/geometric_pose.py: the pose source "geometric" measures a window's rig
+motion from its own images (moving and standing windows of the varied world, both directions),
+drives the warps without training the pose network, travels through ``--pose geometric`` into the
+checkpoint and ``metrics.json`` (the loader reading the frames again at the fit's size; its pose
+scored against the data's), and refuses bad fields."""
+import dataclasses
+import json
+
+import pytest
+import torch
+
+from clsplat.models.common.data import parse_data
+from clsplat.models.common.presets import get_preset
+from clsplat.models.drivingforward.data import gt_ego_motion, load_triplet
+from clsplat.models.drivingforward.geometric_pose import geometric_size, window_motions
+from clsplat.models.drivingforward.model import DrivingForward
+
+# (128, 224): the road's texture resolves the motion (at tiny's 32x56 it does not), in ~3 CPU s a fit
+SIZE = (128, 224)
+
+
+@pytest.fixture(scope="module")
+def preset():
+    return get_preset("drivingforward", "tiny").replace(pose_source="geometric", geometric_size=SIZE)
+
+
+@pytest.fixture(scope="module")
+def varied():
+    return parse_data("synthetic", default_world="varied")
+
+
+@pytest.fixture(scope="module")
+def sample():
+    return load_triplet(parse_data("synthetic"), 1, get_preset("drivingforward", "tiny"))
+
+
+def _window(source, index, preset):
+    return load_triplet(source, index, dataclasses.replace(preset, height=SIZE[0], width=SIZE[1]), "train")
+
+
+@pytest.mark.slow
+def test_the_fit_measures_a_moving_window_both_ways(preset, varied):
+    s = _window(varied, 4, preset)                       # a training street at 5.5 m/s
+    M = window_motions(s, preset)
+    gt = gt_ego_motion(s)
+    for got, true in ((M[0], gt[0]), (M[1], gt[2])):
+        t, t_true = got[:3, 3].double(), true[:3, 3].double()
+        assert float(t_true.norm()) > 0.4
+        assert float((t - t_true).norm()) < 0.05 * float(t_true.norm())
+        assert float(torch.dot(t, t_true)) > 0           # the direction, not only the size
+
+
+@pytest.mark.slow
+def test_a_standing_window_reads_as_standing(preset, varied):
+    s = _window(varied, 0, preset)                       # a training street standing at t
+    assert float(gt_ego_motion(s)[2][:3, 3].norm()) < 1e-6
+    assert all(float(m[:3, 3].norm()) < 0.01 for m in window_motions(s, preset))
+
+
+def test_geometric_motions_drive_the_warps_and_leave_the_pose_network_untrained(sample):
+    torch.manual_seed(0)
+    m = DrivingForward(get_preset("drivingforward", "tiny").replace(pose_source="geometric"))
+    M = gt_ego_motion(sample)
+    terms = m.training_losses(sample["images"], sample["images"], sample["Ks"], sample["cam_to_ego"],
+                              ego_motion_gt=[M[0], M[2]])
+    m.zero_grad()
+    terms["loss"].backward()
+    assert all(q.grad is None for q in m.pose_net.parameters())
+    assert any(q.grad is not None for q in m.depth_net.parameters())
+    with pytest.raises(ValueError, match="ego_motion_gt: preset pose_source 'geometric'"):
+        m.training_losses(sample["images"], sample["images"], sample["Ks"], sample["cam_to_ego"])
+
+
+def test_the_fits_size_defaults_to_the_presets_and_bad_fields_are_refused():
+    tiny = get_preset("drivingforward", "tiny")
+    assert geometric_size(tiny) == (tiny.height, tiny.width)
+    assert tiny.pose_source == "network" and get_preset("drivingforward", "small").pose_source == "network"
+    assert tiny.replace(geometric_size=[176, 320]).geometric_size == (176, 320)   # a checkpoint's list
+    for field, value in (("geometric_size", (176,)), ("geometric_size", (4, 320)), ("geometric_size", (176.0, 320)),
+                         ("geometric_search", 1), ("geometric_search", True), ("geometric_max_speed", 0.0),
+                         ("geometric_max_speed", float("inf")), ("pose_source", "lidar")):
+        with pytest.raises(ValueError, match=field):
+            tiny.replace(**{field: value})
+
+
+@pytest.mark.slow
+def test_pose_geometric_trains_and_reports_the_images_motion(tmp_path):
+    from clsplat.models.drivingforward.cli import train
+    out = tmp_path / "geo"
+    assert train(["--preset", "tiny", "--steps", "1", "--out", str(out), "--no-progress", "--threads", "1",
+                  "--eval-scenes", "1", "--val-every", "0", "--pose", "geometric",
+                  "--set", f"geometric_size={SIZE}"]) == 0
+    ck = torch.load(out / "checkpoint.pt", weights_only=True)
+    assert ck["preset"]["pose_source"] == "geometric" and list(ck["preset"]["geometric_size"]) == list(SIZE)
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["protocol"]["pose_source"] == "geometric" and "ground-plane fit at 128x224" in m["protocol"]["pose"]
+    a = m["all"]
+    assert {"pose_t_err_m", "pose_t_err_pct", "pose_t_pred_m", "pose_t_true_m"} <= set(a)
+    assert abs(a["pose_t_pred_m"] - a["pose_t_true_m"]) <= a["pose_t_err_m"] + 1e-9
