@@ -6,7 +6,8 @@ Three Functions, as in gsplat, so that ``meta["means2d"]`` is a real graph node 
 * :class:`ProjectFn`: (means, quats, scales, opacities, viewmats) -> means2d, conics, depths,
   compositing opacities (+ non-differentiable radii and tile rectangles);
 * :class:`ShFn`: (SH coefficients, means) -> colours [C,N,3];
-* :class:`RasterizeFn`: (means2d, conics, opacities, features) -> composited features, T.
+* :class:`RasterizeFn`: (means2d, conics, opacities, features) -> composited features, T
+  (features [C,N,CH], or [N,CH] for one camera: the same memory).
 
 Each forward keeps the device buffers its backward needs rather than recomputing them, and
 each backward is specialised on ``ctx.needs_input_grad``: gradients nobody asked for are
@@ -212,6 +213,7 @@ class RasterizeFn(torch.autograd.Function):
         if want_grad:
             ctx.save_for_backward(out_t, T_t)
         ctx.means2d = means2d  # receives .absgrad, as gsplat's densification expects
+        ctx.feats_shape = feats.shape  # ([N, CH] for one camera: its gradient is given that shape)
         s.isect = (off_t, keys_t)  # read back: not shared memory on GPUs
         return out_t, T_t
 
@@ -242,5 +244,6 @@ class RasterizeFn(torch.autograd.Function):
             else:
                 ctx.means2d.absgrad = g["absgrad"]
         return (g["v_means2d"] if need[0] else None, g["v_conics"] if need[1] else None,
-                g["v_opacities"] if need[2] else None, g["v_feats"] if color else None,
+                g["v_opacities"] if need[2] else None,
+                g["v_feats"].view(ctx.feats_shape) if color else None,
                 None, None, None, None)

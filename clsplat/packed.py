@@ -95,20 +95,21 @@ class PackedMeans2d:
         self.shortcut_taken = False                  # the last backward returned the render's own
 
     def pack(self, full: torch.Tensor) -> torch.Tensor:
-        """full [B*C*N, 2] -> packed [nnz, 2] (differentiable)."""
+        """full [..., 2] (B*C*N pairs, e.g. [C, N, 2] or [B*C*N, 2]) -> packed [nnz, 2]
+        (differentiable; its gradient comes back in ``full``'s shape, with no view node)."""
         return _Pack.apply(full, self)
 
     def unpack(self, packed: torch.Tensor, full: torch.Tensor) -> torch.Tensor:
-        """packed [nnz, 2] and the values it came from, full [B*C*N, 2] -> [B*C*N, 2] equal to
-        full, whose gradient goes to ``packed``."""
+        """packed [nnz, 2] and the values it came from, full [..., 2] -> a tensor of ``full``'s
+        shape equal to full, whose gradient goes to ``packed``."""
         return _Unpack.apply(packed, full.detach(), self)
 
 
 class _Pack(torch.autograd.Function):
     @staticmethod
     def forward(ctx, full, route):
-        ctx.route = route
-        return full.index_select(0, route.pairs.flat)
+        ctx.route, ctx.shape = route, full.shape
+        return full.reshape(-1, 2).index_select(0, route.pairs.flat)
 
     @staticmethod
     def backward(ctx, g):
@@ -116,7 +117,7 @@ class _Pack(torch.autograd.Function):
         route.shortcut_taken = g is route.sent
         out = route.render_grad if route.shortcut_taken else route.pairs.scatter(g.contiguous())
         route.sent = route.render_grad = None
-        return out, None
+        return out.reshape(ctx.shape), None
 
 
 class _Unpack(torch.autograd.Function):
@@ -129,7 +130,7 @@ class _Unpack(torch.autograd.Function):
     def backward(ctx, g):
         route = ctx.route
         route.render_grad = g.contiguous()
-        route.sent = route.render_grad.index_select(0, route.pairs.flat)
+        route.sent = route.render_grad.reshape(-1, 2).index_select(0, route.pairs.flat)
         return route.sent, None, None
 
 

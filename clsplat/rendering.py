@@ -266,21 +266,24 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
     # Project every batch element, then gather the per-pair tensors gsplat exposes.
     proj = [ProjectFn.apply(cast(e["means"]), cast(e["quats"]), cast(e["scales"]), cast(e["opacities"]),
                             cast(e["viewmats"]), cast(e["Ks"]).detach(), st0) for e in per]
-    means2d, conics, depths, opac, radii, rects, extents = (      # [B, C, N, ...]
-        proj[0][i].unsqueeze(0) if B == 1 else torch.stack([p[i] for p in proj]) for i in range(7))
+    # [B, C, N, ...]; for one batch element the projection's own [C, N, ...] outputs, which
+    # batched() views as [1, C, N, ...] only where that shape is needed (no view nodes on the
+    # loss path, none made per call for meta entries nobody reads)
+    means2d, conics, depths, opac, radii, rects, extents = (
+        proj[0] if B == 1 else [torch.stack([p[i] for p in proj]) for i in range(7)])
+    batched = (lambda x: x.unsqueeze(0)) if B == 1 else (lambda x: x)  # noqa: E731
     if sparse is not None:
-        sparse.set_visible((radii[0] > 0).all(-1).any(0))
-    pairs = pack_pairs(radii) if packed else None
-    m2d_flat = means2d.reshape(-1, 2) if packed else None
+        sparse.set_visible((batched(radii)[0] > 0).all(-1).any(0))
+    pairs = pack_pairs(batched(radii)) if packed else None
     route = PackedMeans2d(pairs) if packed else None
     # (without batch dimensions the projection's own output: no view nodes on the loss path)
-    m2d_meta = (route.pack(m2d_flat) if packed else
-                proj[0][0] if not batch else means2d.reshape(batch + (C, N, 2)))
+    m2d_meta = (route.pack(means2d) if packed else
+                proj[0][0] if not batch else batched(means2d).reshape(batch + (C, N, 2)))
     m2d_user = m2d_meta
     if out_device.type != "cpu" or out_dtype != dt:  # the user's node must lie on the loss path
         m2d_user = m2d_meta.to(device=out_device, dtype=out_dtype)
         m2d_meta = m2d_user.to(device="cpu", dtype=dt)
-    m2d_used = route.unpack(m2d_meta, m2d_flat) if packed else m2d_meta
+    m2d_used = route.unpack(m2d_meta, means2d) if packed else m2d_meta
     # per batch element without select nodes (their backward zero-fills all of [B, C, N, 2])
     m2d_used = ([m2d_used if m2d_used.shape == (C, N, 2) else m2d_used.reshape(C, N, 2)] if B == 1
                 else m2d_used.reshape(B, C, N, 2).unbind(0))
@@ -307,7 +310,10 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
                     parts.append(ShFn.apply(cast(c), cast(per[b]["means"]), vm_b, radii_b, st))
             else:
                 c = cast(c)
-                parts.append(c.expand(C, N, D) if c.dim() == 2 else c)
+                if c.dim() == 2:  # shared by the cameras; for one, [N, D] is [1, N, D]'s memory
+                    # and the compositor takes it as it is (no expand, whose backward sums)
+                    c = c if C == 1 and depth_col < 0 else c.unsqueeze(0) if C == 1 else c.expand(C, N, D)
+                parts.append(c)
         if depth_col >= 0:
             parts.append(depths_b[..., None])
         feats = parts[0] if len(parts) == 1 else torch.cat(parts, -1)
@@ -336,11 +342,11 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
     # first read (LazyMeta), in the grad mode of this call: most training steps read few.
     grad_mode = torch.is_grad_enabled()
     tw, th = -(-width // tile_size), -(-height // tile_size)
-    opac_pairs = opac.reshape(B, C, N)
 
     def isect_entries() -> dict:
         with torch.set_grad_enabled(grad_mode):
-            m = intersection_meta(isects, rects, depths, C, N, width, height, tile_size, pairs)
+            m = intersection_meta(isects, batched(rects), batched(depths), C, N, width, height,
+                                  tile_size, pairs)
         tpg = m["tiles_per_gauss"] if packed else m["tiles_per_gauss"].reshape(batch + (C, N))
         return {"tiles_per_gauss": tpg.to(out_device), "isect_ids": m["isect_ids"].to(out_device),
                 "flatten_ids": m["flatten_ids"].to(out_device),
@@ -355,7 +361,7 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
             sel = pairs.flat
             with torch.set_grad_enabled(grad_mode):
                 vals = {"radii": radii.reshape(-1, 2)[sel], "depths": depths.reshape(-1)[sel],
-                        "conics": conics.reshape(-1, 3)[sel], "opacities": opac_pairs.reshape(-1)[sel]}
+                        "conics": conics.reshape(-1, 3)[sel], "opacities": opac.reshape(-1)[sel]}
                 return {k: _to_user(v, out_device, out_dtype) for k, v in vals.items()}
 
         def id_entries() -> dict:
@@ -365,11 +371,12 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
         pending.update(dict.fromkeys(("radii", "depths", "conics", "opacities"), pair_entries))
         pending.update(dict.fromkeys(("batch_ids", "camera_ids", "gaussian_ids"), id_entries))
     else:
-        unbatch = lambda x: x.reshape(batch + tuple(x.shape[1:]))  # noqa: E731
+        # [B, C, N, ...] -> [..., C, N, ...] (B = 1 without batch dimensions: as they are)
+        unbatch = lambda x: x if not batch else batched(x).reshape(batch + tuple(batched(x).shape[1:]))  # noqa: E731
         meta.update(batch_ids=None, camera_ids=None, gaussian_ids=None)
         meta.update({k: _to_user(unbatch(v), out_device, out_dtype) for k, v in
                      (("radii", radii), ("depths", depths), ("conics", conics),
-                      ("opacities", opac_pairs))})
+                      ("opacities", opac))})
     meta = LazyMeta(meta, pending)
     shape = batch + (C, height, width)
     if batch:
