@@ -102,6 +102,9 @@ class ProjectFn(torch.autograd.Function):
                 s.early = {}
             s.early[p.rects.tensor.data_ptr()] = early
         ctx.mark_non_differentiable(*outs[4:])
+        # gradients of unused outputs (depths in most calls) come as None, not zeros torch made:
+        # the backward stages None as a kept zero array (Runtime.staged)
+        ctx.set_materialize_grads(False)
         ctx.save_for_backward(means, quats, scales, opacities, viewmats, Ks, outs[4])
         ctx.s = s
         # The inputs' device arrays, for the backward (autograd refuses a backward after an
@@ -197,10 +200,11 @@ class RasterizeFn(torch.autograd.Function):
         early = s.early.pop(rects.data_ptr(), None) if s.early else None
         if early is not None and (early.rects is not a["rects"] or early.depths is not d):
             early = None  # (not this projection's: the lists are built here)
+        pair_tiles = [] if want_grad else None  # (for the backward's slot offsets)
         offsets, keys = stages.tile_lists(rt, cfg, a["rects"], d, s.width,
                                           s.height, s.tile_size, events=s.events,
                                           per_intersection=per_isect, reserve=s.pixel_reserve,
-                                          early=early)
+                                          early=early, pair_tiles=pair_tiles)
         out, T, last = stages.composite(rt, cfg, a["means2d"], a["conics"], a["opacities"],
                                         a["extents"], a["feats"], offsets, keys, s.width, s.height,
                                         s.tile_size, save_last=want_grad, events=s.events)
@@ -209,7 +213,8 @@ class RasterizeFn(torch.autograd.Function):
         ctx.s = s
         # The outputs are saved tensors, never held in ctx.fwd: out.tensor is out_t, and
         # output -> grad_fn -> ctx -> array -> output would be a cycle the GC cannot free.
-        ctx.fwd = dict(a, offsets=offsets, keys=keys, last=last) if want_grad else None
+        ctx.fwd = dict(a, offsets=offsets, keys=keys, last=last,
+                       pair_tiles=pair_tiles[0]) if want_grad else None
         if want_grad:
             ctx.save_for_backward(out_t, T_t)
         ctx.means2d = means2d  # receives .absgrad, as gsplat's densification expects

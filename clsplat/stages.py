@@ -137,7 +137,8 @@ def _scan_exclusive(rt: Runtime, src: DeviceArray, dst: DeviceArray, events) -> 
 
 
 def _intersections(rt: Runtime, rects: DeviceArray, per_intersection: int, reserve: int,
-                   per_pair: int = 0, per_touching: int = 0, unused: int = 0) -> tuple[int, int]:
+                   per_pair: int = 0, per_touching: int = 0, unused: int = 0,
+                   pair_tiles: list | None = None) -> tuple[int, int]:
     """(intersections M, pairs that touch a tile) from rects [C,N,4], after the memory checks.
 
     The exact total from the rectangles, in int64 and before any per-tile work: an int32
@@ -147,7 +148,8 @@ def _intersections(rt: Runtime, rects: DeviceArray, per_intersection: int, reser
     ``per_pair`` bytes per pair and ``per_touching`` per pair that touches a tile (the depth
     sort's arrays), less ``unused`` of the ``per_intersection`` bytes per intersection (the
     per-tile sort's scratch, which the depth sort does not allocate), are checked with them,
-    spread over the intersections.
+    spread over the intersections. ``pair_tiles``: a list that receives each pair's tile count
+    [C*N] int32 (numpy), from which :func:`isect_offsets` needs no second pass over the rects.
     """
     r = rects.host().reshape(-1, 4).numpy()
     w, h = r[:, 2] - r[:, 0], r[:, 3] - r[:, 1]
@@ -156,6 +158,8 @@ def _intersections(rt: Runtime, rects: DeviceArray, per_intersection: int, reser
         raise ValueError(f"means, scales: {total} (camera, Gaussian, tile) intersections exceed the "
                          "int32 index range; render fewer cameras, fewer or smaller Gaussians per call")
     n = int(np.count_nonzero((w > 0) & (h > 0)))
+    if pair_tiles is not None:
+        pair_tiles.append(w * h)  # (int32: the total, their sum, is below 2^31 - 1)
     extra = max(0, per_pair * len(r) + per_touching * n - unused * total)
     check_intersection_memory(rt, total, per_intersection + (-(-extra // total) if total else 0), reserve)
     rt.check_memory(total * 8, f"means, scales: the keys of {total} (camera, Gaussian, tile) "
@@ -166,7 +170,7 @@ def _intersections(rt: Runtime, rects: DeviceArray, per_intersection: int, reser
 def bin_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: DeviceArray,
               width: int, height: int, tile_size: int,
               events: list | None = None, per_intersection: int = 16,
-              reserve: int = 0) -> tuple[DeviceArray, DeviceArray]:
+              reserve: int = 0, pair_tiles: list | None = None) -> tuple[DeviceArray, DeviceArray]:
     """Count, scan and scatter (camera, Gaussian, tile) intersections into tile segments.
 
     rects [C,N,4] int32 tile rectangles and depths [C,N] from :func:`project`. Before any
@@ -184,7 +188,7 @@ def bin_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Device
     counts = rt.empty((C * tpc + 1,), torch.int32)
     offsets = rt.empty((C * tpc + 1,), torch.int32)
     defines = cfg.defines(tile_size)
-    total, _ = _intersections(rt, rects, per_intersection, reserve)
+    total, _ = _intersections(rt, rects, per_intersection, reserve, pair_tiles=pair_tiles)
     common = (np.int32(C * N), np.int32(tiles_x), np.int32(tpc), np.int32(N), rects.buffer)
     _record(events, "bin_count", rt.launch(rt.kernel("bin", "count_tiles", defines), C * N, LOCAL_1D,
                                            *common, counts.buffer))
@@ -442,7 +446,8 @@ def early_tile_lists(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths:
 def depth_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: DeviceArray,
                 width: int, height: int, tile_size: int, events: list | None = None,
                 per_intersection: int = 16, reserve: int = 0,
-                early: EarlyTiles | None = None) -> tuple[DeviceArray, DeviceArray]:
+                early: EarlyTiles | None = None,
+                pair_tiles: list | None = None) -> tuple[DeviceArray, DeviceArray]:
     """Tile lists in depth order, from one depth sort of the pairs (kernels/order.cl).
 
     rects [C,N,4] int32 and depths [C,N] from :func:`project`; ``per_intersection`` and
@@ -463,7 +468,8 @@ def depth_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Devi
     # besides the tile lists: 8-byte packed rectangles per pair; per pair that touches a tile
     # two key arrays and the sorted rectangles (24); the per-tile sort's 8-byte scratch per
     # intersection (in plan.intersection_bytes) is not allocated
-    total, n = _intersections(rt, rects, per_intersection, reserve, per_pair=8, per_touching=24, unused=8)
+    total, n = _intersections(rt, rects, per_intersection, reserve, per_pair=8, per_touching=24, unused=8,
+                              pair_tiles=pair_tiles)
     if early is not None:
         if early.rects is not rects or early.depths is not depths:
             raise ValueError("early: tile lists launched for other rectangles or depths")
@@ -524,18 +530,20 @@ def depth_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Devi
 def tile_lists(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: DeviceArray,
                width: int, height: int, tile_size: int, events: list | None = None,
                per_intersection: int = 16, reserve: int = 0,
-               early: EarlyTiles | None = None) -> tuple[DeviceArray, DeviceArray]:
+               early: EarlyTiles | None = None,
+               pair_tiles: list | None = None) -> tuple[DeviceArray, DeviceArray]:
     """Every tile's list of (camera, Gaussian) keys in depth order: (offsets [C*T+1] int32,
     read back; keys [M] int64), by ``cfg.sort_impl``: "depth" (:func:`depth_tiles`) or
     "tiles" (the baseline, :func:`bin_tiles` then :func:`sort_segments`). Same result; the
     baseline also where the depth sort's packed rectangles cannot hold the tile coordinates
-    (:data:`ORDER_PACK_MAX`). ``early``: see :func:`depth_tiles` (only ever made where it runs)."""
+    (:data:`ORDER_PACK_MAX`). ``early``: see :func:`depth_tiles` (only ever made where it runs);
+    ``pair_tiles``: see :func:`_intersections`."""
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
     if cfg.sort_impl == "depth" and max(tiles_x, depths.tensor.shape[0] * tiles_y) <= ORDER_PACK_MAX:
         return depth_tiles(rt, cfg, rects, depths, width, height, tile_size, events,
-                           per_intersection, reserve, early)
+                           per_intersection, reserve, early, pair_tiles)
     offsets, keys = bin_tiles(rt, cfg, rects, depths, width, height, tile_size, events,
-                              per_intersection, reserve)
+                              per_intersection, reserve, pair_tiles)
     # bin_tiles has read the offsets back and nothing writes them after the scan
     sort_segments(rt, cfg, keys, offsets, events=events, host_offsets=offsets.tensor)
     return offsets, keys
@@ -659,7 +667,8 @@ def _composite_kernel(rt: Runtime, cfg: RenderConfig, stage: str, defines: dict,
     """The compositing kernel for ``defines``, looked up once per shape and config (the render
     plan, :meth:`Runtime.plan`; the inline-exp probe's answer is part of the key) and checked
     against the device's group and local memory limits (:meth:`Runtime.check_group_once`)."""
-    k = rt.plan(("composite_kernel", stage, cfg, tuple(sorted(defines.items())), rt.inline_exp_exact),
+    # (the defines in the order the call site builds them: see Runtime.kernel)
+    k = rt.plan(("composite_kernel", stage, cfg, tuple(defines.items()), rt.inline_exp_exact),
                 lambda: _build_composite_kernel(rt, cfg, stage, defines, tile_size))
     rt.check_group_once(k, stage, group, f" (tile_size {tile_size}, {defines['PIX']} pixel(s) per "
                         "item; use a smaller tile_size or a larger RenderConfig.pix)")
@@ -781,10 +790,14 @@ def gauss_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: int) 
     return pix, chunk
 
 
-def isect_offsets(rt: Runtime, rects: DeviceArray) -> DeviceArray:
-    """[C*N] first gradient slot of each pair: exclusive prefix of its tile count."""
-    r = rects.host().reshape(-1, 4).numpy()  # numpy: a few us against ~40 for torch's ops
-    n = (r[:, 2] - r[:, 0]) * (r[:, 3] - r[:, 1])
+def isect_offsets(rt: Runtime, rects: DeviceArray, pair_tiles: np.ndarray | None = None) -> DeviceArray:
+    """[C*N] first gradient slot of each pair: exclusive prefix of its tile count
+    (``pair_tiles``, [C*N] int32, where the forward counted them: :func:`_intersections`)."""
+    if pair_tiles is None:
+        r = rects.host().reshape(-1, 4).numpy()  # numpy: a few us against ~40 for torch's ops
+        n = (r[:, 2] - r[:, 0]) * (r[:, 3] - r[:, 1])
+    else:
+        n = pair_tiles
     if rt.pools and 0 < n.nbytes:  # written in place into a pooled array (the device's memory)
         # (int32 sums: their total, the intersection count, was checked below 2^31 - 1)
         out = rt.empty(n.shape, torch.int32, zero=False)
@@ -844,7 +857,7 @@ def composite_bwd(rt: Runtime, cfg: RenderConfig, fwd: dict, v_out: DeviceArray,
     work-item per row segment); the same slots to rounding, each bitwise reproducible.
 
     ``fwd`` holds the forward's DeviceArrays: means2d, conics, opacities, extents, feats, rects,
-    offsets, keys, out (out_feats), T, last. v_out [C,H,W,CH], v_T [C,H,W]. ``alloc(shape,
+    offsets, keys, out (out_feats), T, last; optionally "pair_tiles" (:func:`isect_offsets`). v_out [C,H,W,CH], v_T [C,H,W]. ``alloc(shape,
     dtype)`` makes the zeroed slots array (default ``rt.empty``; e.g. ``Runtime.scratch``'s).
     ``reduce_into``: :func:`_reduce_outputs`' arrays, which the per-Gaussian kernel's one launch
     fills itself (FUSED_REDUCE; only as :func:`composite_bwd_reduced` decides).
@@ -867,7 +880,7 @@ def composite_bwd(rt: Runtime, cfg: RenderConfig, fwd: dict, v_out: DeviceArray,
         n_items = C * tiles_x * tiles_y * group
     rt.check_memory(M * G * (8 if cfg.precision == "float64" else 4),
                     f"means, scales: the backward's gradient slots ({M} intersections x {G} values)")
-    offs = isect_offsets(rt, fwd["rects"])
+    offs = isect_offsets(rt, fwd["rects"], fwd.get("pair_tiles"))
     slots = (alloc or rt.empty)((M, G), cfg.dtype)
     f = fwd
     # The first launch computes the geometry gradients (and colour chunk 0); each further
