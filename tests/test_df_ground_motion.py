@@ -76,6 +76,9 @@ def test_zero_flow_gives_zero_motion_and_bad_input_is_refused() -> None:
         fit_ground_motion(torch.zeros(3, 2, 16, 28), K, E, Z, loss="tukey")
     with pytest.raises(ValueError, match="ground_depth"):
         fit_ground_motion(torch.zeros(3, 2, 16, 28), K, E, Z[:, :, :8])
+    for bad in (-1, 2.5, True):
+        with pytest.raises(ValueError, match="iters"):
+            fit_ground_motion(torch.zeros(3, 2, 16, 28), K, E, Z, iters=bad)
 
 
 def _render_ground(K: torch.Tensor, E: torch.Tensor, M: torch.Tensor, h: int, w: int) -> torch.Tensor:
@@ -109,6 +112,11 @@ def test_direct_fit_recovers_a_known_motion_from_images_of_a_textured_ground(for
     assert float(standing[:3, 3].norm()) < 1e-3
     with pytest.raises(ValueError, match="tau"):
         fit_ground_motion_direct(earlier, later, K, E, 20.0, tau=0.0)
+    for name, kw in (("iters", {"iters": -1}), ("search", {"search": (3.0, -3.0, 61)}),
+                     ("search", {"search": (-3.0, 3.0, 1)}), ("search", {"search": (-3.0, 3.0)}),
+                     ("levels", {"levels": ()}), ("levels", {"levels": (0,)})):
+        with pytest.raises(ValueError, match=name):
+            fit_ground_motion_direct(earlier, later, K, E, 20.0, **kw)
 
 
 def test_direct_fit_without_a_ground_pixel_returns_no_motion() -> None:

@@ -87,6 +87,7 @@ def fit_ground_motion(flow: Tensor, Ks: Tensor, cam_to_ego: Tensor, ground_depth
         raise ValueError(f"dof: expected one of {sorted(DOF_INDEX)}, got {dof!r}")
     if loss not in ("huber", "cauchy", "l2"):
         raise ValueError(f"loss: expected 'huber', 'cauchy' or 'l2', got {loss!r}")
+    _check_iters(iters)
     if flow.ndim != 4 or flow.shape[1] != 2 or ground_depth.shape != (flow.shape[0], 1, *flow.shape[-2:]):
         raise ValueError(f"flow / ground_depth: expected [V, 2, h, w] / [V, 1, h, w], got "
                          f"{list(flow.shape)} / {list(ground_depth.shape)}")
@@ -130,6 +131,11 @@ def fit_ground_motion(flow: Tensor, Ks: Tensor, cam_to_ego: Tensor, ground_depth
         if float(step.abs().max()) < 1e-7:
             break
     return se3_exp(theta[:3], theta[3:]).detach(), rw.reshape(V, 1, h, w)
+
+
+def _check_iters(iters) -> None:
+    if isinstance(iters, bool) or not isinstance(iters, int) or iters < 0:
+        raise ValueError(f"iters: expected an int >= 0 (Gauss-Newton steps), got {iters!r}")
 
 
 def _robust_weights(e: Tensor, loss: str, ref: Tensor | None = None) -> Tensor:
@@ -196,6 +202,15 @@ def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_
         raise ValueError(f"cap: expected a positive number of metres, got {cap!r}")
     if not tau > 0:
         raise ValueError(f"tau: expected a positive grey-level difference, got {tau!r}")
+    _check_iters(iters)
+    if search is not None:
+        ok = isinstance(search, (tuple, list)) and len(search) == 3 and not isinstance(search[2], bool) \
+            and isinstance(search[2], int) and search[2] >= 2
+        if not ok or not float(search[0]) < float(search[1]):
+            raise ValueError(f"search: expected None or (lo, hi, count) metres with lo < hi and an int count >= 2, "
+                             f"got {search!r}")
+    if not levels or any(isinstance(v, bool) or not isinstance(v, int) or v < 1 for v in levels):
+        raise ValueError(f"levels: expected a non-empty sequence of ints >= 1, got {levels!r}")
     dt = torch.float64
     F_ = torch.nn.functional
     V, _, H, W = earlier.shape
