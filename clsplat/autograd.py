@@ -56,6 +56,10 @@ class Settings:
     # rects' data_ptr -> stages.EarlyTiles: a small call's tile lists, launched by ProjectFn
     # right behind the projection (one wait for both), for RasterizeFn to take
     early: dict | None = None
+    # (packed.PackedMeans2d, means2d [C,N,2]): RasterizeFn's means2d input is the packed
+    # meta["means2d"] [nnz, 2] of this route, which it composites with these values (one batch
+    # element: no unpacking node between them)
+    packed_route: tuple | None = None
 
 
 def _array(s: Settings, t: torch.Tensor, read_only: bool = False) -> DeviceArray:
@@ -190,7 +194,8 @@ class RasterizeFn(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, opacities, feats, rects, extents, depths, s: Settings):
         rt, cfg, arr = s.rt, s.cfg, s.rt.array
-        a = {"means2d": arr(means2d.detach()), "conics": arr(conics.detach()),
+        ctx.route, full = s.packed_route or (None, means2d)  # (packed: see Settings.packed_route)
+        a = {"means2d": arr(full.detach()), "conics": arr(conics.detach()),
              "opacities": arr(opacities.detach()), "feats": arr(feats.detach(), keep=True),
              "rects": _array(s, rects, read_only=True), "extents": _array(s, extents)}
         want_grad = any(ctx.needs_input_grad[:4])  # False under no_grad or for constants
@@ -248,7 +253,10 @@ class RasterizeFn(torch.autograd.Function):
                 s.absgrad_sink(g["absgrad"])
             else:
                 ctx.means2d.absgrad = g["absgrad"]
-        return (g["v_means2d"] if need[0] else None, g["v_conics"] if need[1] else None,
+        v_m2d = g["v_means2d"] if need[0] else None
+        if v_m2d is not None and ctx.route is not None:  # the packed node's gather
+            v_m2d = ctx.route.render_grad_to_packed(v_m2d)
+        return (v_m2d, g["v_conics"] if need[1] else None,
                 g["v_opacities"] if need[2] else None,
                 g["v_feats"].view(ctx.feats_shape) if color else None,
                 None, None, None, None)

@@ -99,6 +99,15 @@ class PackedMeans2d:
         (differentiable; its gradient comes back in ``full``'s shape, with no view node)."""
         return _Pack.apply(full, self)
 
+    def render_grad_to_packed(self, g: torch.Tensor) -> torch.Tensor:
+        """The render's gradient g [..., 2] (B*C*N pairs) -> its gather [nnz, 2] for the packed
+        node, kept (with g) for :meth:`pack`'s backward (its shortcut). What :meth:`unpack`'s
+        backward does, and a compositor that takes the packed node itself calls (one batch
+        element: :class:`clsplat.autograd.RasterizeFn` with ``Settings.packed_route``)."""
+        self.render_grad = g.contiguous()
+        self.sent = self.render_grad.reshape(-1, 2).index_select(0, self.pairs.flat)
+        return self.sent
+
     def unpack(self, packed: torch.Tensor, full: torch.Tensor) -> torch.Tensor:
         """packed [nnz, 2] and the values it came from, full [..., 2] -> a tensor of ``full``'s
         shape equal to full, whose gradient goes to ``packed``."""
@@ -128,10 +137,7 @@ class _Unpack(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g):
-        route = ctx.route
-        route.render_grad = g.contiguous()
-        route.sent = route.render_grad.reshape(-1, 2).index_select(0, route.pairs.flat)
-        return route.sent, None, None
+        return ctx.route.render_grad_to_packed(g), None, None
 
 
 class LazyMeta(dict):

@@ -283,10 +283,14 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
     if out_device.type != "cpu" or out_dtype != dt:  # the user's node must lie on the loss path
         m2d_user = m2d_meta.to(device=out_device, dtype=out_dtype)
         m2d_meta = m2d_user.to(device="cpu", dtype=dt)
-    m2d_used = route.unpack(m2d_meta, means2d) if packed else m2d_meta
-    # per batch element without select nodes (their backward zero-fills all of [B, C, N, 2])
-    m2d_used = ([m2d_used if m2d_used.shape == (C, N, 2) else m2d_used.reshape(C, N, 2)] if B == 1
-                else m2d_used.reshape(B, C, N, 2).unbind(0))
+    if packed and B == 1:  # the compositor takes the packed node and these values itself
+        st0.packed_route = (route, means2d.detach())  # (detached: no cycle through its grad_fn)
+        m2d_used = [m2d_meta]
+    else:
+        m2d_used = route.unpack(m2d_meta, means2d) if packed else m2d_meta
+        # per batch element without select nodes (their backward zero-fills all of [B, C, N, 2])
+        m2d_used = ([m2d_used if m2d_used.shape == (C, N, 2) else m2d_used.reshape(C, N, 2)]
+                    if B == 1 else m2d_used.reshape(B, C, N, 2).unbind(0))
     sink = AbsgradSink(m2d_user, (B, C, N, 2), dt, pairs) if absgrad else None
 
     renders, Ts, isects = [], [], []

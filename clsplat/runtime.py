@@ -550,14 +550,13 @@ class Runtime:
         a command reads must be written first). Small arrays come from the pool (see the module
         docstring) where the device computes in host memory."""
         shape = tuple(map(int, shape))
-        n = 1
-        for d in shape:
-            n *= d
-        nbytes = n * dtype.itemsize
-        if nbytes >= HOST_CHECK_BYTES or nbytes > self.max_alloc:  # the message only when needed
-            self.check_memory(nbytes, f"an intermediate array {list(shape)} {dtype}")
+        nbytes = math.prod(shape) * dtype.itemsize
+        # (the pool is on only on PoCL's CPU device, whose allocation limit is a quarter of the
+        # host's memory at least: no pooled size needs the check below)
         if 0 < nbytes <= POOL_ARRAY_BYTES and self.pools:
             return self._pooled(shape, dtype, nbytes, zero)
+        if nbytes >= HOST_CHECK_BYTES or nbytes > self.max_alloc:  # the message only when needed
+            self.check_memory(nbytes, f"an intermediate array {list(shape)} {dtype}")
         t = torch.zeros(shape, dtype=dtype) if zero else torch.empty(shape, dtype=dtype)
         return DeviceArray(self, t)
 
@@ -606,7 +605,7 @@ class Runtime:
             entries = self._pool.get(key)
             if entries is not None:
                 self._pool.move_to_end(key)
-                if any(_moved(x) for x in entries):
+                if any(map(_moved, entries)):  # (map: no name left bound to an entry)
                     self._forget_moved(entries)
                 for i in range(len(entries)):  # (no enumerate: its tuple would hold ``a``)
                     a = entries[i]
