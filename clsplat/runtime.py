@@ -178,6 +178,7 @@ class Runtime:
     _limits: tuple = field(default=(), init=False, repr=False)  # (max alloc, global mem) bytes
     _in_host_memory: bool | None = field(default=None, init=False, repr=False)
     _shares: bool | None = field(default=None, init=False, repr=False)  # shares_host_memory, cached
+    _pools_device: bool | None = field(default=None, init=False, repr=False)  # pools' device part, cached
     # whether the tuned compositing kernels' inline exp is this device's library exp bit for
     # bit (clsplat.stages.inline_exp_exact; None until probed)
     inline_exp_exact: bool | None = field(default=None, init=False, repr=False)
@@ -262,8 +263,12 @@ class Runtime:
         """Whether the array pool is on (:meth:`empty`, see the module docstring): where the
         device computes in the zero-copy arrays' host memory itself (PoCL's CPU device; not
         with ``CLSPLAT_HOST_MEMORY=copy``), so that a pooled array zeroed or written on the
-        host, or an input changed in place, needs no transfer; and :attr:`pool_limit` > 0."""
-        return self.pool_limit > 0 and self.computes_in_host_memory and self.shares_host_memory
+        host, or an input changed in place, needs no transfer; and :attr:`pool_limit` > 0.
+        (Asked ~50 times a small call: the device's part is worked out once.)"""
+        on = self._pools_device
+        if on is None:
+            on = self._pools_device = self.computes_in_host_memory and self.shares_host_memory
+        return on and self.pool_limit > 0
 
     @property
     def is_pocl_cpu(self) -> bool:
@@ -605,8 +610,8 @@ class Runtime:
             entries = self._pool.get(key)
             if entries is not None:
                 self._pool.move_to_end(key)
-                if any(map(_moved, entries)):  # (map: no name left bound to an entry)
-                    self._forget_moved(entries)
+                # (an array whose memory moved is never free, _is_free: the list is cleared of
+                # such arrays below, before a new array takes a place in it)
                 for i in range(len(entries)):  # (no enumerate: its tuple would hold ``a``)
                     a = entries[i]
                     if _is_free(a):
@@ -617,6 +622,7 @@ class Runtime:
                         if i + 1 < len(entries):  # the held ones last: the next scan finds the
                             entries.append(entries.pop(i))  # free ones first
                         return a
+                self._forget_moved(entries)  # (none free: make room of the moved ones first)
             else:
                 entries = self._pool[key] = []
             a = DeviceArray(self, torch.zeros(shape, dtype=dtype) if zero else

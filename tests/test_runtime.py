@@ -166,6 +166,7 @@ def test_copying_path_of_discrete_devices_matches_zero_copy(make_scene, monkeypa
 
     shared = run()
     monkeypatch.setattr(Runtime, "shares_host_memory", property(lambda self: False))
+    monkeypatch.setattr(clsplat.get_runtime(), "_pools_device", None)  # (worked out once: again)
     copied = run()
     for x, y in zip(shared, copied):
         assert torch.equal(x, y)
@@ -354,6 +355,7 @@ def test_array_pool_hands_out_only_arrays_nothing_holds(rt, monkeypatch):
     # a host-side zero or write would not reach, so nothing is pooled or kept
     from clsplat.runtime import Runtime
     monkeypatch.setattr(Runtime, "shares_host_memory", property(lambda self: False))
+    monkeypatch.setattr(rt, "_pools_device", None)  # (worked out once per runtime: again)
     assert not rt.pools
     x = rt.empty((7, 3), torch.float32)
     assert not rt._pool and not x.zero_copy
