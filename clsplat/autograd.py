@@ -22,6 +22,7 @@ import torch
 
 from . import plan, stages
 from .config import RenderConfig
+from .packed import PackedMeans2d, pack_pairs
 from .runtime import DeviceArray, Runtime, read_back
 
 __all__ = ["Settings", "ProjectFn", "ShFn", "RasterizeFn"]
@@ -56,6 +57,9 @@ class Settings:
     # rects' data_ptr -> stages.EarlyTiles: a small call's tile lists, launched by ProjectFn
     # right behind the projection (one wait for both), for RasterizeFn to take
     early: dict | None = None
+    # ProjectFn (one batch element, packed): also outputs the packed meta["means2d"] [nnz, 2],
+    # its pairs' route set as packed_route (no gathering node between them)
+    pack: bool = False
     # (packed.PackedMeans2d, means2d [C,N,2]): RasterizeFn's means2d input is the packed
     # meta["means2d"] [nnz, 2] of this route, which it composites with these values (one batch
     # element: no unpacking node between them)
@@ -106,6 +110,11 @@ class ProjectFn(torch.autograd.Function):
                 s.early = {}
             s.early[p.rects.tensor.data_ptr()] = early
         ctx.mark_non_differentiable(*outs[4:])
+        ctx.route = None
+        if s.pack:  # the packed meta["means2d"] of the visible pairs, on the loss path
+            ctx.route = PackedMeans2d(pack_pairs(outs[4].unsqueeze(0)))
+            s.packed_route = (ctx.route, outs[0].detach())  # (detached: no cycle via grad_fn)
+            outs.append(outs[0].reshape(-1, 2).index_select(0, ctx.route.pairs.flat))
         # gradients of unused outputs (depths in most calls) come as None, not zeros torch made:
         # the backward stages None as a kept zero array (Runtime.staged)
         ctx.set_materialize_grads(False)
@@ -117,10 +126,14 @@ class ProjectFn(torch.autograd.Function):
         return tuple(outs)
 
     @staticmethod
-    def backward(ctx, v_means2d, v_conics, v_depths, v_opac, _v_radii, _v_rects, _v_ext):
+    def backward(ctx, v_means2d, v_conics, v_depths, v_opac, _v_radii, _v_rects, _v_ext,
+                 v_packed=None):
         s = ctx.s
         means, quats, scales, opacities, viewmats, Ks, radii = ctx.saved_tensors
         C, N = radii.shape[:2]
+        if v_packed is not None:  # the packed node's gradient, to the pairs it was gathered from
+            full = ctx.route.packed_grad_to_full(v_packed).view(C, N, 2)
+            v_means2d = full if v_means2d is None else v_means2d + full
         dt = s.cfg.dtype
         rt = s.rt
         grads = {"v_means2d": rt.staged(v_means2d, (C, N, 2), dt),

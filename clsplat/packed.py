@@ -99,6 +99,17 @@ class PackedMeans2d:
         (differentiable; its gradient comes back in ``full``'s shape, with no view node)."""
         return _Pack.apply(full, self)
 
+    def packed_grad_to_full(self, g: torch.Tensor) -> torch.Tensor:
+        """The packed node's gradient g [nnz, 2] -> [B*C*N, 2] for the values it was gathered
+        from: the render's own gradient where g is the gather :meth:`render_grad_to_packed`
+        handed over (the shortcut: it is zero at culled pairs), else the scatter. What
+        :meth:`pack`'s backward does, and a projection that outputs the packed node itself
+        (one batch element: :class:`clsplat.autograd.ProjectFn` with ``Settings.pack``)."""
+        self.shortcut_taken = g is self.sent
+        out = self.render_grad if self.shortcut_taken else self.pairs.scatter(g.contiguous())
+        self.sent = self.render_grad = None
+        return out
+
     def render_grad_to_packed(self, g: torch.Tensor) -> torch.Tensor:
         """The render's gradient g [..., 2] (B*C*N pairs) -> its gather [nnz, 2] for the packed
         node, kept (with g) for :meth:`pack`'s backward (its shortcut). What :meth:`unpack`'s
@@ -122,11 +133,7 @@ class _Pack(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g):
-        route = ctx.route
-        route.shortcut_taken = g is route.sent
-        out = route.render_grad if route.shortcut_taken else route.pairs.scatter(g.contiguous())
-        route.sent = route.render_grad = None
-        return out.reshape(ctx.shape), None
+        return ctx.route.packed_grad_to_full(g).reshape(ctx.shape), None
 
 
 class _Unpack(torch.autograd.Function):

@@ -263,28 +263,33 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
     st0 = Settings(rt, cfg, width, height, tile_size, float(near_plane), float(far_plane),
                    float(eps2d), float(radius_clip), rasterize_mode == "antialiased",
                    absgrad=absgrad, sh_degree=sh_degree, bwd_divide=bwd_divide, events=events)
-    # Project every batch element, then gather the per-pair tensors gsplat exposes.
+    # Project every batch element, then gather the per-pair tensors gsplat exposes (one packed
+    # element: the projection gathers the packed means2d itself, Settings.pack).
+    st0.pack = packed and B == 1
     proj = [ProjectFn.apply(cast(e["means"]), cast(e["quats"]), cast(e["scales"]), cast(e["opacities"]),
                             cast(e["viewmats"]), cast(e["Ks"]).detach(), st0) for e in per]
     # [B, C, N, ...]; for one batch element the projection's own [C, N, ...] outputs, which
     # batched() views as [1, C, N, ...] only where that shape is needed (no view nodes on the
     # loss path, none made per call for meta entries nobody reads)
     means2d, conics, depths, opac, radii, rects, extents = (
-        proj[0] if B == 1 else [torch.stack([p[i] for p in proj]) for i in range(7)])
+        proj[0][:7] if B == 1 else [torch.stack([p[i] for p in proj]) for i in range(7)])
     batched = (lambda x: x.unsqueeze(0)) if B == 1 else (lambda x: x)  # noqa: E731
     if sparse is not None:
         sparse.set_visible((batched(radii)[0] > 0).all(-1).any(0))
-    pairs = pack_pairs(batched(radii)) if packed else None
-    route = PackedMeans2d(pairs) if packed else None
-    # (without batch dimensions the projection's own output: no view nodes on the loss path)
-    m2d_meta = (route.pack(means2d) if packed else
-                proj[0][0] if not batch else batched(means2d).reshape(batch + (C, N, 2)))
+    if st0.pack:  # (the projection's packed output and its route, Settings.packed_route)
+        route = st0.packed_route[0]
+        pairs, m2d_meta = route.pairs, proj[0][7]
+    else:
+        pairs = pack_pairs(batched(radii)) if packed else None
+        route = PackedMeans2d(pairs) if packed else None
+        # (without batch dimensions the projection's own output: no view nodes on the loss path)
+        m2d_meta = (route.pack(means2d) if packed else
+                    proj[0][0] if not batch else batched(means2d).reshape(batch + (C, N, 2)))
     m2d_user = m2d_meta
     if out_device.type != "cpu" or out_dtype != dt:  # the user's node must lie on the loss path
         m2d_user = m2d_meta.to(device=out_device, dtype=out_dtype)
         m2d_meta = m2d_user.to(device="cpu", dtype=dt)
-    if packed and B == 1:  # the compositor takes the packed node and these values itself
-        st0.packed_route = (route, means2d.detach())  # (detached: no cycle through its grad_fn)
+    if st0.pack:  # the compositor takes the packed node and the projection's values itself
         m2d_used = [m2d_meta]
     else:
         m2d_used = route.unpack(m2d_meta, means2d) if packed else m2d_meta
@@ -301,7 +306,7 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
         else:
             st = replace(st0, absgrad_sink=None if sink is None else sink.for_batch(b),
                          pixel_reserve=pixels.nbytes * (B - b) // B)
-        _, conics_b, depths_b, opac_b, radii_b, rects_b, extents_b = proj[b]  # no select nodes
+        _, conics_b, depths_b, opac_b, radii_b, rects_b, extents_b = proj[b][:7]  # no select nodes
         parts = []
         if n_col:
             c = per[b]["colors"]
