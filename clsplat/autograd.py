@@ -6,8 +6,8 @@ Three Functions, as in gsplat, so that ``meta["means2d"]`` is a real graph node 
 * :class:`ProjectFn`: (means, quats, scales, opacities, viewmats) -> means2d, conics, depths,
   compositing opacities (+ non-differentiable radii and tile rectangles);
 * :class:`ShFn`: (SH coefficients, means) -> colours [C,N,3];
-* :class:`RasterizeFn`: (means2d, conics, opacities, features) -> composited features, T
-  (features [C,N,CH], or [N,CH] for one camera: the same memory).
+* :class:`RasterizeFn`: (means2d, conics, opacities, features) -> composited features, T and
+  the alphas 1 - T [C,H,W,1] (features [C,N,CH], or [N,CH] for one camera: the same memory).
 
 Each forward keeps the device buffers its backward needs rather than recomputing them, and
 each backward is specialised on ``ctx.needs_input_grad``: gradients nobody asked for are
@@ -238,13 +238,20 @@ class RasterizeFn(torch.autograd.Function):
         ctx.means2d = means2d  # receives .absgrad, as gsplat's densification expects
         ctx.feats_shape = feats.shape  # ([N, CH] for one camera: its gradient is given that shape)
         s.isect = (off_t, keys_t)  # read back: not shared memory on GPUs
-        return out_t, T_t
+        # the alphas gsplat returns, made here rather than by two recorded ops (and two
+        # backward nodes) per call; T's gradient takes theirs negated (backward)
+        ctx.set_materialize_grads(False)
+        return out_t, T_t, (1 - T_t).unsqueeze(-1)
 
     @staticmethod
-    def backward(ctx, v_out, v_T):
+    def backward(ctx, v_out, v_T, v_alpha):
         s = ctx.s
         _finite_grad("render_colors", v_out)
         _finite_grad("render_alphas", v_T)
+        _finite_grad("render_alphas", v_alpha)
+        if v_alpha is not None:  # alpha = 1 - T
+            v_a = v_alpha.squeeze(-1)
+            v_T = -v_a if v_T is None else v_T - v_a
         need = ctx.needs_input_grad
         geom, color = any(need[:3]), need[3]
         fwd = ctx.fwd

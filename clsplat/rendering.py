@@ -298,7 +298,7 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
                     if B == 1 else m2d_used.reshape(B, C, N, 2).unbind(0))
     sink = AbsgradSink(m2d_user, (B, C, N, 2), dt, pairs) if absgrad else None
 
-    renders, Ts, isects = [], [], []
+    renders, alphas_b, isects = [], [], []
     for b in range(B):
         if B == 1 and sink is None:  # (the call's own settings: no copy)
             st = st0
@@ -329,21 +329,22 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
         if N == 0:
             render = torch.zeros((C, height, width, CH), dtype=dt)
             T = torch.ones((C, height, width), dtype=dt)
+            alpha = torch.zeros((C, height, width, 1), dtype=dt)
             tiles = C * (-(-width // tile_size)) * (-(-height // tile_size))
             isects.append((torch.zeros((tiles + 1,), dtype=torch.int32), torch.zeros((0,), dtype=torch.int64)))
         else:
-            render, T = RasterizeFn.apply(m2d_used[b], conics_b, opac_b, feats.contiguous(),
-                                          rects_b, extents_b, depths_b.detach(), st)
+            render, T, alpha = RasterizeFn.apply(m2d_used[b], conics_b, opac_b, feats.contiguous(),
+                                                 rects_b, extents_b, depths_b.detach(), st)
             isects.append(st.isect)
         if per[b]["backgrounds"] is not None and n_col:
             bg = cast(per[b]["backgrounds"])[:, None, None, :]
             render = torch.cat([render[..., :n_col] + T.unsqueeze(-1) * bg, render[..., n_col:]], -1)
         renders.append(render)
-        Ts.append(T)
+        alphas_b.append(alpha)
     # (no batch dimensions: the images as they are; one batch element: a view, not a copy)
-    render, T = ((renders[0], Ts[0]) if not batch else (renders[0].unsqueeze(0), Ts[0].unsqueeze(0)) if B == 1
-                 else (torch.stack(renders), torch.stack(Ts)))
-    alphas = (1 - T).unsqueeze(-1)
+    render, alphas = ((renders[0], alphas_b[0]) if not batch else
+                      (renders[0].unsqueeze(0), alphas_b[0].unsqueeze(0)) if B == 1
+                      else (torch.stack(renders), torch.stack(alphas_b)))
     if render_mode in ("ED", "RGB+ED"):
         render = torch.cat([render[..., :-1], render[..., -1:] / alphas.clamp_min(1e-10)], -1)
 
