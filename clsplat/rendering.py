@@ -259,7 +259,8 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
                          f"over the device's {rt.device.max_mem_alloc_size >> 20} MiB allocation limit")
 
     dt = cfg.dtype
-    cast = lambda x: x.to(dt).contiguous()  # noqa: E731  (differentiable: grads come back cast)
+    # (differentiable: grads come back cast; a tensor already of dtype dt is not dispatched)
+    cast = lambda x: (x if x.dtype == dt else x.to(dt)).contiguous()  # noqa: E731
     st0 = Settings(rt, cfg, width, height, tile_size, float(near_plane), float(far_plane),
                    float(eps2d), float(radius_clip), rasterize_mode == "antialiased",
                    absgrad=absgrad, sh_degree=sh_degree, bwd_divide=bwd_divide, events=events)
@@ -395,6 +396,8 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
 
 
 def _to_user(x: torch.Tensor, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    if x.device == device and (x.dtype == dtype or not x.is_floating_point()):
+        return x  # (what .to returns then: no dispatch)
     if x.is_floating_point():
         return x.to(device=device, dtype=dtype)
     return x.to(device=device)
