@@ -208,13 +208,13 @@ class RasterizeFn(torch.autograd.Function):
     def forward(ctx, means2d, conics, opacities, feats, rects, extents, depths, s: Settings):
         rt, cfg, arr = s.rt, s.cfg, s.rt.array
         ctx.route, full = s.packed_route or (None, means2d)  # (packed: see Settings.packed_route)
-        a = {"means2d": arr(full.detach()), "conics": arr(conics.detach()),
-             "opacities": arr(opacities.detach()), "feats": arr(feats.detach(), keep=True),
+        a = {"means2d": arr(full), "conics": arr(conics),  # (Runtime.array detaches itself)
+             "opacities": arr(opacities), "feats": arr(feats, keep=True),
              "rects": _array(s, rects, read_only=True), "extents": _array(s, extents)}
         want_grad = any(ctx.needs_input_grad[:4])  # False under no_grad or for constants
         per_isect = plan.intersection_bytes(feats.shape[-1], feats.element_size(), grad=want_grad,
                                             absgrad=s.absgrad)
-        d = arr(depths.detach())
+        d = arr(depths)
         early = s.early.pop(rects.data_ptr(), None) if s.early else None
         if early is not None and (early.rects is not a["rects"] or early.depths is not d):
             early = None  # (not this projection's: the lists are built here)

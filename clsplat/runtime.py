@@ -517,7 +517,8 @@ class Runtime:
                 return a
             if keep and not read_only and tensor.is_contiguous():
                 return self._kept_array(tensor)
-        return DeviceArray(self, tensor, read_only)
+        # (an array holds the data, never the caller's autograd graph: callers need not detach)
+        return DeviceArray(self, tensor.detach() if tensor.requires_grad else tensor, read_only)
 
     def _kept_array(self, t: torch.Tensor) -> "DeviceArray":
         """:meth:`array` with ``keep`` (pool on, ``t`` contiguous and not empty)."""

@@ -43,8 +43,8 @@ def check_tensor(name: str, x: object, shape: tuple, dtypes=_FLOATS) -> torch.Te
 
 
 def _values(x: torch.Tensor) -> np.ndarray:
-    """The values of a CPU tensor as a numpy array (no copy)."""
-    return x.detach().numpy()
+    """The values of a CPU tensor as a numpy array (no copy; detached only where needed)."""
+    return x.detach().numpy() if x.requires_grad else x.numpy()
 
 
 def check_finite(name: str, x: torch.Tensor, values: np.ndarray | None = None) -> None:
