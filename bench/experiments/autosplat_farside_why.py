@@ -33,7 +33,7 @@ import json
 import os
 import sys
 import time
-from collections import Counter, defaultdict
+from collections import Counter
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -109,95 +109,95 @@ def analyse(world: str, seed: int, scale: float, cameras: list[str], view_set: s
     res["views"] = []
     tot_n = tot_u = 0
     for f, tr, c2w, idx in vs._far_side_views(run, view_set):
-        if True:
-            t_f = seq.frames[f].timestamp
-            E = seq.frames[f].ego_to_world
-            box = vs._exact_box(seq, f, tr)
-            names = [cameras[j] for j in idx]
-            gt = vs._generator_views(run, f, c2w, names)
-            mask = np.stack([g.instance == tr for g in gt])
-            keep = mask.reshape(len(names), -1).sum(1) >= vs.MIN_OBJECT_PIXELS
-            if not keep.any():
+        t_f = seq.frames[f].timestamp
+        E = seq.frames[f].ego_to_world
+        box = vs._exact_box(seq, f, tr)
+        names = [cameras[j] for j in idx]
+        gt = vs._generator_views(run, f, c2w, names)
+        mask = np.stack([g.instance == tr for g in gt])
+        keep = mask.reshape(len(names), -1).sum(1) >= vs.MIN_OBJECT_PIXELS
+        if not keep.any():
+            continue
+        ref_un = vs.unseen_pixels(run, f, c2w, gt, cameras=names, only=mask)[0]
+        B = box.box_to_world
+        Binv = np.linalg.inv(B)
+        ego_box = Binv[:3, :3] @ E[:3, 3] + Binv[:3, 3]
+        rel = np.linalg.inv(E) @ np.append(B[:3, 3], 1.0)
+        dx, dist = float(rel[0]), float(np.linalg.norm(rel[:2]))
+        place = "alongside" if abs(dx) <= ALONGSIDE_M else ("ahead" if dx > 0 else "behind")
+        spec = next(v for v in scene.vehicles if v.track_id == tr)
+        parts = scene.vehicle_parts(spec, t_f)
+        for k, cam in enumerate(names):
+            if not keep[k]:
                 continue
-            ref_un = vs.unseen_pixels(run, f, c2w, gt, cameras=names, only=mask)[0]
-            B = box.box_to_world
-            Binv = np.linalg.inv(B)
-            ego_box = Binv[:3, :3] @ E[:3, 3] + Binv[:3, 3]
-            rel = np.linalg.inv(E) @ np.append(B[:3, 3], 1.0)
-            dx, dist = float(rel[0]), float(np.linalg.norm(rel[:2]))
-            place = "alongside" if abs(dx) <= ALONGSIDE_M else ("ahead" if dx > 0 else "behind")
-            spec = next(v for v in scene.vehicles if v.track_id == tr)
-            parts = scene.vehicle_parts(spec, t_f)
-            for k, cam in enumerate(names):
-                if not keep[k]:
+            v = gt[k]
+            ok = mask[k] & np.isfinite(v.depth)
+            vv, uu = np.nonzero(ok)
+            K = np.asarray(seq.camera(cam).K, dtype=np.float64)
+            z = v.depth[ok].astype(np.float64)
+            pc = np.stack([(uu + 0.5 - K[0, 2]) / K[0, 0] * z, (vv + 0.5 - K[1, 2]) / K[1, 1] * z, z], 1)
+            T = c2w[k]
+            pw = pc @ T[:3, :3].T + T[:3, 3]
+            surf = _surface(parts, pw, ego_box, B[:3, :3])
+            lab = vs._label(v.instance[ok], v.semantic[ok])
+            inst_pad = np.pad(v.instance, 1, constant_values=-1)
+            sil = np.zeros(len(z), dtype=bool)
+            for dy_, dx_ in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+                sil |= inst_pad[vv + 1 + dy_, uu + 1 + dx_] != tr
+            pl = pw @ Binv[:3, :3].T + Binv[:3, 3]
+            seer = np.full(len(z), -1)
+            how = np.full(len(z), "", dtype=object)
+            for j, (tf, Kt, w2c, dt, lt) in enumerate(train):
+                todo = np.nonzero(seer < 0)[0]
+                if not len(todo):
+                    break
+                bt = vs._exact_box(seq, tf, tr)
+                if bt is None:
                     continue
-                v = gt[k]
-                ok = mask[k] & np.isfinite(v.depth)
-                vv, uu = np.nonzero(ok)
-                K = np.asarray(seq.camera(cam).K, dtype=np.float64)
-                z = v.depth[ok].astype(np.float64)
-                pc = np.stack([(uu + 0.5 - K[0, 2]) / K[0, 0] * z, (vv + 0.5 - K[1, 2]) / K[1, 1] * z, z], 1)
-                T = c2w[k]
-                pw = pc @ T[:3, :3].T + T[:3, 3]
-                surf = _surface(parts, pw, ego_box, B[:3, :3])
-                lab = vs._label(v.instance[ok], v.semantic[ok])
-                inst_pad = np.pad(v.instance, 1, constant_values=-1)
-                sil = np.zeros(len(z), dtype=bool)
-                for dy_, dx_ in ((0, 1), (0, -1), (1, 0), (-1, 0)):
-                    sil |= inst_pad[vv + 1 + dy_, uu + 1 + dx_] != tr
-                pl = pw @ Binv[:3, :3].T + Binv[:3, 3]
-                seer = np.full(len(z), -1)
-                how = np.full(len(z), "", dtype=object)
-                for j, (tf, Kt, w2c, dt, lt) in enumerate(train):
-                    todo = np.nonzero(seer < 0)[0]
-                    if not len(todo):
-                        break
-                    bt = vs._exact_box(seq, tf, tr)
-                    if bt is None:
-                        continue
-                    Bt = bt.box_to_world
-                    P = pl[todo] @ Bt[:3, :3].T + Bt[:3, 3]
-                    q = P @ w2c[:3, :3].T + w2c[:3, 3]
-                    zt = q[:, 2]
-                    front = zt > 1e-3
-                    zs = np.where(front, zt, 1.0)
-                    x = Kt[0, 0] * q[:, 0] / zs + Kt[0, 2]
-                    y = Kt[1, 1] * q[:, 1] / zs + Kt[1, 2]
-                    inside = front & (x >= 0) & (x < W) & (y >= 0) & (y < H)
-                    x0 = np.clip(np.floor(x - 0.5).astype(np.int64), 0, W - 1)
-                    y0 = np.clip(np.floor(y - 0.5).astype(np.int64), 0, H - 1)
-                    x1, y1 = np.minimum(x0 + 1, W - 1), np.minimum(y0 + 1, H - 1)
-                    four = np.stack([dt[y0, x0], dt[y0, x1], dt[y1, x0], dt[y1, x1]])
-                    same = np.stack([lt[y0, x0], lt[y0, x1], lt[y1, x0], lt[y1, x1]]) == lab[todo]
-                    lo = np.where(same, four, np.inf).min(0)
-                    hi = np.where(same, four, -np.inf).max(0)
-                    vis = inside & (zt >= lo * (1 - tol)) & (zt <= hi * (1 + tol))
-                    exact = (same & (np.abs(four - zt) <= tol * four)).any(0)
-                    seer[todo[vis]] = j
-                    how[todo[vis]] = np.where(exact[vis], "exact", "range")
-                un = seer < 0
-                full_un = np.zeros_like(ok)
-                full_un[ok] = un
-                assert np.array_equal(full_un, ref_un[k]), "the re-run visibility test disagrees with unseen_pixels"
-                n, u = len(z), int(un.sum())
-                tot_n, tot_u = tot_n + n, tot_u + u
-                view_deg = _view_angle(T, B)
-                res["views"].append({"frame": f, "track": tr, "camera": cam, "place": place, "dx": round(dx, 2), "dist": round(dist, 2),
-                                     "view_deg": round(view_deg, 1), "pixels": n, "unseen": u})
-                s = ~un
-                res["surface_all"].update(surf.tolist())
-                res["unseen_by_surface"].update(surf[un].tolist())
-                res["by_surface"].update(surf[s].tolist())
-                res["by_track"].update([tr] * int(s.sum()))
-                res["joint"].update([f"{a}|{b}|{c}|{p_}" for a, b, c, p_ in zip(
-                    surf[s], how[s], np.where(sil[s], "silhouette", "interior"), [place] * int(s.sum()))])
-                res["by_place"].update([place] * int(s.sum()))
-                res["by_how"].update(how[s].tolist())
-                res["by_silhouette"].update(np.where(sil[s], "silhouette", "interior").tolist())
-                res["by_seer"].update([f"{train[j][0]}:{cam_of[j]}" for j in seer[s]])
-                res.setdefault("place_pixels", Counter()).update({place: n})
-                res.setdefault("place_unseen", Counter()).update({place: u})
-                res.setdefault("track_pixels", Counter()).update({tr: n})
+                Bt = bt.box_to_world
+                P = pl[todo] @ Bt[:3, :3].T + Bt[:3, 3]
+                q = P @ w2c[:3, :3].T + w2c[:3, 3]
+                zt = q[:, 2]
+                front = zt > 1e-3
+                zs = np.where(front, zt, 1.0)
+                x = Kt[0, 0] * q[:, 0] / zs + Kt[0, 2]
+                y = Kt[1, 1] * q[:, 1] / zs + Kt[1, 2]
+                inside = front & (x >= 0) & (x < W) & (y >= 0) & (y < H)
+                x0 = np.clip(np.floor(x - 0.5).astype(np.int64), 0, W - 1)
+                y0 = np.clip(np.floor(y - 0.5).astype(np.int64), 0, H - 1)
+                x1, y1 = np.minimum(x0 + 1, W - 1), np.minimum(y0 + 1, H - 1)
+                four = np.stack([dt[y0, x0], dt[y0, x1], dt[y1, x0], dt[y1, x1]])
+                same = np.stack([lt[y0, x0], lt[y0, x1], lt[y1, x0], lt[y1, x1]]) == lab[todo]
+                lo = np.where(same, four, np.inf).min(0)
+                hi = np.where(same, four, -np.inf).max(0)
+                vis = inside & (zt >= lo * (1 - tol)) & (zt <= hi * (1 + tol))
+                exact = (same & (np.abs(four - zt) <= tol * four)).any(0)
+                seer[todo[vis]] = j
+                how[todo[vis]] = np.where(exact[vis], "exact", "range")
+            un = seer < 0
+            full_un = np.zeros_like(ok)
+            full_un[ok] = un
+            assert np.array_equal(full_un, ref_un[k]), "the re-run visibility test disagrees with unseen_pixels"
+            n, u = len(z), int(un.sum())
+            tot_n, tot_u = tot_n + n, tot_u + u
+            view_deg = _view_angle(T, B)
+            res["views"].append({"frame": f, "track": tr, "camera": cam, "place": place, "dx": round(dx, 2),
+                                 "dist": round(dist, 2),
+                                 "view_deg": round(view_deg, 1), "pixels": n, "unseen": u})
+            s = ~un
+            res["surface_all"].update(surf.tolist())
+            res["unseen_by_surface"].update(surf[un].tolist())
+            res["by_surface"].update(surf[s].tolist())
+            res["by_track"].update([tr] * int(s.sum()))
+            res["joint"].update([f"{a}|{b}|{c}|{p_}" for a, b, c, p_ in zip(
+                surf[s], how[s], np.where(sil[s], "silhouette", "interior"), [place] * int(s.sum()))])
+            res["by_place"].update([place] * int(s.sum()))
+            res["by_how"].update(how[s].tolist())
+            res["by_silhouette"].update(np.where(sil[s], "silhouette", "interior").tolist())
+            res["by_seer"].update([f"{train[j][0]}:{cam_of[j]}" for j in seer[s]])
+            res.setdefault("place_pixels", Counter()).update({place: n})
+            res.setdefault("place_unseen", Counter()).update({place: u})
+            res.setdefault("track_pixels", Counter()).update({tr: n})
     res.update(pixels=tot_n, unseen=tot_u, tracks=moving)
     return res
 

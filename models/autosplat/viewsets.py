@@ -264,7 +264,8 @@ def side_on_camera(seq, frame: int, track: int, range_m: float = SIDE_ON_RANGE_M
     L, W, H = (float(v) for v in box.size)
     dist = max(abs(float(e[1])), W)
     local = np.eye(4)
-    local[:3, :3] = np.array([[near, 0.0, 0.0], [0.0, 0.0, near], [0.0, -1.0, 0.0]])  # x: near * box x, y: down, z: near * box y
+    # camera axes in the box frame: x = near * box x, y = down (-box z), z = near * box y (towards the box)
+    local[:3, :3] = np.array([[near, 0.0, 0.0], [0.0, 0.0, near], [0.0, -1.0, 0.0]])
     local[:3, 3] = [0.0, -near * dist, -H / 2 + SIDE_ON_HEIGHT * H]
     c2w = B @ local
     scene = seq.metadata.get("scene")
