@@ -1,0 +1,109 @@
+"""The pose source "geometric" alone, on any ``--data`` (issue 32): each window's camera-0 motion t ->
+t+1 as the fit measures it from the images (:mod:`clsplat.models.drivingforward.geometric_pose`),
+against the data's, per window and per speed bin (median % in the moving bins, mean metres
+standing), beside the constant-motion control when ``--control N`` training windows are given.
+No training: the fit has no weights, so this is what ``--pose geometric`` reports, at the cost of
+the fits alone (~3 CPU s a fit at 176x320).
+
+    .venv/bin/python bench/experiments/df_geometric_pose_probe.py --data pandaset:DIR --split test
+    .venv/bin/python bench/experiments/df_geometric_pose_probe.py --data synthetic-cache:DIR --split val \\
+        --windows 40 --size 176 320 --control 10
+"""
+from __future__ import annotations
+
+import argparse
+import json
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", required=True, help="--data spec (synthetic: the varied world)")
+    p.add_argument("--preset", default="small")
+    p.add_argument("--split", default="val", choices=("train", "val", "test"))
+    p.add_argument("--windows", type=int, default=None, help="windows 0..N-1 (default: all a recording has; 40 synthetic)")
+    p.add_argument("--start", type=int, default=0, help="first window")
+    p.add_argument("--size", type=int, nargs=2, metavar=("H", "W"), default=None,
+                   help="geometric_size (default: the preset's, else its own size)")
+    p.add_argument("--control", type=int, default=0, metavar="N",
+                   help="constant-motion control: camera 0's mean true motion over N training windows")
+    p.add_argument("--json", default=None, help="write per-window results here")
+    a = p.parse_args(argv)
+    if a.windows is not None and a.windows < 1:
+        p.error(f"--windows: expected an int >= 1, got {a.windows}")
+    if a.start < 0 or a.control < 0:
+        p.error("--start / --control: expected ints >= 0")
+
+    import numpy as np
+    import torch
+
+    from clsplat.data.synthetic import SPEED_BINS, speed_bin
+    from clsplat.models.common.data import parse_data
+    from clsplat.models.common.metrics import pose_errors
+    from clsplat.models.common.presets import get_preset
+    from clsplat.models.drivingforward.data import camera0_motion, ego_speed, load_triplet
+    from clsplat.models.drivingforward.geometric_pose import load_window_motions
+
+    torch.set_num_threads(1)
+    try:
+        preset = get_preset("drivingforward", a.preset)
+        if a.size is not None:
+            preset = preset.replace(geometric_size=tuple(a.size))
+        src = parse_data(a.data, default_world="varied")
+    except ValueError as e:
+        p.error(str(e))
+    if a.windows is not None:
+        n = a.windows
+    elif src.synthetic_streets:
+        n = 40
+    else:                       # every window of the recording's split (windows cycle past the last)
+        n = len(src._window_starts(len(src.full_sequence().frames), 3, a.split)) - a.start
+    control = None
+    if a.control:
+        Ts = [camera0_motion(load_triplet(src, i, preset, "train")) for i in range(a.control)]
+        control = torch.stack(Ts).mean(0)                           # translation averaged; rotation near I
+        U, _, Vt = torch.linalg.svd(control[:3, :3])
+        control[:3, :3] = U @ Vt
+    rows = []
+    for i in range(a.start, a.start + n):
+        try:
+            s = load_triplet(src, i, preset, a.split)
+        except (ValueError, IndexError) as e:
+            print(f"window {i}: {e}; stopping")
+            break
+        T_true = camera0_motion(s)
+        M = load_window_motions(src, i, preset, a.split, None, s)[1].double()
+        E0 = s["cam_to_ego"][0].double()
+        err = pose_errors(torch.linalg.inv(E0) @ M @ E0, T_true)
+        row = {"window": i, "speed": ego_speed(s), "t_true_m": err["t_true_m"], "t_pred_m": err["t_pred_m"],
+               "t_err_m": err["t_err_m"], "t_err_pct": err["t_err_pct"]}
+        if control is not None:
+            c = pose_errors(control.to(T_true.dtype), T_true)
+            row.update({"control_t_err_m": c["t_err_m"], "control_t_err_pct": c["t_err_pct"]})
+        rows.append(row)
+        pct = "-" if row["t_err_pct"] is None else f"{row['t_err_pct']:.1f} %"
+        print(f"window {i}: {row['speed']:.2f} m/s, true {row['t_true_m']:.3f} m, fit {row['t_pred_m']:.3f} m, "
+              f"error {row['t_err_m']:.3f} m ({pct})", flush=True)
+    print(f"\n{a.data} ({a.split}), fit at {preset.geometric_size or (preset.height, preset.width)}:")
+    for name in SPEED_BINS:
+        b = [r for r in rows if speed_bin(r["speed"]) == name]
+        if not b:
+            print(f"  {name:9s} no windows")
+            continue
+        key = "t_err_m" if name == "standing" else "t_err_pct"
+        fit = np.median([r[key] for r in b if r[key] is not None]) if name != "standing" else \
+            np.mean([r[key] for r in b])
+        unit = "m" if name == "standing" else "%"
+        line = f"  {name:9s} n {len(b):2d}  fit {fit:.3f} {unit}"
+        if control is not None:
+            ck = "control_" + key
+            c = np.median([r[ck] for r in b if r[ck] is not None]) if name != "standing" else np.mean([r[ck] for r in b])
+            line += f"  constant motion {c:.3f} {unit}"
+        print(line + f"  (> 10 %: {sum(1 for r in b if name != 'standing' and r['t_err_pct'] > 10)})")
+    if a.json:
+        with open(a.json, "w") as fh:
+            json.dump({"args": vars(a), "windows": rows}, fh, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
