@@ -246,22 +246,33 @@ class RasterizeFn(torch.autograd.Function):
     @staticmethod
     def backward(ctx, v_out, v_T, v_alpha):
         s = ctx.s
-        _finite_grad("render_colors", v_out)
-        _finite_grad("render_alphas", v_T)
-        _finite_grad("render_alphas", v_alpha)
         if v_alpha is not None:  # alpha = 1 - T
             v_a = v_alpha.squeeze(-1)
-            v_T = -v_a if v_T is None else v_T - v_a
+            if v_T is None:
+                v_T = -v_a  # (finite exactly where v_alpha is: checked below as T's)
+            else:
+                _finite_grad("render_alphas", v_T)
+                _finite_grad("render_alphas", v_a)
+                v_T = v_T - v_a
         need = ctx.needs_input_grad
         geom, color = any(need[:3]), need[3]
         fwd = ctx.fwd
         if fwd is None or not (geom or color):
+            _finite_grad("render_colors", v_out)
+            _finite_grad("render_alphas", v_T)
             return (None,) * 8
         rt, cfg = s.rt, s.cfg
         out_t, T_t = ctx.saved_tensors
         fwd = dict(fwd, out=rt.array(out_t), T=rt.array(T_t))
+        given = v_out is not None, v_T is not None
         v_out = rt.staged(v_out, tuple(out_t.shape), out_t.dtype)
         v_T = rt.staged(v_T, tuple(T_t.shape), T_t.dtype)
+        # checked once staged: contiguous copies, where the incoming gradients are often
+        # expanded (a sum's backward), which numpy walks element by element (~3x the time)
+        if given[0]:
+            _finite_grad("render_colors", v_out.tensor)
+        if given[1]:
+            _finite_grad("render_alphas", v_T.tensor)
         absgrad = s.absgrad and geom
         with rt.scratch() as alloc:  # the slots live only until the reduce is read back
             r = stages.composite_bwd_reduced(rt, cfg, fwd, v_out, v_T, s.width, s.height,
