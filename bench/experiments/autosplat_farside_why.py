@@ -156,22 +156,7 @@ def analyse(world: str, seed: int, scale: float, cameras: list[str], view_set: s
                     continue
                 Bt = bt.box_to_world
                 P = pl[todo] @ Bt[:3, :3].T + Bt[:3, 3]
-                q = P @ w2c[:3, :3].T + w2c[:3, 3]
-                zt = q[:, 2]
-                front = zt > 1e-3
-                zs = np.where(front, zt, 1.0)
-                x = Kt[0, 0] * q[:, 0] / zs + Kt[0, 2]
-                y = Kt[1, 1] * q[:, 1] / zs + Kt[1, 2]
-                inside = front & (x >= 0) & (x < W) & (y >= 0) & (y < H)
-                x0 = np.clip(np.floor(x - 0.5).astype(np.int64), 0, W - 1)
-                y0 = np.clip(np.floor(y - 0.5).astype(np.int64), 0, H - 1)
-                x1, y1 = np.minimum(x0 + 1, W - 1), np.minimum(y0 + 1, H - 1)
-                four = np.stack([dt[y0, x0], dt[y0, x1], dt[y1, x0], dt[y1, x1]])
-                same = np.stack([lt[y0, x0], lt[y0, x1], lt[y1, x0], lt[y1, x1]]) == lab[todo]
-                lo = np.where(same, four, np.inf).min(0)
-                hi = np.where(same, four, -np.inf).max(0)
-                vis = inside & (zt >= lo * (1 - tol)) & (zt <= hi * (1 + tol))
-                exact = (same & (np.abs(four - zt) <= tol * four)).any(0)
+                vis, exact = vs.footprint_visible(P, lab[todo], Kt, w2c, dt, lt, tol)
                 seer[todo[vis]] = j
                 how[todo[vis]] = np.where(exact[vis], "exact", "range")
             un = seer < 0

@@ -161,6 +161,37 @@ def _training_views(trainer) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarr
     return cache
 
 
+def footprint_visible(P: np.ndarray, lab: np.ndarray, K: np.ndarray, w2c: np.ndarray, depth: np.ndarray,
+                      label: np.ndarray, tol: float = SEEN_REL_TOL) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`unseen_pixels`' test of one training camera: which world points it sees.
+
+    P ``[N, 3]`` world points with their surface labels ``lab [N]`` (:func:`_label`); the camera's
+    ``K [3, 3]``, world-to-camera ``w2c [4, 4]``, its z-depth ``[H, W]`` and labels ``[H, W]``.
+    A point is seen when it projects inside the image, in front, and its depth lies within ``tol``
+    of the range of the camera's depths at those of the 2 x 2 pixel centres around its image
+    position that show the same surface. Returns ``(seen [N]``, ``exact [N]``: within ``tol`` of
+    one of those depths itself, not only of their range).
+    """
+    H, W = depth.shape
+    q = P @ w2c[:3, :3].T + w2c[:3, 3]
+    zt = q[:, 2]
+    front = zt > 1e-3
+    zs = np.where(front, zt, 1.0)
+    x = K[0, 0] * q[:, 0] / zs + K[0, 2]
+    y = K[1, 1] * q[:, 1] / zs + K[1, 2]
+    inside = front & (x >= 0) & (x < W) & (y >= 0) & (y < H)
+    x0 = np.clip(np.floor(x - 0.5).astype(np.int64), 0, W - 1)   # the 2 x 2 pixel centres around
+    y0 = np.clip(np.floor(y - 0.5).astype(np.int64), 0, H - 1)
+    x1, y1 = np.minimum(x0 + 1, W - 1), np.minimum(y0 + 1, H - 1)
+    four = np.stack([depth[y0, x0], depth[y0, x1], depth[y1, x0], depth[y1, x1]])
+    same = np.stack([label[y0, x0], label[y0, x1], label[y1, x0], label[y1, x1]]) == lab
+    lo = np.where(same, four, np.inf).min(0)
+    hi = np.where(same, four, -np.inf).max(0)
+    seen = inside & (zt >= lo * (1 - tol)) & (zt <= hi * (1 + tol))
+    exact = (same & (np.abs(four - zt) <= tol * four)).any(0)
+    return seen, exact
+
+
 def unseen_pixels(trainer, frame: int, cam_to_world: np.ndarray, views, cameras: list[str] | None = None,
                   training: list[tuple] | None = None, only: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Which pixels of the generator views ``views`` (of ``cam_to_world [C, 4, 4]`` at ``frame``'s
@@ -217,21 +248,7 @@ def unseen_pixels(trainer, frame: int, cam_to_world: np.ndarray, views, cameras:
             todo = np.nonzero(here & ~seen)[0]
             if not len(todo):
                 continue
-            q = P[todo] @ w2c[:3, :3].T + w2c[:3, 3]
-            zt = q[:, 2]
-            front = zt > 1e-3
-            zs = np.where(front, zt, 1.0)
-            x = Kt[0, 0] * q[:, 0] / zs + Kt[0, 2]
-            y = Kt[1, 1] * q[:, 1] / zs + Kt[1, 2]
-            inside = front & (x >= 0) & (x < W) & (y >= 0) & (y < H)
-            x0 = np.clip(np.floor(x - 0.5).astype(np.int64), 0, W - 1)   # the 2 x 2 pixel centres around
-            y0 = np.clip(np.floor(y - 0.5).astype(np.int64), 0, H - 1)
-            x1, y1 = np.minimum(x0 + 1, W - 1), np.minimum(y0 + 1, H - 1)
-            four = np.stack([dt[y0, x0], dt[y0, x1], dt[y1, x0], dt[y1, x1]])
-            same = np.stack([lt[y0, x0], lt[y0, x1], lt[y1, x0], lt[y1, x1]]) == lab[todo]
-            lo = np.where(same, four, np.inf).min(0)
-            hi = np.where(same, four, -np.inf).max(0)
-            vis = inside & (zt >= lo * (1 - SEEN_REL_TOL)) & (zt <= hi * (1 + SEEN_REL_TOL))
+            vis, _ = footprint_visible(P[todo], lab[todo], Kt, w2c, dt, lt)
             seen[todo[vis]] = True
             if seen.all():
                 break
