@@ -12,6 +12,9 @@ warps and the render, as the data's own do under "dataset"; the pose network is 
 
 The fit's forward-translation search spans ``+- geometric_max_speed x`` the frame interval (the
 sample's timestamps) in ``geometric_search`` steps: a generic bound on a car's motion, not the data's.
+
+Like the ground prior, the fit needs the ego frame standing on the road (z = 0 the ground, z up):
+with a frame elsewhere (real PandaSet's roof LiDAR) its plane, and so its motion's scale, is wrong.
 """
 from __future__ import annotations
 
