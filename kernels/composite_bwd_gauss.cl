@@ -295,7 +295,9 @@ void composite_bwd_gauss(COMPOSITE_BWD_ARGS
      * writes before its increment and the last item's reads after its own: the driver builds
      * this only for PoCL's CPU device, whose atomic_inc is a sequentially consistent
      * read-modify-write on shared memory (OpenCL 1.2 promises no order between work-groups). */
-    if (atomic_inc(done) == (int)get_num_groups(0) - 1) {
+    mem_fence(CLK_GLOBAL_MEM_FENCE); /* this item's slot writes before its count (intent; */
+    if (atomic_inc(done) == (int)get_num_groups(0) - 1) { /* PoCL's atomic orders them anyway) */
+        mem_fence(CLK_GLOBAL_MEM_FENCE); /* the others' writes before the sums read them */
         for (int cg = 0; cg < CN; ++cg)
             reduce_pair(cg, rects, isect_offsets, slots, v_means2d, v_conics, v_opac, absgrad, v_feats);
         *done = 0; /* ready for the next launch */
