@@ -69,6 +69,9 @@ def test_geometric_motions_drive_the_warps_and_leave_the_pose_network_untrained(
     assert any(q.grad is not None for q in m.depth_net.parameters())
     with pytest.raises(ValueError, match="ego_motion_gt: preset pose_source 'geometric'"):
         m.training_losses(sample["images"], sample["images"], sample["Ks"], sample["cam_to_ego"])
+    still = dict(sample, timestamps=torch.zeros(3, dtype=torch.float64))   # frames at one instant
+    with pytest.raises(ValueError, match="timestamps"):
+        window_motions(still, get_preset("drivingforward", "tiny"))
 
 
 def test_the_fits_size_defaults_to_the_presets_and_bad_fields_are_refused():
@@ -77,6 +80,7 @@ def test_the_fits_size_defaults_to_the_presets_and_bad_fields_are_refused():
     assert tiny.pose_source == "network" and get_preset("drivingforward", "small").pose_source == "network"
     assert tiny.replace(geometric_size=[176, 320]).geometric_size == (176, 320)   # a checkpoint's list
     for field, value in (("geometric_size", (176,)), ("geometric_size", (4, 320)), ("geometric_size", (176.0, 320)),
+                         ("geometric_size", (100, 176)),
                          ("geometric_search", 1), ("geometric_search", True), ("geometric_max_speed", 0.0),
                          ("geometric_max_speed", float("inf")), ("pose_source", "lidar")):
         with pytest.raises(ValueError, match=field):
@@ -84,12 +88,24 @@ def test_the_fits_size_defaults_to_the_presets_and_bad_fields_are_refused():
 
 
 @pytest.mark.slow
-def test_pose_geometric_trains_and_reports_the_images_motion(tmp_path):
+def test_pose_geometric_trains_resumes_bitwise_and_reports_the_images_motion(tmp_path):
     from clsplat.models.drivingforward.cli import train
+
+    def run(out, steps, *extra):
+        return train(["--preset", "tiny", "--steps", str(steps), "--out", str(out), "--no-progress", "--threads", "1",
+                      "--checkpoint-every", "1", "--val-every", "0", "--pose", "geometric",
+                      "--set", f"geometric_size={SIZE}", *extra])
+
     out = tmp_path / "geo"
-    assert train(["--preset", "tiny", "--steps", "1", "--out", str(out), "--no-progress", "--threads", "1",
-                  "--eval-scenes", "1", "--val-every", "0", "--pose", "geometric",
-                  "--set", f"geometric_size={SIZE}"]) == 0
+    assert run(out, 2, "--eval-scenes", "1") == 0
+    # the fit draws no random numbers: a run stopped after step 1 and resumed ends bit for bit the same
+    assert run(tmp_path / "resumed", 1, "--eval-scenes", "0") == 0
+    assert run(tmp_path / "resumed", 2, "--eval-scenes", "0", "--resume") == 0
+    a = torch.load(out / "checkpoint.pt", weights_only=True)
+    b = torch.load(tmp_path / "resumed" / "checkpoint.pt", weights_only=True)
+    assert a["step"] == b["step"] == 2
+    for k, v in a["model"].items():
+        assert torch.equal(v, b["model"][k]), k
     ck = torch.load(out / "checkpoint.pt", weights_only=True)
     assert ck["preset"]["pose_source"] == "geometric" and list(ck["preset"]["geometric_size"]) == list(SIZE)
     m = json.loads((out / "metrics.json").read_text())

@@ -117,6 +117,8 @@ def test_direct_fit_recovers_a_known_motion_from_images_of_a_textured_ground(for
                      ("levels", {"levels": ()}), ("levels", {"levels": (0,)})):
         with pytest.raises(ValueError, match=name):
             fit_ground_motion_direct(earlier, later, K, E, 20.0, **kw)
+    with pytest.raises(ValueError, match="earlier / later"):
+        fit_ground_motion_direct(earlier, later.clone().index_fill_(-1, torch.tensor([3]), float("nan")), K, E, 20.0)
 
 
 def test_direct_fit_without_a_ground_pixel_returns_no_motion() -> None:

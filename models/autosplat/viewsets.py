@@ -51,7 +51,7 @@ LATERAL_SHIFTS_M: tuple[float, ...] = (1.0, 2.0, 3.0)
 #: a mirrored view counts for a vehicle when the vehicle covers at least this many pixels of it
 MIN_OBJECT_PIXELS = 16
 #: a training camera sees a point when the point's depth is within this share of the range of
-#: that camera's own depths over the 3 x 3 pixels it lands in (:func:`unseen_pixels`)
+#: that camera's own depths at the 2 x 2 pixel centres around where it lands (:func:`footprint_visible`)
 SEEN_REL_TOL = 0.02
 #: the far-side set's views (``AutoSplatPreset.far_side_view``): the mirrored rig (issue 19) or one
 #: side-on camera per vehicle and frame (:func:`side_on_camera`, issue 33)

@@ -198,6 +198,8 @@ def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_
     if earlier.shape != later.shape or earlier.ndim != 4 or earlier.shape[1] != 3:
         raise ValueError(f"earlier / later: expected two [V, 3, H, W] images, got {list(earlier.shape)} / "
                          f"{list(later.shape)}")
+    if not (bool(torch.isfinite(earlier).all()) and bool(torch.isfinite(later).all())):
+        raise ValueError("earlier / later: the images hold NaN or Inf")
     if not cap > 0:
         raise ValueError(f"cap: expected a positive number of metres, got {cap!r}")
     if not tau > 0:

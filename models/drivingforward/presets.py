@@ -310,8 +310,9 @@ class DFPreset(Preset):
                              f"got {self.pose_source!r}")
         g = self.geometric_size
         if g is not None and (not isinstance(g, (tuple, list)) or len(g) != 2 or any(
-                isinstance(v, bool) or not isinstance(v, int) or v < 8 for v in g)):
-            raise ValueError(f"preset {self.name}: geometric_size must be None or (H, W), two ints >= 8, got {g!r}")
+                isinstance(v, bool) or not isinstance(v, int) or v < 16 or v % 8 for v in g)):
+            raise ValueError(f"preset {self.name}: geometric_size must be None or (H, W), two multiples of 8 "
+                             f">= 16 (the sizes a window is read at), got {g!r}")
         if isinstance(g, list):                          # a checkpoint's JSON record gives a list
             object.__setattr__(self, "geometric_size", tuple(g))
         n = self.geometric_search
