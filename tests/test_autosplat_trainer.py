@@ -377,3 +377,59 @@ def test_bad_road_opacity_floor_is_named(value):
 def test_road_opacity_floor_is_off_in_every_preset():
     for name in ("tiny", "demo", "small", "paper"):
         assert get_preset("autosplat", name).road_opacity_floor == 0.0, name
+
+
+# issue 36 (tracker noise): the pose corrections trained in the foreground stage too
+def _fg_end() -> int:
+    s = TINY.stage_steps()
+    return s["bg_phase1"] + s["bg_phase2"] + s["foreground"]
+
+
+@pytest.mark.slow   # trains the tiny preset three times to the end of the foreground stage
+def test_fg_pose_correction_trains_the_corrections_in_the_foreground_stage_only_when_on(street, tmp_path):
+    data = prepare_data(street, CAMS, holdout=4)
+    on_preset = TINY.replace(fg_pose_correction=True)
+    off = Trainer(data, TINY, Switches(), tmp_path / "off", progress=False)
+    on = Trainer(data, on_preset, Switches(), tmp_path / "on", progress=False)
+    off.fit(stop_at=_fg_end())
+    on.fit(stop_at=_fg_end())
+    fg = [s for s in range(off.total) if off.stage_of(s)[0] == "foreground"]
+    fusion = [s for s in range(off.total) if off.stage_of(s)[0] == "fusion"]
+    pose = off.group_owner.index("pose")
+    assert fg and all(pose not in off.trainable_groups(s) for s in fg)
+    assert all(pose in on.trainable_groups(s) for s in fg)
+    assert all(pose in t.trainable_groups(s) for t in (on, off) for s in fusion)
+    # the switch off wins: no correction anywhere
+    noswitch = Trainer(data, on_preset, Switches(pose_correction=False), tmp_path / "ns", progress=False)
+    noswitch._build_optimizer()
+    assert all(pose not in noswitch.trainable_groups(s) for s in range(noswitch.total))
+    assert torch.count_nonzero(off.model.pose.delta) == 0   # off: untouched until fusion
+    d = on.model.pose.delta.detach()
+    trained = on.model.pose.trained
+    assert torch.count_nonzero(d[:, trained]) > 0            # on: moved in the foreground stage
+    assert torch.count_nonzero(d[:, ~trained]) == 0          # held-out frames are interpolated, never trained
+    # the foreground renders use them: the same object set placed differently
+    k, f = next((k, f) for k in range(len(on.tracks)) for f in np.flatnonzero(trained.numpy())
+                if bool(on.model.present[k, f]) and torch.count_nonzero(d[k, f]))
+    placed = on.model.object_set(k, int(f)).means
+    unplaced = on.model.object_set(k, int(f), pose_correction=False).means
+    assert not torch.allclose(placed, unplaced)
+    # a run stopped mid-foreground resumes bitwise, corrections and their Adam moments included
+    part = Trainer(data, on_preset, Switches(), tmp_path / "part", progress=False)
+    part.fit(stop_at=fg[1])
+    resumed = Trainer(data, on_preset, Switches(), tmp_path / "part", progress=False)
+    resumed.fit(resume=True, stop_at=_fg_end())
+    assert torch.equal(resumed.model.pose.delta, on.model.pose.delta)
+    a, b = on.opt.state[on.model.pose.delta], resumed.opt.state[resumed.model.pose.delta]
+    assert torch.equal(a["exp_avg"], b["exp_avg"]) and torch.equal(a["exp_avg_sq"], b["exp_avg_sq"])
+
+
+@pytest.mark.parametrize("value", [1, 0, "True", None])
+def test_bad_fg_pose_correction_is_named(value):
+    with pytest.raises(ValueError, match=r"fg_pose_correction: expected True or False"):
+        TINY.replace(fg_pose_correction=value)
+
+
+def test_fg_pose_correction_is_off_in_every_preset():
+    for name in ("tiny", "demo", "small", "paper"):
+        assert get_preset("autosplat", name).fg_pose_correction is False, name

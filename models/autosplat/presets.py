@@ -37,7 +37,8 @@ class AutoSplatPreset(Preset):
         bg_phase1_steps: road and sky sets alone, on their own pixels, with flatness.
         bg_phase2_steps: all background Gaussians jointly, foreground pixels masked out.
         fg_steps: object sets (background frozen), on full images.
-        fusion_steps: everything together, with per-object per-frame pose corrections.
+        fusion_steps: everything together, with per-object per-frame pose corrections
+            (``fg_pose_correction``: trained in the foreground stage too).
     Loss: ``(1 - lambda_dssim) L1 + lambda_dssim (1 - SSIM) + beta_flatness C
         + sparsity_weight |residual SH|``.
     """
@@ -107,6 +108,10 @@ class AutoSplatPreset(Preset):
     lr_residual: float = 1e-3
     lr_pose: float = 2e-3
     lr_sky: float = 1e-2
+    # issue 36 (tracker noise): True trains the per-object, per-frame pose corrections (lr_pose) in the
+    # foreground stage too, jointly with the object sets (the fusion stage trains them either way);
+    # only with the pose-correction switch on. False: bit for bit the runs before
+    fg_pose_correction: bool = False
     # issue 36 (small objects): the object sets' learning rates (means, quats, scales, opacity, SH)
     # are the background's times object_lr_scale; their densification threshold is
     # object_grad_threshold (0: grad_threshold, as before). 1.0 / 0.0: bit for bit the runs before.
@@ -172,6 +177,8 @@ class AutoSplatPreset(Preset):
             v = getattr(self, f)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < float("inf"):
                 raise bad(f, "expected a finite number >= 0")
+        if not isinstance(self.fg_pose_correction, bool):
+            raise bad("fg_pose_correction", "expected True or False")
         if self.object_lr_scale == 0:
             raise bad("object_lr_scale", "must be > 0")
         for f in ("fg_steps_max", "object_points_min"):

@@ -16,7 +16,8 @@ training frames, 1 by default; sample ``index`` draws its frame with a generator
    Gaussian cap, come from :func:`.objects.object_budget` (issue 36): fixed by the preset, or,
    with the preset's budget fields on, following the number of tracks and their boxes' pixels
    over the training views (0 iterations when no track's box shows).
-4. ``fusion``: everything, with the per-object per-frame pose corrections.
+4. ``fusion``: everything, with the per-object per-frame pose corrections (trained from the
+   foreground stage on with ``preset.fg_pose_correction``).
 
 Parameter groups outside a stage's set get no update (:meth:`Trainer.trainable_groups`: the loop
 drops their gradients before Adam). Means' learning rates decay ×0.1 over the whole schedule (a
@@ -222,14 +223,17 @@ class Trainer(LoopHooks):
     def trainable_groups(self, step: int) -> list[int]:
         """The optimiser groups ``step``'s stage trains: background and sky in the background phases;
         the objects and their residual SH in the foreground stage; all of them in fusion, plus the
-        pose corrections when switched on."""
+        pose corrections when switched on (in the foreground stage too with
+        ``preset.fg_pose_correction``: the foreground renders place each object with its correction
+        either way)."""
         stage = self.stage_of(step)[0]
         owners = set(self._trained_sets(stage))
         if stage in ("bg_phase1", "bg_phase2", "fusion"):
             owners.add("sky")
         if stage in ("foreground", "fusion"):
             owners.add("residuals")
-        if stage == "fusion" and self.switches.pose_correction:
+        pose_stages = ("foreground", "fusion") if self.preset.fg_pose_correction else ("fusion",)
+        if stage in pose_stages and self.switches.pose_correction:
             owners.add("pose")
         return [i for i, o in enumerate(self.group_owner) if o in owners]
 
