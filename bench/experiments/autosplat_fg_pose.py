@@ -1,0 +1,115 @@
+"""Issue 36 (tracker noise): tables of the pose corrections trained in the foreground stage
+(``--set fg_pose_correction=True``) against the same runs without (bench/notes/autosplat_moving_objects.md,
+"Pose corrections trained in the foreground stage").
+
+Reads AutoSplat run folders named ``PREFIX_<street>_<config>_s<seed>`` (e.g. ``i36s10_busynoisy_fgpc_s0``)
+and prints, per run, the held-out image PSNR, the per-class object PSNR of ``metrics.json``'s
+``objects`` section, the ``pose_correction`` section (the boxes' centre error before / after the
+learnt correction, metres, and yaw, degrees; training and held-out frames; only on streets with
+tracker noise) and the command's CPU seconds (``<times>/<run>.time``, ``/usr/bin/time -v``); then,
+per street and config, each seed paired against ``--base`` (mean, min..max), and the adoption rule
+written before the runs (the note): noisy-box cars gain >= 0.5 dB on every busy-noisy seed (overtake-
+noisy: >= 0.5 on average, no seed negative), image >= -0.1 dB on average on every street, exact-box
+cars >= -0.1 dB on average.
+
+    .venv/bin/python bench/experiments/autosplat_fg_pose.py /work/runs/i36s10_*_s[012] --times /work/runs/i36s10_logs
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import statistics
+from pathlib import Path
+
+NAME = re.compile(r"^[^_]+_(?P<street>[^_]+)_(?P<config>.+)_s(?P<seed>\d+)$")
+CLASSES = ("car", "pedestrian", "other")
+
+
+def _cpu(run: Path, times: Path | None) -> float | None:
+    f = None if times is None else times / f"{run.name}.time"
+    if f is None or not f.is_file():
+        return None
+    text = f.read_text()
+    return sum(float(re.search(rf"{k} time \(seconds\): ([0-9.]+)", text).group(1)) for k in ("User", "System"))
+
+
+def load(run: Path, times: Path | None) -> dict:
+    """One run's figures: ``image``, ``car`` / ``pedestrian`` / ``other`` (None without pixels), the
+    pose section's ``train`` / ``held_out`` blocks (None without tracker noise), ``cpu``."""
+    m = json.loads((run / "metrics.json").read_text())
+    pc = (m.get("objects") or {}).get("per_class", {})
+    out = {"image": m["all"]["psnr"], "cpu": _cpu(run, times), "pose": m.get("pose_correction")}
+    out.update({c: pc[c]["psnr"] if c in pc and pc[c]["pixels"] else None for c in CLASSES})
+    return out
+
+
+def _f(x, fmt: str = ".2f") -> str:
+    return "–" if x is None else format(x, fmt)
+
+
+def _agg(v: list) -> str:
+    v = [x for x in v if x is not None]
+    if not v:
+        return "–"
+    return f"{statistics.mean(v):+.2f} ({min(v):+.2f}..{max(v):+.2f})" if len(v) > 1 else f"{v[0]:+.2f}"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("runs", nargs="+", type=Path)
+    ap.add_argument("--times", type=Path, default=None, help="folder of <run>.time files (/usr/bin/time -v)")
+    ap.add_argument("--base", default="base")
+    a = ap.parse_args()
+    runs: dict[str, dict[str, dict[int, dict]]] = {}
+    for r in a.runs:
+        g = NAME.match(r.name)
+        if g and (r / "metrics.json").is_file():
+            runs.setdefault(g["street"], {}).setdefault(g["config"], {})[int(g["seed"])] = load(r, a.times)
+
+    print("| street | config | seed | image | car | pedestrian | other | centre error train m: injected → left "
+          "| held-out | yaw train °: injected → left | CPU s |")
+    print("|---" * 10 + "|")
+    for street, cfgs in sorted(runs.items()):
+        for cfg, seeds in sorted(cfgs.items()):
+            for s, r in sorted(seeds.items()):
+                p = r["pose"] or {}
+                tr, ho = p.get("train") or {}, p.get("held_out") or {}
+                print(f"| {street} | {cfg} | {s} | {r['image']:.2f} | " + " | ".join(_f(r[c]) for c in CLASSES)
+                      + f" | {_f(tr.get('injected_m'), '.3f')} → {_f(tr.get('residual_m'), '.3f')}"
+                      f" | {_f(ho.get('injected_m'), '.3f')} → {_f(ho.get('residual_m'), '.3f')}"
+                      f" | {_f(tr.get('yaw_injected_deg'))} → {_f(tr.get('yaw_residual_deg'))} | {_f(r['cpu'], '.0f')} |")
+
+    print(f"\n| street | config − {a.base} | seeds | image | car | pedestrian | other | car per seed | CPU ratio per seed |")
+    print("|---" * 9 + "|")
+    verdict: list[str] = []
+    for street, cfgs in sorted(runs.items()):
+        base = cfgs.get(a.base, {})
+        for cfg, seeds in sorted(cfgs.items()):
+            common = sorted(set(seeds) & set(base))
+            if cfg == a.base or not common:
+                continue
+            d = {k: [None if seeds[s][k] is None or base[s][k] is None else seeds[s][k] - base[s][k] for s in common]
+                 for k in ("image", *CLASSES)}
+            cpu = " / ".join("–" if seeds[s]["cpu"] is None or base[s]["cpu"] is None
+                             else f"{seeds[s]['cpu'] / base[s]['cpu']:.2f}" for s in common)
+            print(f"| {street} | {cfg} − {a.base} | {','.join(map(str, common))} | "
+                  + " | ".join(_agg(d[k]) for k in ("image", *CLASSES))
+                  + f" | {' / '.join(_f(x, '+.2f') for x in d['car'])} | {cpu} |")
+            cars = [x for x in d["car"] if x is not None]
+            img = statistics.mean(d["image"])
+            if street == "busynoisy":
+                verdict.append(f"{street} {cfg}: cars >= +0.5 on every seed: {bool(cars) and min(cars) >= 0.5}")
+            elif street == "overtakenoisy":
+                verdict.append(f"{street} {cfg}: cars mean >= +0.5 and none < 0: "
+                               f"{bool(cars) and statistics.mean(cars) >= 0.5 and min(cars) >= 0}")
+            elif cars:
+                verdict.append(f"{street} {cfg}: exact-box cars mean >= -0.1: {statistics.mean(cars) >= -0.1}")
+            verdict.append(f"{street} {cfg}: image mean >= -0.1: {img >= -0.1}")
+    print("\nthe rule (note, written before the runs):")
+    for v in verdict:
+        print("  " + v)
+
+
+if __name__ == "__main__":
+    main()
