@@ -248,12 +248,9 @@ class RasterizeFn(torch.autograd.Function):
         s = ctx.s
         if v_alpha is not None:  # alpha = 1 - T
             v_a = v_alpha.squeeze(-1)
-            if v_T is None:
-                v_T = -v_a  # (finite exactly where v_alpha is: checked below as T's)
-            else:
-                _finite_grad("render_alphas", v_T)
-                _finite_grad("render_alphas", v_a)
-                v_T = v_T - v_a
+            # (checked below as T's, once staged: a NaN or Inf in either term leaves one in
+            # the difference)
+            v_T = -v_a if v_T is None else v_T - v_a
         need = ctx.needs_input_grad
         geom, color = any(need[:3]), need[3]
         fwd = ctx.fwd

@@ -203,6 +203,22 @@ def test_bad_grad_output(make_scene):
         r.backward(torch.ones(3, 3, dtype=r.dtype))
 
 
+@pytest.mark.parametrize("bad", ["nan", "inf"])
+def test_bad_alpha_grad_output(make_scene, bad):
+    """A NaN or Inf in the alphas' gradient is refused once, naming it, whether T's gradient also
+    arrives from the background blend (the two are combined, then checked) or not."""
+    scene = make_scene(seed=6, N=30, C=1, width=32, height=24)
+    xs = _inputs(scene)
+    for with_bg in (True, False):
+        r, a, _ = clsplat.rasterization(xs[0], xs[1], xs[2], xs[3], xs[4], xs[5], scene["Ks"],
+                                        scene["width"], scene["height"],
+                                        backgrounds=xs[6] if with_bg else None)
+        g = torch.ones_like(a)
+        g[0, 3, 5, 0] = float(bad)
+        with pytest.raises(ValueError, match="render_alphas"):
+            torch.autograd.backward([r.sum(), a], [None, g])
+
+
 def test_replay_and_divide_agree(make_scene):
     scene = make_scene(seed=8, N=200, C=1, width=48, height=48, opacity_range=(0.8, 0.999))
     g1, _ = _grads(clsplat.rasterization, scene)
