@@ -1,5 +1,5 @@
 """models/drivingforward/geometric_pose.py: the pose source "geometric" measures a window's rig
-motion from its own images (moving and standing windows of the varied world, both directions),
+motion from its own images (moving, crawling and standing windows of the varied world, both directions),
 drives the warps without training the pose network, travels through ``--pose geometric`` into the
 checkpoint and ``metrics.json`` (the loader reading the frames again at the fit's size; its pose
 scored against the data's), and refuses bad fields."""
@@ -57,6 +57,20 @@ def test_a_standing_window_reads_as_standing(preset, varied):
     assert all(float(m[:3, 3].norm()) < 0.01 for m in window_motions(s, preset))
 
 
+@pytest.mark.slow
+def test_geometric_keep_reads_a_crawling_window_that_the_plain_fit_reads_as_standing(preset, varied):
+    """A crawl (0.11 m a frame): with every ground pixel's residual in the search's mean, the pixels
+    the plane wrongly claims cost more at the true motion than the road gains, and zero wins; with
+    ``geometric_keep`` 0.75 they drop out and the crawl is measured (issue 32)."""
+    s = _window(varied, 12, preset)                      # a training street crawling at 1.08 m/s
+    true = gt_ego_motion(s)[2][:3, 3].double()
+    assert 0.05 < float(true.norm()) < 0.15
+    plain = window_motions(s, preset)[1][:3, 3].double()
+    trimmed = window_motions(s, preset.replace(geometric_keep=0.75))[1][:3, 3].double()
+    assert float(plain.norm()) < 0.2 * float(true.norm())          # the failure: read as standing
+    assert float((trimmed - true).norm()) < 0.1 * float(true.norm())
+
+
 def test_geometric_motions_drive_the_warps_and_leave_the_pose_network_untrained(sample):
     torch.manual_seed(0)
     m = DrivingForward(get_preset("drivingforward", "tiny").replace(pose_source="geometric"))
@@ -78,11 +92,13 @@ def test_the_fits_size_defaults_to_the_presets_and_bad_fields_are_refused():
     tiny = get_preset("drivingforward", "tiny")
     assert geometric_size(tiny) == (tiny.height, tiny.width)
     assert tiny.pose_source == "network" and get_preset("drivingforward", "small").pose_source == "network"
+    assert tiny.geometric_keep == 1.0 and get_preset("drivingforward", "small").geometric_keep == 1.0   # off
     assert tiny.replace(geometric_size=[176, 320]).geometric_size == (176, 320)   # a checkpoint's list
     for field, value in (("geometric_size", (176,)), ("geometric_size", (4, 320)), ("geometric_size", (176.0, 320)),
                          ("geometric_size", (100, 176)),
                          ("geometric_search", 1), ("geometric_search", True), ("geometric_max_speed", 0.0),
-                         ("geometric_max_speed", float("inf")), ("pose_source", "lidar")):
+                         ("geometric_max_speed", float("inf")), ("geometric_keep", 0.0), ("geometric_keep", 1.5),
+                         ("geometric_keep", True), ("pose_source", "lidar")):
         with pytest.raises(ValueError, match=field):
             tiny.replace(**{field: value})
 

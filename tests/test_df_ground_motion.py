@@ -127,3 +127,35 @@ def test_direct_fit_without_a_ground_pixel_returns_no_motion() -> None:
     img = torch.rand(3, 3, 16, 28, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     M = fit_ground_motion_direct(img, img.flip(-1), K, E, cap=20.0, weight=torch.zeros(3, 1, 16, 28))
     assert torch.equal(M, torch.eye(4, dtype=torch.float64))
+
+
+def test_keep_trims_pixels_that_keep_pace_with_the_ego_so_a_crawl_is_not_read_short() -> None:
+    """A crawl (0.15 m) over a low-contrast ground, a fifth of whose pixels show a pattern that keeps
+    pace with the ego (a car driving alongside: fixed in the image, so the plane's flow misplaces it
+    at the true motion and not at zero). The plain mean reads the crawl short (toward standing);
+    ``keep`` 0.75 drops the misfit pixels from the search and the refinement and reads it."""
+    K, E = _rig()
+    K = K.clone()
+    K[:, :2] *= 2.0                                                        # 32 x 56 images
+    theta = torch.tensor([0.0, 0.0, 0.0, 0.15, 0.0, 0.0], dtype=torch.float64)
+    earlier = _render_ground(K, E, torch.eye(4, dtype=torch.float64), 32, 56)
+    later = _render_ground(K, E, se3_exp(theta[:3], theta[3:]), 32, 56)
+    ground = ground_prior_depth(K, E, 32, 56, 12.0) < 12.0                 # [3, 1, 32, 56]
+    car = torch.zeros_like(ground)
+    car[..., 20:32] = True
+    car &= ground
+    assert 0.18 < float(car.sum() / ground.sum()) < 0.25
+    v, u = torch.meshgrid(torch.arange(32, dtype=torch.float64), torch.arange(56, dtype=torch.float64), indexing="ij")
+    pattern = 0.5 + 0.45 * torch.sign(torch.sin(1.3 * u) * torch.sin(1.1 * v))
+    a, b = torch.where(car, pattern, earlier), torch.where(car, pattern, later)
+    kw = {"dof": 3, "search": (-3.0, 3.0, 301)}
+    plain = float(fit_ground_motion_direct(a, b, K, E, 12.0, **kw)[0, 3])
+    trimmed = float(fit_ground_motion_direct(a, b, K, E, 12.0, keep=0.75, **kw)[0, 3])
+    assert plain < 0.1, plain                                              # the failure keep is for
+    assert abs(trimmed - 0.15) < 0.01, trimmed
+    # keep 1 is the plain mean, bit for bit (the field's default leaves every fit as it was)
+    assert torch.equal(fit_ground_motion_direct(a, b, K, E, 12.0, keep=1.0, **kw),
+                       fit_ground_motion_direct(a, b, K, E, 12.0, **kw))
+    for bad in (0.0, 1.5, True, float("nan")):
+        with pytest.raises(ValueError, match="keep"):
+            fit_ground_motion_direct(a, b, K, E, 12.0, keep=bad)

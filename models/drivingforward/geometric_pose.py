@@ -12,6 +12,9 @@ warps and the render, as the data's own do under "dataset"; the pose network is 
 
 The fit's forward-translation search spans ``+- geometric_max_speed x`` the frame interval (the
 sample's timestamps) in ``geometric_search`` steps: a generic bound on a car's motion, not the data's.
+``geometric_keep`` < 1 makes the search's cost least-trimmed (the lowest share of the ground pixels'
+residuals): without it a crawling window (0.6-1.2 m/s) reads as standing, since the pixels the
+plane wrongly claims (cars, kerbs) cost more at the true motion than the road gains.
 
 Like the ground prior, the fit needs the ego frame standing on the road (z = 0 the ground, z up):
 with a frame elsewhere (real PandaSet's roof LiDAR) its plane, and so its motion's scale, is wrong.
@@ -44,7 +47,8 @@ def window_motions(sample: dict, preset) -> list[Tensor]:
     Args:
         sample: :func:`~.data.load_triplet`'s dict (``images [3, V, 3, H, W]``, ``Ks``,
             ``cam_to_ego``, ``timestamps [3]``), at any size.
-        preset: gives ``ground_prior_cap``, ``geometric_search``, ``geometric_max_speed``.
+        preset: gives ``ground_prior_cap``, ``geometric_search``, ``geometric_max_speed``,
+            ``geometric_keep``.
     Returns:
         ``[M_{t->t-1}, M_{t->t+1}]``, each ``[4, 4]`` in the images' dtype: ego coordinates at t to
         ego coordinates at the other frame (:func:`~.data.gt_ego_motion`'s convention).
@@ -59,7 +63,8 @@ def window_motions(sample: dict, preset) -> list[Tensor]:
             raise ValueError(f"timestamps: frames t-1, t, t+1 must have distinct times, got {ts.tolist()}")
         bound = preset.geometric_max_speed * dt
         M = fit_ground_motion_direct(images[1], images[other], sample["Ks"], E, cap,
-                                     search=(-bound, bound, preset.geometric_search))
+                                     search=(-bound, bound, preset.geometric_search),
+                                     keep=float(preset.geometric_keep))
         out.append(M.to(images.dtype))
     return out
 

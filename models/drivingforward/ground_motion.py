@@ -166,7 +166,7 @@ def _sample(img: Tensor, uv: Tensor) -> tuple[Tensor, Tensor]:
 def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_ego: Tensor, cap: float,
                              levels: tuple[int, ...] = (1,), dof: int = 6, loss: str = "huber",
                              iters: int = 8, search: tuple[float, float, int] | None = (-3.0, 3.0, 61),
-                             weight: Tensor | None = None, tau: float = 0.05) -> Tensor:
+                             weight: Tensor | None = None, tau: float = 0.05, keep: float = 1.0) -> Tensor:
     """The rig motion that best aligns the later images with the earlier ones on the ground.
 
     A direct (photometric) form of :func:`fit_ground_motion`: every pixel whose ray meets the ground
@@ -180,7 +180,14 @@ def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_
     absolute residual truncated at ``tau`` (grey levels in [0, 1]: a pixel worse than that, or
     moved out of view, counts as unmatched) at the first level, then from 21 values within one grid
     step of the best (a generic bound on the motion between frames, like the pose network's own
-    clamp; None: start from zero motion).
+    clamp; None: start from zero motion). ``keep`` < 1 makes that cost least-trimmed: the mean of
+    the lowest ``keep`` share of the prior's truncated residuals only (1: all of them, the plain
+    mean). Pixels the ground prior wrongly holds on the plane (cars, kerbs, facade bases: a fifth to
+    a quarter of them within 20 m) move by the plane's flow at no motion, so at 0.06-0.12 m a frame
+    their misfit at the true motion outweighs the road's signal and the plain mean is lowest at zero
+    (a crawling car reads as standing); trimmed, they drop out at the true motion, where the road
+    matches, while at zero the road's own 1-px flow still costs (issue 32, the note's "Crawling
+    windows").
 
     Args:
         earlier, later: ``[V, 3, H, W]`` images in [0, 1]; Ks ``[V, 3, 3]`` at that size;
@@ -204,6 +211,8 @@ def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_
         raise ValueError(f"cap: expected a positive number of metres, got {cap!r}")
     if not tau > 0:
         raise ValueError(f"tau: expected a positive grey-level difference, got {tau!r}")
+    if isinstance(keep, bool) or not isinstance(keep, (int, float)) or not 0 < keep <= 1:
+        raise ValueError(f"keep: expected a share of the pixels in (0, 1], got {keep!r}")
     _check_iters(iters)
     if search is not None:
         ok = isinstance(search, (tuple, list)) and len(search) == 3 and not isinstance(search[2], bool) \
@@ -254,12 +263,18 @@ def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_
     def cost(th: Tensor, lv) -> float:
         """Mean truncated absolute residual over the prior's pixels, ``min(|r|, tau)``; a pixel moved
         out of the image counts as unmatched (``tau``), so a motion can lower the cost neither by
-        moving pixels out of view nor through the pixels that are not on the ground."""
+        moving pixels out of view nor through the pixels that are not on the ground; with ``keep``
+        < 1, the mean of the lowest ``keep`` share of those."""
         r, _, m = residual(th, lv)
         pw = lv[5] > 0
         if not bool(pw.any()):
             return float("inf")
         e = torch.where(m > 0, r.abs().clamp(max=tau), torch.full_like(r, tau))[pw]
+        if keep < 1:            # the mean of the k lowest, in O(n): those below the k-th, then its ties
+            k = max(1, int(keep * e.numel()))
+            kth = e.kthvalue(k).values
+            below = e < kth
+            return float((e[below].sum() + kth * (k - int(below.sum()))) / k)
         return float(e.mean())
 
     searched = False
@@ -294,6 +309,9 @@ def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_
             J = torch.stack(cols, -1)[m > 0]                                            # [n, k]
             rr = r[m > 0]
             wt = _robust_weights(rr.abs(), loss) * m[m > 0]
+            if keep < 1:        # least-trimmed here too: the residuals beyond the keep share weigh nothing
+                k = min(rr.numel(), max(1, int(keep * int((lv[5] > 0).sum()))))
+                wt = wt * (rr.abs() <= rr.abs().kthvalue(k).values)
             A = (J * wt[:, None]).T @ J
             bvec = (J * wt[:, None]).T @ rr
             step = -torch.linalg.solve(A + 1e-9 * torch.eye(len(free), dtype=dt) * (1 + A.diagonal().max()), bvec)

@@ -161,6 +161,9 @@ class DFPreset(Preset):
             (issue 32, chosen on validation windows: 301, 0.02 m steps at 0.1 s).
         geometric_max_speed: m/s; the search spans +- this times the frame interval (a generic
             bound on a car's motion, 30 m/s = 108 km/h).
+        geometric_keep: share of the ground pixels whose residuals the "geometric" fit's search
+            averages, the lowest (a least-trimmed cost: pixels off the road plane drop out, so a
+            crawling car no longer reads as standing); 1.0: all (issue 32; off in every preset).
         pose_translation_init: initial camera-0 translation (metres, camera frame, earlier ->
             later) of the pose network, set through the decoder's output bias; None: the paper's
             zero-mean initialisation.
@@ -244,6 +247,7 @@ class DFPreset(Preset):
     geometric_size: tuple[int, int] | None = None
     geometric_search: int = 301
     geometric_max_speed: float = 30.0
+    geometric_keep: float = 1.0
     pose_translation_init: tuple[float, float, float] | None = None
     detach_render_pose: bool = False
     supersample: int = 1
@@ -321,6 +325,9 @@ class DFPreset(Preset):
         v = self.geometric_max_speed
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < float("inf"):
             raise ValueError(f"preset {self.name}: geometric_max_speed must be a finite number > 0 (m/s), got {v!r}")
+        k = self.geometric_keep
+        if isinstance(k, bool) or not isinstance(k, (int, float)) or not 0 < k <= 1:
+            raise ValueError(f"preset {self.name}: geometric_keep must be a share in (0, 1], got {k!r}")
         t = self.pose_translation_init
         if t is not None and (len(t) != 3 or not all(abs(float(v)) <= self.max_translation for v in t)):
             raise ValueError(f"preset {self.name}: pose_translation_init must be None or 3 values within "
