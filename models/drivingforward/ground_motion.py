@@ -180,14 +180,15 @@ def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_
     absolute residual truncated at ``tau`` (grey levels in [0, 1]: a pixel worse than that, or
     moved out of view, counts as unmatched) at the first level, then from 21 values within one grid
     step of the best (a generic bound on the motion between frames, like the pose network's own
-    clamp; None: start from zero motion). ``keep`` < 1 makes that cost least-trimmed: the mean of
-    the lowest ``keep`` share of the prior's truncated residuals only (1: all of them, the plain
-    mean). Pixels the ground prior wrongly holds on the plane (cars, kerbs, facade bases: a fifth to
-    a quarter of them within 20 m) move by the plane's flow at no motion, so at 0.06-0.12 m a frame
-    their misfit at the true motion outweighs the road's signal and the plain mean is lowest at zero
-    (a crawling car reads as standing); trimmed, they drop out at the true motion, where the road
-    matches, while at zero the road's own 1-px flow still costs (issue 32, the note's "Crawling
-    windows").
+    clamp; None: start from zero motion). ``keep`` < 1 makes that cost least-trimmed, the mean of
+    the lowest ``keep`` share of the prior's truncated residuals only, and gives the refinement's
+    residuals beyond that share's quantile no weight (1: all of them, the plain mean, bit for bit).
+    Pixels the ground prior wrongly holds on the plane (cars, kerbs, facade bases: a fifth to a
+    quarter of those within 20 m) are misplaced by the plane's flow at the true motion but not at
+    zero, so at 0.06-0.12 m a frame their misfit outweighs the road's signal and the plain mean is
+    lowest at zero (a crawling car reads as standing); trimmed, they drop out, while at zero the
+    road's own ~1-px flow still costs (issue 32; bench/notes/drivingforward_varied_world.md,
+    "Crawling windows").
 
     Args:
         earlier, later: ``[V, 3, H, W]`` images in [0, 1]; Ks ``[V, 3, 3]`` at that size;
@@ -247,12 +248,12 @@ def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_
         # whole image), padded to the busiest camera with pixels of weight 0 (2-3x fewer samples).
         used = pw > 0
         n = max(int(used.sum(1).max()), 1)
-        keep = torch.argsort(used.to(torch.int8), dim=1, descending=True, stable=True)[:, :n]   # [V, n]
-        pick = lambda t: t.gather(-1, keep[:, None].expand(V, t.shape[1], n))                # noqa: E731
+        order = torch.argsort(used.to(torch.int8), dim=1, descending=True, stable=True)[:, :n]  # [V, n]
+        pick = lambda t: t.gather(-1, order[:, None].expand(V, t.shape[1], n))               # noqa: E731
         gx = F_.conv2d(F_.pad(b, (1, 1, 0, 0), mode="replicate"), kx)
         gy = F_.conv2d(F_.pad(b, (0, 0, 1, 1), mode="replicate"), kx.transpose(-1, -2))
         return (pick(a.reshape(V, 1, -1)), torch.cat([b, gx, gy], 1), K, pick(uv), pick(X),
-                pw.gather(1, keep))
+                pw.gather(1, order))
 
     def residual(th: Tensor, lv) -> tuple[Tensor, Tensor, Tensor]:
         a, b3, K, uv, X, pw = lv
