@@ -5,7 +5,8 @@ For each window (frames t -> t+1, read at ``--size``) and each ``--supersample``
 rays per pixel side, area averaged), prints the fit's own cost (mean absolute grey residual
 truncated at tau over the ground prior's pixels within the cap, a pixel moved out of view counts
 tau; :func:`~clsplat.models.drivingforward.ground_motion.fit_ground_motion_direct`) at 0, 0.25, ...,
-1.5 x the true ego motion (the whole 6-dof twist scaled), the fit's answer and its error, and the
+1.5 x the true ego motion (the whole 6-dof twist scaled; ``--translation-only``: its translation with
+no rotation, the line the fit's 1-D search walks), the fit's answer and its error, and the
 CPU seconds of rendering the triplet. Variants of the cost (H3, pixel selection; the fit itself is
 unchanged unless ``--fit-variants``): ``trim``: the lowest 75 % of the truncated residuals only;
 ``cap10``: ground within 10 m only. H2's floor: the cost of frame t against itself resampled by a
@@ -36,6 +37,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cap", type=float, default=20.0)
     p.add_argument("--tau", type=float, default=0.05)
     p.add_argument("--no-fit", action="store_true", help="cost curves only (no fit)")
+    p.add_argument("--translation-only", action="store_true",
+                   help="the curve scales the true translation with no rotation (what the fit's 1-D search sees)")
     p.add_argument("--keep", type=float, nargs="+", default=[1.0],
                    help="the fit's search keeps this share of the lowest residuals (one fit per value)")
     p.add_argument("--json", default=None)
@@ -77,6 +80,8 @@ def main(argv: list[str] | None = None) -> int:
             A = g1.reshape(V, -1)
             M = gt_ego_motion(s)[2].double()
             th_true = torch.cat([matrix_to_axis_angle(M[:3, :3]), M[:3, 3]])
+            if a.translation_only:
+                th_true[:3] = 0
 
             def costs(th):
                 v, inside = _sample(g2, uv + plane_flow(th, K, E, uv, X))
