@@ -13,6 +13,11 @@ noisy: >= 0.5 on average, no seed negative), image >= -0.1 dB on average on ever
 cars >= -0.1 dB on average.
 
     .venv/bin/python bench/experiments/autosplat_fg_pose.py /work/runs/i36s10_*_s[012] --times /work/runs/i36s10_logs
+    .venv/bin/python bench/experiments/autosplat_fg_pose.py /work/runs/i36s10_busynoisy_*_s0 --spread
+
+``--spread`` adds, from each run's checkpoint, the part of the box error an object set cannot absorb
+(its frame-to-frame variation, :func:`spread`): the ``pose_correction`` section's absolute error
+counts a constant offset that the object's Gaussians may have taken up.
 """
 from __future__ import annotations
 
@@ -44,6 +49,57 @@ def load(run: Path, times: Path | None) -> dict:
     return out
 
 
+def spread(run: Path) -> dict | None:
+    """The boxes' error that no object set can absorb, from the run's checkpoint (rebuilt on its
+    recorded data): per decomposed track and training frame, the error transform from the placed
+    box to the exact one, ``Err_f = E_f^-1 T_f exp(delta_f)``; a constant ``Err`` over a track's
+    frames is a gauge its object set absorbs (its Gaussians shifted and turned once), so what
+    counts is each frame's deviation from the track's mean: the x/y distance of the track's
+    Gaussians' centroid mapped by ``Err_f`` from its mean over the frames (metres), and ``Err_f``'s
+    yaw from its mean (degrees); with ``delta`` = 0 (``injected``) and with the learnt one
+    (``left``). None without tracker noise."""
+    import numpy as np
+    import torch
+    from clsplat.models.autosplat.evaluate import trainer_from_checkpoint
+    from clsplat.models.autosplat.fusion import axis_angle_to_quat
+    from clsplat.models.common.geometry import quat_to_matrix
+
+    ck = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)
+    tr = trainer_from_checkpoint(ck, run / "checkpoint.pt", run, None)
+    d, m = tr.data, tr.model
+    exact = d.seq.metadata.get("exact_boxes")
+    if exact is None or not tr.tracks:
+        return None
+    wrap = lambda a: (a + np.pi) % (2 * np.pi) - np.pi  # noqa: E731
+    out = {"injected": ([], []), "left": ([], [])}
+    with torch.no_grad():
+        for k, t in enumerate(tr.tracks):
+            frames = [i for i in d.train_frames if bool(m.present[k, i]) and t.track_id in exact[i]]
+            if len(frames) < 2 or len(m.objects[k]) == 0:
+                continue
+            c = m.objects[k].means.double().mean(0).numpy()
+            for key in out:
+                pts, yaws = [], []
+                for i in frames:
+                    T = np.eye(4)
+                    T[:3, :3] = m.track_R[k, i].double().numpy()
+                    T[:3, 3] = m.track_t[k, i].double().numpy()
+                    if key == "left" and tr.switches.pose_correction:
+                        dl = m.pose(k, i).double()
+                        D = np.eye(4)
+                        D[:3, :3] = quat_to_matrix(axis_angle_to_quat(dl[:3])).numpy()
+                        D[:3, 3] = dl[3:].numpy()
+                        T = T @ D
+                    err = np.linalg.inv(exact[i][t.track_id].box_to_world) @ T
+                    pts.append(err[:3, :3] @ c + err[:3, 3])
+                    yaws.append(np.arctan2(err[1, 0], err[0, 0]))
+                pts, yaws = np.asarray(pts), np.asarray(yaws)
+                mean_yaw = np.arctan2(np.sin(yaws).mean(), np.cos(yaws).mean())
+                out[key][0].extend(np.linalg.norm((pts - pts.mean(0))[:, :2], axis=1).tolist())
+                out[key][1].extend(np.degrees(np.abs(wrap(yaws - mean_yaw))).tolist())
+    return {key: (float(np.mean(a)), float(np.mean(b)), len(a)) for key, (a, b) in out.items()}
+
+
 def _f(x, fmt: str = ".2f") -> str:
     return "–" if x is None else format(x, fmt)
 
@@ -60,7 +116,17 @@ def main() -> None:
     ap.add_argument("runs", nargs="+", type=Path)
     ap.add_argument("--times", type=Path, default=None, help="folder of <run>.time files (/usr/bin/time -v)")
     ap.add_argument("--base", default="base")
+    ap.add_argument("--spread", action="store_true",
+                    help="also the boxes' frame-to-frame error before / after the correction (from each checkpoint)")
     a = ap.parse_args()
+    if a.spread:
+        print("| run | frame-to-frame centre error m: injected → left | yaw °: injected → left | boxes |")
+        print("|---" * 4 + "|")
+        for r in a.runs:
+            if (r / "checkpoint.pt").is_file() and (sp := spread(r)) is not None:
+                (ci, yi, n), (cl, yl, _) = sp["injected"], sp["left"]
+                print(f"| {r.name} | {ci:.3f} → {cl:.3f} | {yi:.2f} → {yl:.2f} | {n} |")
+        print()
     runs: dict[str, dict[str, dict[int, dict]]] = {}
     for r in a.runs:
         g = NAME.match(r.name)
