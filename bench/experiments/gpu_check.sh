@@ -1,0 +1,27 @@
+#!/bin/sh
+# The engine on an NVIDIA GPU's OpenCL driver, on the device machine (nothing depends on it):
+#   run there from the repository root with the wheels of pyopencl, pytools, platformdirs and
+#   siphash24 for its Python in .whl/ (carried), $OUT the folder that comes back:
+#     sh bench/experiments/gpu_check.sh
+# 1. installs the wheels (pyopencl's bundles the ICD loader) and points the loader at the driver's
+#    libnvidia-opencl where no ICD file names it; 2. lists the OpenCL devices; 3. gpu_check.py's
+#    accuracy / determinism / kernel-time table on the default device (the GPU); 4. the engine's
+#    own tests on it (they run on PoCL in CI; what fails here is recorded, not hidden).
+set -u
+python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
+export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
+# the source tree as the installed package lays it out (setup.cfg's package_dir)
+for d in kernels bench models; do [ -e clsplat/$d ] || ln -s ../$d clsplat/$d; done
+if [ ! -d /etc/OpenCL/vendors ]; then
+  lib=$(ls /usr/local/nvidia/lib64/libnvidia-opencl.so.1 /usr/lib/x86_64-linux-gnu/libnvidia-opencl.so.1 \
+        /usr/lib64/libnvidia-opencl.so.1 2>/dev/null | head -1)
+  echo "ICD: no /etc/OpenCL/vendors; libnvidia-opencl: ${lib:-not found}"
+  if [ -n "$lib" ]; then mkdir -p /tmp/icd && echo "$lib" > /tmp/icd/nvidia.icd && export OCL_ICD_VENDORS=/tmp/icd; fi
+fi
+nvidia-smi -L
+python3 -c "import clsplat; print(clsplat.describe_devices())" 2>&1 | tee $OUT/devices.txt
+timeout 240 python3 bench/experiments/gpu_check.py --out $OUT --scenes tiny,10k,A,B --repeats 5 2>&1 | tee $OUT/gpu_check.log
+timeout 120 python3 -m pytest -q -p no:cacheprovider -rf --timeout 60 tests/test_rasterization.py tests/test_autograd.py \
+  tests/test_composite.py tests/test_composite_bwd.py tests/test_project.py tests/test_project_bwd.py tests/test_sh.py \
+  tests/test_sh_bwd.py tests/test_order.py tests/test_bin.py tests/test_reduce.py tests/test_packed.py \
+  tests/test_gsplat_rendering.py 2>&1 | tail -60 | tee $OUT/pytest_gpu.txt
