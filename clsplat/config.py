@@ -27,7 +27,8 @@ class RenderConfig:
                   sigmas, culling o < alpha_min), "3.33sigma" (fixed) or "4sigma".
     fast_math:    build with -cl-fast-relaxed-math.
     pix:          pixels per work-item in compositing (None: one 256-bit vector on CPUs,
-                  i.e. 8 floats or 4 doubles; 1 on GPUs).
+                  i.e. 8 floats or 4 doubles; on GPUs 1, or as many as keep a tile's group
+                  within 256 items: 4 for 32x32 tiles, stages.GPU_DEFAULT_GROUP_MAX).
     sort_local:   keys sorted in local memory per work-group (None: from device limits).
     sort_layout:  "serial" (CPU default) or "bitonic" (GPU default). With sort_impl "depth":
                   the serial layout walks a few long chunks per compute unit, the GPU layout

@@ -560,6 +560,12 @@ def tile_ranges(offsets: DeviceArray, n_cameras: int, tiles_y: int, tiles_x: int
 
 
 CHANNEL_CHUNK = 32  # channels per compositing launch at most (gsplat's channel_chunk default)
+#: compositing work-items per group that a GPU's default layout (``RenderConfig.pix`` None) stays
+#: within: NVIDIA's OpenCL driver gives the float64 compositor a CL_KERNEL_WORK_GROUP_SIZE of 256
+#: (its registers; an H200, 2026-11-27, bench/notes/engine_gpu.md) though the device allows 1024,
+#: and AMD's GPUs cap groups at 256; a 32x32 tile then takes 4 pixels per item. An explicit pix
+#: is kept, and refused with the kernel's own limit where it cannot run.
+GPU_DEFAULT_GROUP_MAX = 256
 
 
 def _planned_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: int,
@@ -586,7 +592,7 @@ def composite_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: i
     # 8 floats or 4 doubles fill one 256-bit AVX register; PoCL rejects wider double vectors
     # on CPUs without AVX-512 (no kernel is produced).
     real = 8 if cfg.precision == "float64" else 4
-    pix = cfg.pix or ((32 // real) if rt.is_cpu else 1)
+    pix = cfg.pix or ((32 // real) if rt.is_cpu else max(1, tile_size * tile_size // GPU_DEFAULT_GROUP_MAX))
     if rt.is_cpu and pix * real > 32:
         raise ValueError(f"pix: {pix} x {cfg.precision} exceeds the 256-bit vectors PoCL builds "
                          f"for this CPU; use at most {32 // real}")

@@ -86,7 +86,11 @@ def test_pix_layouts_agree(rt, make_scene, run_forward, ref_project, reference, 
             with pytest.raises(ValueError, match="tile_size"):
                 run_forward(rt, RenderConfig(pix=pix), scene, feats, tile_size=tile_size)
             continue
-        outs[pix] = run_forward(rt, RenderConfig(pix=pix), scene, feats, tile_size=tile_size)
+        try:
+            outs[pix] = run_forward(rt, RenderConfig(pix=pix), scene, feats, tile_size=tile_size)
+        except ValueError as e:  # a GPU driver may give this kernel fewer items than the device
+            # (its registers: NVIDIA's float64 compositor 256 of 1024): refused with that reason
+            assert "CL_KERNEL_WORK_GROUP_SIZE" in str(e) and tile_size * tile_size // pix > 256, e
     assert len(outs) >= 2
     base = next(iter(outs.values()))
     for o in outs.values():
