@@ -15,6 +15,9 @@ device (``CLSPLAT_DEVICE`` or the first GPU), per scene (:data:`bench.peers.SCEN
 * **time**: ``--repeats`` forward + backward calls after two warm-ups, wall medians, and each
   kernel's device time (OpenCL profiling events) summed per stage, medians.
 
+``--set FIELD=VALUE`` gives every render that :class:`clsplat.RenderConfig` field (e.g.
+``backward_impl=gaussian``, ``sort_impl=tiles``).
+
 Writes ``gpu_check.json`` and ``gpu_check.md`` into ``--out``, printing the table as it goes.
 """
 from __future__ import annotations
@@ -38,7 +41,7 @@ from bench.scenes import render_args  # noqa: E402
 from bench.timing import event_ms  # noqa: E402
 
 
-def _render(scene: dict, dtype: torch.dtype, packed: bool, events: list | None = None,
+def _render(scene: dict, dtype: torch.dtype, packed: bool, fields: dict, events: list | None = None,
             ref: bool = False) -> tuple[torch.Tensor, dict]:
     """One forward + backward of a fixed weighted sum of the image: (image, gradients)."""
     args = render_args(scene)
@@ -48,10 +51,17 @@ def _render(scene: dict, dtype: torch.dtype, packed: bool, events: list | None =
     if ref:
         img = reference.rasterization(**args)[0]
     else:
-        img = clsplat.rasterization(**args, packed=packed, events=events)[0]
+        img = clsplat.rasterization(**args, packed=packed, events=events, config=_config(dtype, fields))[0]
     w = torch.linspace(0.5, 1.5, img.numel(), dtype=img.dtype).reshape(img.shape)
     (img * w).sum().backward()
     return img.detach(), {k: v.grad for k, v in leaves.items()}
+
+
+def _config(dtype: torch.dtype, fields: dict) -> clsplat.RenderConfig | None:
+    """The RenderConfig of ``fields`` (``--set``) in ``dtype``'s precision; None: the default."""
+    if not fields:
+        return None
+    return clsplat.RenderConfig(precision="float64" if dtype == torch.float64 else "float32", **fields)
 
 
 def _agreement(img, grads, ref_img, ref_grads) -> dict:
@@ -61,21 +71,21 @@ def _agreement(img, grads, ref_img, ref_grads) -> dict:
                          / max(float(ref_grads[k].norm()), floor, 1e-30) for k in PARAMS}}
 
 
-def check_scene(name: str, repeats: int, torch_max_n: int) -> dict:
+def check_scene(name: str, repeats: int, torch_max_n: int, fields: dict) -> dict:
     scene = SCENES[name]()
     n = scene["means"].shape[0]
     row: dict = {"scene": name, "N": n, "size": f"{scene['width']}x{scene['height']}"}
     t0 = time.perf_counter()
-    img64, g64 = _render(scene, torch.float64, packed=False)
+    img64, g64 = _render(scene, torch.float64, False, fields)
     row["float64_s"] = time.perf_counter() - t0
     for packed in (False, True):
-        img32, g32 = _render(scene, torch.float32, packed)
+        img32, g32 = _render(scene, torch.float32, packed, fields)
         row[f"f32_vs_f64_{'packed' if packed else 'unpacked'}"] = _agreement(img32, g32, img64, g64)
     if n <= torch_max_n:
-        imgr, gr = _render(scene, torch.float64, False, ref=True)
+        imgr, gr = _render(scene, torch.float64, False, fields, ref=True)
         row["f64_vs_torch_reference"] = _agreement(img64, g64, imgr, gr)
-    a_img, a_g = _render(scene, torch.float32, True)
-    b_img, b_g = _render(scene, torch.float32, True)
+    a_img, a_g = _render(scene, torch.float32, True, fields)
+    b_img, b_g = _render(scene, torch.float32, True, fields)
     row["bitwise_repeatable"] = bool(torch.equal(a_img, b_img) and all(torch.equal(a_g[k], b_g[k]) for k in PARAMS))
     fw, bw, kern = [], [], defaultdict(list)
     args = render_args(scene)
@@ -84,7 +94,7 @@ def check_scene(name: str, repeats: int, torch_max_n: int) -> dict:
     for i in range(2 + repeats):
         ev: list = []
         s0 = time.perf_counter()
-        img = clsplat.rasterization(**args, packed=True, events=ev)[0]
+        img = clsplat.rasterization(**args, packed=True, events=ev, config=_config(torch.float32, fields))[0]
         s1 = time.perf_counter()
         img.sum().backward()
         s2 = time.perf_counter()
@@ -125,7 +135,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenes", default="10k,A,B")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--torch-max-n", type=int, default=10_000)
+    ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                    help="a RenderConfig field for every render, e.g. backward_impl=gaussian")
     a = ap.parse_args(argv)
+    fields: dict = {}
+    for spec in a.set:
+        field, sep, value = spec.partition("=")
+        if not sep:
+            ap.error(f"--set: expected FIELD=VALUE, got {spec!r}")
+        fields[field] = int(value) if value.isdigit() else value
+    try:
+        _config(torch.float32, fields)
+    except (TypeError, ValueError) as e:
+        ap.error(f"--set: {e}")
     names = [s for s in a.scenes.split(",") if s]
     bad = [s for s in names if s not in SCENES]
     if bad:
@@ -133,18 +155,18 @@ def main(argv: list[str] | None = None) -> int:
     devices = describe_devices()
     print(devices, flush=True)
     rt = get_runtime()
-    print(f"runtime: {rt.name}", flush=True)
+    print(f"runtime: {rt.name}; config {fields or 'default'}", flush=True)
     a.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for name in names:
         t0 = time.perf_counter()
         try:
-            rows.append(check_scene(name, a.repeats, a.torch_max_n))
+            rows.append(check_scene(name, a.repeats, a.torch_max_n, fields))
         except Exception as e:  # a failing scene is recorded, the others still run
             rows.append({"scene": name, "error": f"{type(e).__name__}: {e}"[:2000]})
         print(json.dumps(rows[-1]), f"({time.perf_counter() - t0:.1f} s)", flush=True)
         (a.out / "gpu_check.json").write_text(json.dumps({"device": rt.name, "devices": devices,
-                                                           "rows": rows}, indent=1) + "\n")
+                                                           "config": fields, "rows": rows}, indent=1) + "\n")
     ok = [r for r in rows if "error" not in r]
     (a.out / "gpu_check.md").write_text(markdown(ok, devices))
     print(markdown(ok, devices))

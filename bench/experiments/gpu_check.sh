@@ -26,6 +26,12 @@ if [ -z "$lib" ] && [ -n "${GPU_ONLY:-}" ]; then  # no GPU driver for OpenCL: on
   exit 0
 fi
 python3 -c "import clsplat; print(clsplat.describe_devices())" 2>&1 | tee $OUT/devices.txt
+if [ -n "${GPU_IMPLS:-}" ]; then  # the per-Gaussian backward and the per-tile sort on the GPU, beside the defaults
+  for cfg in "backward_impl=gaussian" "sort_impl=tiles"; do
+    timeout 100 python3 bench/experiments/gpu_check.py --out $OUT/${cfg%%=*} --scenes tiny,10k,A --repeats 3 --set $cfg 2>&1 | tail -8
+  done
+  exit 0
+fi
 timeout 240 python3 bench/experiments/gpu_check.py --out $OUT --scenes tiny,10k,A,B --repeats 5 2>&1 | tee $OUT/gpu_check.log
 timeout 120 python3 -m pytest -q -p no:cacheprovider -rf --timeout 60 tests/test_rasterization.py tests/test_autograd.py \
   tests/test_composite.py tests/test_composite_bwd.py tests/test_project.py tests/test_project_bwd.py tests/test_sh.py \
