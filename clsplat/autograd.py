@@ -49,10 +49,12 @@ class Settings:
     isect: tuple | None = None  # (tile offsets, sorted keys) of the forward, for ``meta``
     absgrad_sink: object = None  # callable(absgrad [C,N,2]); default: set means2d.absgrad
     pixel_reserve: int = 0  # bytes of pixel buffers still to come (clsplat.plan)
-    # data_ptr -> the device array of a non-differentiable projection output (radii, rects,
-    # extents) of this call, which the later Functions pass to their kernels instead of making
-    # a new buffer (_array). Differentiable outputs are not held: output -> grad_fn -> ctx ->
-    # Settings -> array -> output would be a cycle the GC cannot free.
+    # data_ptr -> the device array of a projection output of this call, which the later
+    # Functions pass to their kernels instead of making a new buffer (_array): on the copying
+    # path (GPUs) that is an upload of what was just read back (bench/notes/engine_gpu.md). The
+    # outputs returned are detached aliases of these arrays' tensors, so no array refers to an
+    # output or its grad_fn: holding them makes no reference cycle through autograd's graph
+    # (tests/test_autograd.py, test_renders_free_their_buffers).
     arrays: dict | None = None
     # rects' data_ptr -> stages.EarlyTiles: a small call's tile lists, launched by ProjectFn
     # right behind the projection (one wait for both), for RasterizeFn to take
@@ -67,8 +69,8 @@ class Settings:
 
 
 def _array(s: Settings, t: torch.Tensor, read_only: bool = False) -> DeviceArray:
-    """``t`` on the device: the projection's own array where ``t`` is one of its
-    non-differentiable outputs (see :attr:`Settings.arrays`), else a new one."""
+    """``t`` on the device: the projection's own array where ``t`` is one of its outputs as
+    returned (see :attr:`Settings.arrays`), else :meth:`Runtime.array`'s."""
     a = s.arrays.get(t.data_ptr()) if s.arrays else None
     if (a is not None and a.tensor.shape == t.shape and a.tensor.dtype == t.dtype
             and a.tensor.stride() == t.stride()):
@@ -103,7 +105,8 @@ class ProjectFn(torch.autograd.Function):
         p.rects.read_only = True  # no later command writes the rectangles: read without a wait
         if s.arrays is None:
             s.arrays = {}
-        s.arrays.update((a.tensor.data_ptr(), a) for a in (p.radii, p.rects, p.extents)
+        s.arrays.update((a.tensor.data_ptr(), a) for a in (p.means2d, p.conics, p.depths, p.opacities,
+                                                           p.radii, p.rects, p.extents)
                         if a.tensor.numel())
         if early is not None:
             if s.early is None:
@@ -208,13 +211,13 @@ class RasterizeFn(torch.autograd.Function):
     def forward(ctx, means2d, conics, opacities, feats, rects, extents, depths, s: Settings):
         rt, cfg, arr = s.rt, s.cfg, s.rt.array
         ctx.route, full = s.packed_route or (None, means2d)  # (packed: see Settings.packed_route)
-        a = {"means2d": arr(full), "conics": arr(conics),  # (Runtime.array detaches itself)
-             "opacities": arr(opacities), "feats": arr(feats, keep=True),
+        a = {"means2d": _array(s, full), "conics": _array(s, conics),  # (the projection's own)
+             "opacities": _array(s, opacities), "feats": arr(feats, keep=True),
              "rects": _array(s, rects, read_only=True), "extents": _array(s, extents)}
         want_grad = any(ctx.needs_input_grad[:4])  # False under no_grad or for constants
         per_isect = plan.intersection_bytes(feats.shape[-1], feats.element_size(), grad=want_grad,
                                             absgrad=s.absgrad)
-        d = arr(depths)
+        d = _array(s, depths)
         early = s.early.pop(rects.data_ptr(), None) if s.early else None
         if early is not None and (early.rects is not a["rects"] or early.depths is not d):
             early = None  # (not this projection's: the lists are built here)
