@@ -37,6 +37,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cap", type=float, default=20.0)
     p.add_argument("--tau", type=float, default=0.05)
     p.add_argument("--no-fit", action="store_true", help="cost curves only (no fit)")
+    p.add_argument("--grid2d", action="store_true",
+                   help="also the plain and trimmed costs' argmin over forward translation x yaw (0.05 m x 0.25 deg "
+                        "over +-3 m x +-2 deg): whether a search that steps the yaw finds the truth")
     p.add_argument("--translation-only", action="store_true",
                    help="the curve scales the true translation with no rotation (what the fit's 1-D search sees)")
     p.add_argument("--keep", type=float, nargs="+", default=[1.0],
@@ -92,6 +95,20 @@ def main(argv: list[str] | None = None) -> int:
                         "cap10": float(e[near].mean())}
 
             curve = {f"{sc:g}": costs(th_true * sc) for sc in SCALES}
+            if a.grid2d:
+                best = {"plain": (float("inf"), 0.0, 0.0), "trim": (float("inf"), 0.0, 0.0)}
+                for tx in torch.arange(-3.0, 3.0 + 1e-9, 0.05, dtype=dt):
+                    for wz in torch.arange(-2.0, 2.0 + 1e-9, 0.25, dtype=dt):
+                        th = torch.zeros(6, dtype=dt)
+                        th[2], th[3] = wz * torch.pi / 180, tx
+                        c = costs(th)
+                        for key in best:
+                            if c[key] < best[key][0]:
+                                best[key] = (c[key], float(tx), float(wz))
+                grid2d = {k: {"cost": v[0], "tx": v[1], "wz_deg": v[2]} for k, v in best.items()}
+                print(f"  grid2d: true tx {float(M[0, 3]):+.3f} wz {float(th_true[2]) * 180 / torch.pi:+.2f} deg | "
+                      + " | ".join(f"{k} argmin tx {v['tx']:+.2f} wz {v['wz_deg']:+.2f}" for k, v in grid2d.items()),
+                      flush=True)
             # H2's floor: frame t against itself read half a pixel away (x, then y), no ground truth
             fl = []
             for d in ((0.5, 0.0), (0.0, 0.5)):
