@@ -433,3 +433,18 @@ def test_bad_fg_pose_correction_is_named(value):
 def test_fg_pose_correction_is_off_in_every_preset():
     for name in ("tiny", "demo", "small", "paper"):
         assert get_preset("autosplat", name).fg_pose_correction is False, name
+
+
+@pytest.mark.slow   # trains the tiny preset to the end of the foreground stage
+def test_pose_translation_only_learns_the_translation_and_holds_the_rotation(street, tmp_path):
+    data = prepare_data(street, CAMS, holdout=4)
+    t = Trainer(data, TINY.replace(fg_pose_correction=True, pose_translation_only=True), Switches(), tmp_path,
+                progress=False)
+    t.fit(stop_at=_fg_end())
+    d = t.model.pose.delta.detach()
+    assert torch.count_nonzero(d[..., :3]) == 0 and torch.count_nonzero(d[..., 3:]) > 0
+    k, f = next((k, f) for k in range(len(t.tracks)) for f in range(d.shape[1]) if torch.count_nonzero(d[k, f]))
+    assert torch.equal(t.model.pose(k, f)[3:], d[k, f, 3:]) and torch.count_nonzero(t.model.pose(k, f)[:3]) == 0
+    assert TINY.pose_translation_only is False
+    with pytest.raises(ValueError, match=r"pose_translation_only: expected True or False"):
+        TINY.replace(pose_translation_only=1)

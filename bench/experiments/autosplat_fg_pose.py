@@ -57,7 +57,8 @@ def spread(run: Path) -> dict | None:
     counts is each frame's deviation from the track's mean: the x/y distance of the track's
     Gaussians' centroid mapped by ``Err_f`` from its mean over the frames (metres), and ``Err_f``'s
     yaw from its mean (degrees); with ``delta`` = 0 (``injected``) and with the learnt one
-    (``left``). None without tracker noise."""
+    (``left``); and the centre's deviation weighted by each box's pixels over the cameras (what the
+    images see: far and small boxes count little). None without tracker noise."""
     import numpy as np
     import torch
     from clsplat.models.autosplat.evaluate import trainer_from_checkpoint
@@ -71,7 +72,10 @@ def spread(run: Path) -> dict | None:
     if exact is None or not tr.tracks:
         return None
     wrap = lambda a: (a + np.pi) % (2 * np.pi) - np.pi  # noqa: E731
-    out = {"injected": ([], []), "left": ([], [])}
+    from clsplat.models.autosplat.objects import track_box_pixels
+    pixels = track_box_pixels(d.seq, [t.track_id for t in tr.tracks], list(range(len(d.seq.frames))),
+                              d.cameras).sum(-1)
+    out = {"injected": ([], [], []), "left": ([], [], [])}
     with torch.no_grad():
         for k, t in enumerate(tr.tracks):
             frames = [i for i in d.train_frames if bool(m.present[k, i]) and t.track_id in exact[i]]
@@ -97,7 +101,9 @@ def spread(run: Path) -> dict | None:
                 mean_yaw = np.arctan2(np.sin(yaws).mean(), np.cos(yaws).mean())
                 out[key][0].extend(np.linalg.norm((pts - pts.mean(0))[:, :2], axis=1).tolist())
                 out[key][1].extend(np.degrees(np.abs(wrap(yaws - mean_yaw))).tolist())
-    return {key: (float(np.mean(a)), float(np.mean(b)), len(a)) for key, (a, b) in out.items()}
+                out[key][2].extend(float(pixels[k, i]) for i in frames)
+    return {key: (float(np.mean(a)), float(np.mean(b)), len(a), float(np.average(a, weights=w)))
+            for key, (a, b, w) in out.items()}
 
 
 def _f(x, fmt: str = ".2f") -> str:
@@ -120,12 +126,13 @@ def main() -> None:
                     help="also the boxes' frame-to-frame error before / after the correction (from each checkpoint)")
     a = ap.parse_args()
     if a.spread:
-        print("| run | frame-to-frame centre error m: injected → left | yaw °: injected → left | boxes |")
-        print("|---" * 4 + "|")
+        print("| run | frame-to-frame centre error m: injected → left | yaw °: injected → left | "
+              "centre, by box pixels | boxes |")
+        print("|---" * 5 + "|")
         for r in a.runs:
             if (r / "checkpoint.pt").is_file() and (sp := spread(r)) is not None:
-                (ci, yi, n), (cl, yl, _) = sp["injected"], sp["left"]
-                print(f"| {r.name} | {ci:.3f} → {cl:.3f} | {yi:.2f} → {yl:.2f} | {n} |")
+                (ci, yi, n, wi), (cl, yl, _, wl) = sp["injected"], sp["left"]
+                print(f"| {r.name} | {ci:.3f} → {cl:.3f} | {yi:.2f} → {yl:.2f} | {wi:.3f} → {wl:.3f} | {n} |", flush=True)
         print()
     runs: dict[str, dict[str, dict[int, dict]]] = {}
     for r in a.runs:

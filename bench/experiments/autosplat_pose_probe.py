@@ -32,14 +32,16 @@ import numpy as np
 import torch
 
 
-def box_errors(model, tracks, frames, exact_of) -> tuple[float, float, float, float, int]:
-    """(absolute centre m, absolute yaw °, frame-to-frame centre m, frame-to-frame yaw °, boxes) of the
-    placed boxes ``T_f exp(delta_f)`` against ``exact_of(track_id, frame)`` (a 4 x 4 box-to-world)."""
+def box_errors(model, tracks, frames, exact_of, pixels=None) -> tuple[float, ...]:
+    """(absolute centre m, absolute yaw °, frame-to-frame centre m, frame-to-frame yaw °, boxes, and
+    with ``pixels`` (``[T, F]`` box pixels over the cameras) the absolute and frame-to-frame centre
+    errors weighted by them) of the placed boxes ``T_f exp(delta_f)`` against
+    ``exact_of(track_id, frame)`` (a 4 x 4 box-to-world)."""
     from clsplat.models.autosplat.fusion import axis_angle_to_quat
     from clsplat.models.common.geometry import quat_to_matrix
 
     wrap = lambda a: (a + np.pi) % (2 * np.pi) - np.pi  # noqa: E731
-    ac, ay, fc, fy = [], [], [], []
+    ac, ay, fc, fy, w = [], [], [], [], []
     with torch.no_grad():
         for k, t in enumerate(tracks):
             fr = [i for i in frames if bool(model.present[k, i]) and exact_of(t.track_id, i) is not None]
@@ -64,7 +66,11 @@ def box_errors(model, tracks, frames, exact_of) -> tuple[float, float, float, fl
             mean_yaw = np.arctan2(np.sin(yaws).mean(), np.cos(yaws).mean())
             fc += np.linalg.norm((pts - pts.mean(0))[:, :2], axis=1).tolist()
             fy += np.degrees(np.abs(wrap(yaws - mean_yaw))).tolist()
-    return float(np.mean(ac)), float(np.mean(ay)), float(np.mean(fc)), float(np.mean(fy)), len(ac)
+            w += [0.0 if pixels is None else float(pixels[k, i]) for i in fr]
+    out = (float(np.mean(ac)), float(np.mean(ay)), float(np.mean(fc)), float(np.mean(fy)), len(ac))
+    if pixels is None or sum(w) == 0:
+        return out
+    return out + (float(np.average(ac, weights=w)), float(np.average(fc, weights=w)))
 
 
 def landscape(tr, exact_of, alphas=(0.0, 0.25, 0.5, 0.75, 1.0)) -> None:
@@ -135,6 +141,8 @@ def main() -> None:
     ap.add_argument("--lr", type=float, nargs="+", default=[2e-3])
     ap.add_argument("--every", type=int, default=25)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--translation-only", action="store_true",
+                    help="fit the corrections' translation only (their rotation held at 0)")
     ap.add_argument("--landscape", action="store_true",
                     help="also the loss from the noisy to the exact boxes and the full-batch gradient's direction")
     a = ap.parse_args()
@@ -176,25 +184,35 @@ def main() -> None:
             if a.steps == 0:
                 break
         opt = torch.optim.Adam([m.pose.delta], lr=lr, eps=1e-15)
+        from clsplat.models.autosplat.objects import track_box_pixels
+        pixels = np.zeros(m.present.shape)
+        pixels[:, :] = track_box_pixels(seq, [t.track_id for t in tr.tracks], list(range(len(seq.frames))),
+                                        d.cameras).sum(-1)
         rng = np.random.default_rng([p.seed, 99])
-        print(f"\n{a.run.name} with the boxes of {spec}, pose corrections only, Adam lr {lr}")
-        print("| step | centre m | yaw ° | frame-to-frame centre m | frame-to-frame yaw ° | loss (mean since last) | s |")
-        print("|---" * 7 + "|")
+        print(f"\n{a.run.name} with the boxes of {spec}, pose corrections only{' (translation)' if a.translation_only else ''}, Adam lr {lr}")
+        print("| step | centre m | yaw ° | frame-to-frame centre m | frame-to-frame yaw ° | centre m, by box pixels "
+              "| frame-to-frame centre m, by box pixels | loss (mean since last) | s |")
+        print("|---" * 9 + "|")
         t0, losses = time.perf_counter(), []
-        e = box_errors(m, tr.tracks, d.train_frames, exact_of)
-        print(f"| 0 | {e[0]:.3f} | {e[1]:.2f} | {e[2]:.3f} | {e[3]:.2f} | – | 0 |")
+
+        def row(step: int, loss: str) -> None:
+            e = box_errors(m, tr.tracks, d.train_frames, exact_of, pixels)
+            print(f"| {step} | {e[0]:.3f} | {e[1]:.2f} | {e[2]:.3f} | {e[3]:.2f} | {e[5]:.3f} | {e[6]:.3f} | {loss} | "
+                  f"{time.perf_counter() - t0:.0f} |", flush=True)
+
+        row(0, "–")
         for step in range(1, a.steps + 1):
             frame = d.train_frames[int(rng.integers(len(d.train_frames)))]
             opt.zero_grad()
             loss = stage_loss(m, tr.renderer, d, p, tr.switches, "fusion", frame, len(tr.tracks))["loss"]
             loss.backward()
+            if a.translation_only:
+                m.pose.delta.grad[..., :3] = 0
             opt.step()
             tr.renderer.drain()
             losses.append(float(loss.detach()))
             if step % a.every == 0 or step == a.steps:
-                e = box_errors(m, tr.tracks, d.train_frames, exact_of)
-                print(f"| {step} | {e[0]:.3f} | {e[1]:.2f} | {e[2]:.3f} | {e[3]:.2f} | {np.mean(losses):.4f} | "
-                      f"{time.perf_counter() - t0:.0f} |", flush=True)
+                row(step, f"{np.mean(losses):.4f}")
                 losses = []
 
 

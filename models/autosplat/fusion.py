@@ -32,15 +32,25 @@ class PoseCorrection(nn.Module):
     Args:
         num_tracks, num_frames: table size.
         trained: ``[F]`` bool, frames whose corrections are trained (others are interpolated).
+        translation_only: hold the rotation part at 0 (the preset's ``pose_translation_only``).
     """
 
-    def __init__(self, num_tracks: int, num_frames: int, trained: torch.Tensor) -> None:
+    def __init__(self, num_tracks: int, num_frames: int, trained: torch.Tensor,
+                 translation_only: bool = False) -> None:
         super().__init__()
         self.delta = nn.Parameter(torch.zeros(num_tracks, num_frames, 6))
         self.register_buffer("trained", trained.to(torch.bool).clone())
+        #: True: the rotation part is held at 0 (it gets no gradient), only the translation is learnt
+        self.translation_only = bool(translation_only)
 
     def forward(self, track: int, frame: int) -> torch.Tensor:
         """``[6]`` correction of ``track`` at ``frame`` (interpolated for untrained frames)."""
+        d = self._delta(track, frame)
+        if self.translation_only:
+            return torch.cat([torch.zeros_like(d[:3]), d[3:]])
+        return d
+
+    def _delta(self, track: int, frame: int) -> torch.Tensor:
         if bool(self.trained[frame]):
             return self.delta[track, frame]
         idx = torch.nonzero(self.trained).flatten()

@@ -112,6 +112,9 @@ class AutoSplatPreset(Preset):
     # foreground stage too, jointly with the object sets (the fusion stage trains them either way);
     # only with the pose-correction switch on. False: bit for bit the runs before
     fg_pose_correction: bool = False
+    # issue 36 (tracker noise): True learns the pose corrections' translation only, their rotation held
+    # at 0 (the photometric gradient on a box's yaw was found uncorrelated with its error). False: as before
+    pose_translation_only: bool = False
     # issue 36 (small objects): the object sets' learning rates (means, quats, scales, opacity, SH)
     # are the background's times object_lr_scale; their densification threshold is
     # object_grad_threshold (0: grad_threshold, as before). 1.0 / 0.0: bit for bit the runs before.
@@ -177,8 +180,9 @@ class AutoSplatPreset(Preset):
             v = getattr(self, f)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < float("inf"):
                 raise bad(f, "expected a finite number >= 0")
-        if not isinstance(self.fg_pose_correction, bool):
-            raise bad("fg_pose_correction", "expected True or False")
+        for f in ("fg_pose_correction", "pose_translation_only"):
+            if not isinstance(getattr(self, f), bool):
+                raise bad(f, "expected True or False")
         if self.object_lr_scale == 0:
             raise bad("object_lr_scale", "must be > 0")
         for f in ("fg_steps_max", "object_points_min"):

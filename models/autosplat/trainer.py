@@ -103,6 +103,7 @@ class Trainer(LoopHooks):
         seed_everything(preset.seed)  # the residual MLPs' initial weights
         self.model = AutoSplatModel(data.seq, self.tracks, train_mask, preset.sh_degree, switches,
                                     preset.residual_width, preset.time_frequencies, preset.position_frequencies)
+        self.model.pose.translation_only = preset.pose_translation_only
         self.densifier = Densifier(preset, self.model.sizes(), SKY, self._object_caps())
         self.renderer = StepRenderer(data, device, preset.eps2d, preset.rasterize_mode)
         self.stage_seconds = {s: 0.0 for s in STAGES}
