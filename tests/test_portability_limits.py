@@ -92,14 +92,19 @@ def test_compositing_kernels_fit_48k_local_memory(rt, precision, CH):
 
 
 def test_gpu_sized_groups_fit_by_waves():
-    """A 32x32 tile at one pixel per item (1024 items, a GPU's maximum) does not fit its
-    backward partials in 48 KiB; the layout hands them over in waves instead of overflowing."""
+    """A 32x32 tile at one pixel per item (1024 items, a GPU's maximum, asked for with ``pix=1``)
+    does not fit its backward partials in 48 KiB; the layout hands them over in waves instead of
+    overflowing. By default a GPU takes 4 pixels per item there (groups within
+    stages.GPU_DEFAULT_GROUP_MAX = 256 items, what NVIDIA's driver gives the float64 compositor)."""
     class FakeGPU:
         is_cpu, max_group, local_mem = False, 1024, LOCAL_MEM_BUDGET
-    pix, batch, chunk, waves = stages.composite_layout(FakeGPU(), RenderConfig(precision="float64"),
+    pix, batch, chunk, waves = stages.composite_layout(FakeGPU(), RenderConfig(precision="float64", pix=1),
                                                        32, 3, geom_grads=8, color_grad=True,
                                                        backward=True)
     assert pix == 1 and waves > 1 and batch >= 1
+    for tile, want in ((32, 4), (16, 1), (8, 1)):
+        got = stages.composite_layout(FakeGPU(), RenderConfig(precision="float64"), tile, 3)[0]
+        assert got == want and tile * tile // got <= stages.GPU_DEFAULT_GROUP_MAX, (tile, got)
 
 
 def test_kernel_work_group_limit_is_respected(monkeypatch, rt):
