@@ -132,7 +132,8 @@ def main() -> None:
         for r in a.runs:
             if (r / "checkpoint.pt").is_file() and (sp := spread(r)) is not None:
                 (ci, yi, n, wi), (cl, yl, _, wl) = sp["injected"], sp["left"]
-                print(f"| {r.name} | {ci:.3f} → {cl:.3f} | {yi:.2f} → {yl:.2f} | {wi:.3f} → {wl:.3f} | {n} |", flush=True)
+                print(f"| {r.name} | {ci:.3f} → {cl:.3f} | {yi:.2f} → {yl:.2f} | {wi:.3f} → {wl:.3f} | {n} |",
+                      flush=True)
         print()
     runs: dict[str, dict[str, dict[int, dict]]] = {}
     for r in a.runs:
@@ -151,9 +152,11 @@ def main() -> None:
                 print(f"| {street} | {cfg} | {s} | {r['image']:.2f} | " + " | ".join(_f(r[c]) for c in CLASSES)
                       + f" | {_f(tr.get('injected_m'), '.3f')} → {_f(tr.get('residual_m'), '.3f')}"
                       f" | {_f(ho.get('injected_m'), '.3f')} → {_f(ho.get('residual_m'), '.3f')}"
-                      f" | {_f(tr.get('yaw_injected_deg'))} → {_f(tr.get('yaw_residual_deg'))} | {_f(r['cpu'], '.0f')} |")
+                      f" | {_f(tr.get('yaw_injected_deg'))} → {_f(tr.get('yaw_residual_deg'))}"
+                      f" | {_f(r['cpu'], '.0f')} |")
 
-    print(f"\n| street | config − {a.base} | seeds | image | car | pedestrian | other | car per seed | CPU ratio per seed |")
+    print(f"\n| street | config − {a.base} | seeds | image | car | pedestrian | other | car per seed "
+          "| CPU ratio per seed |")
     print("|---" * 9 + "|")
     verdict: list[str] = []
     for street, cfgs in sorted(runs.items()):

@@ -143,7 +143,8 @@ def main() -> None:
             if not r["before_c"]:
                 print(f"| {s} | {cls} | 0 | – | – | {r['few']} |")
                 continue
-            print(f"| {s} | {cls} | {len(r['before_c'])} | {np.mean(r['before_c']):.3f} → {np.mean(r['after_c']):.3f} | "
+            print(f"| {s} | {cls} | {len(r['before_c'])} | "
+                  f"{np.mean(r['before_c']):.3f} → {np.mean(r['after_c']):.3f} | "
                   f"{np.mean(r['before_y']):.2f} → {np.mean(r['after_y']):.2f} | {r['few']} |", flush=True)
 
 

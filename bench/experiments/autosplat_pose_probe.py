@@ -128,7 +128,8 @@ def landscape(tr, exact_of, alphas=(0.0, 0.25, 0.5, 0.75, 1.0)) -> None:
     nt = torch.stack([n for _, _, n in need_t]).reshape(-1).numpy()
     gy = np.array([float(g[k, i, 2]) for k, i, _ in need_t])
     print(f"full-batch -gradient vs needed correction: translation x/y correlation "
-          f"{np.corrcoef(gt, nt)[0, 1]:.3f} ({len(nt) // 2} boxes), yaw correlation {np.corrcoef(gy, need_yaw)[0, 1]:.3f}; "
+          f"{np.corrcoef(gt, nt)[0, 1]:.3f} ({len(nt) // 2} boxes), "
+          f"yaw correlation {np.corrcoef(gy, need_yaw)[0, 1]:.3f}; "
           f"boxes with a zero gradient {int((np.abs(gt.reshape(-1, 2)).sum(1) == 0).sum())}")
 
 
@@ -189,7 +190,8 @@ def main() -> None:
         pixels[:, :] = track_box_pixels(seq, [t.track_id for t in tr.tracks], list(range(len(seq.frames))),
                                         d.cameras).sum(-1)
         rng = np.random.default_rng([p.seed, 99])
-        print(f"\n{a.run.name} with the boxes of {spec}, pose corrections only{' (translation)' if a.translation_only else ''}, Adam lr {lr}")
+        what = " (translation)" if a.translation_only else ""
+        print(f"\n{a.run.name} with the boxes of {spec}, pose corrections only{what}, Adam lr {lr}")
         print("| step | centre m | yaw ° | frame-to-frame centre m | frame-to-frame yaw ° | centre m, by box pixels "
               "| frame-to-frame centre m, by box pixels | loss (mean since last) | s |")
         print("|---" * 9 + "|")

@@ -2,8 +2,9 @@
 
 A track's pose at frame f is ``T_track(f) @ exp(delta[f])``: the correction ``delta`` (axis-angle
 [3], translation [3], object frame) starts at zero and is learnt during fusion (and in the
-foreground stage with the preset's ``fg_pose_correction``), since tracked boxes are noisy. Frames that were never trained (held-out frames) take the correction
-interpolated linearly between the nearest trained frames.
+foreground stage with the preset's ``fg_pose_correction``), since tracked boxes are noisy; with
+``pose_translation_only`` its rotation is held at 0. Frames that were never trained (held-out
+frames) take the correction interpolated linearly between the nearest trained frames.
 """
 from __future__ import annotations
 
