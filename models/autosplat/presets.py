@@ -110,10 +110,12 @@ class AutoSplatPreset(Preset):
     lr_sky: float = 1e-2
     # issue 36 (tracker noise): True trains the per-object, per-frame pose corrections (lr_pose) in the
     # foreground stage too, jointly with the object sets (the fusion stage trains them either way);
-    # only with the pose-correction switch on. False: bit for bit the runs before
+    # only with the pose-correction switch on. False: bit for bit the runs before. Tried on validation
+    # streets and not adopted (noisy-box cars +0.14 dB; bench/notes/autosplat_moving_objects.md)
     fg_pose_correction: bool = False
     # issue 36 (tracker noise): True learns the pose corrections' translation only, their rotation held
-    # at 0 (the photometric gradient on a box's yaw was found uncorrelated with its error). False: as before
+    # at 0 (the photometric gradient on a box's yaw was found uncorrelated with its error). False: as
+    # before. Not adopted either (with fg_pose_correction and 5x lr_pose: exact-box cars -1.07 dB)
     pose_translation_only: bool = False
     # issue 36 (small objects): the object sets' learning rates (means, quats, scales, opacity, SH)
     # are the background's times object_lr_scale; their densification threshold is
