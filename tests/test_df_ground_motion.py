@@ -10,8 +10,8 @@ import torch
 
 from clsplat.models.common.geometry import axis_angle_to_matrix, se3_exp
 from clsplat.models.drivingforward.depth import ground_prior_depth
-from clsplat.models.drivingforward.ground_motion import (fit_ground_motion, fit_ground_motion_direct, ground_points,
-                                                         plane_flow)
+from clsplat.models.drivingforward.ground_motion import (_sample, fit_ground_motion, fit_ground_motion_direct,
+                                                         ground_points, plane_flow)
 
 
 def _rig() -> tuple[torch.Tensor, torch.Tensor]:
@@ -31,6 +31,20 @@ def _rig() -> tuple[torch.Tensor, torch.Tensor]:
 
 def _truth() -> torch.Tensor:
     return torch.tensor([0.002, -0.003, 0.02, -1.1, 0.08, 0.01], dtype=torch.float64)
+
+
+def test_the_grey_read_equals_the_three_channel_reads_first_channel() -> None:
+    """The fit's search reads the grey image alone (a third of the samples); its motion is the same
+    bit for bit only if bilinear sampling treats channels apart and ``inside`` keeps its bounds."""
+    g = torch.Generator().manual_seed(0)
+    img = torch.rand(2, 3, 9, 13, dtype=torch.float64, generator=g)
+    uv = torch.rand(2, 2, 200, dtype=torch.float64, generator=g) * torch.tensor([[17.0], [13.0]], dtype=torch.float64) - 2
+    three, inside = _sample(img, uv)
+    grey, inside1 = _sample(img[:, :1].contiguous(), uv)
+    assert torch.equal(grey, three[:, :1]) and torch.equal(inside, inside1)
+    u, v = uv[:, 0], uv[:, 1]
+    assert torch.equal(inside, (u > 0.5) & (u < 12.5) & (v > 0.5) & (v < 8.5))
+    assert 0 < int(inside.sum()) < inside.numel()
 
 
 @pytest.mark.parametrize("dof", [4, 6])

@@ -58,8 +58,13 @@ def plane_flow(theta: Tensor, Ks: Tensor, cam_to_ego: Tensor, uv: Tensor, X: Ten
     Ks ``[V, 3, 3]``; cam_to_ego ``[V, 4, 4]``; uv ``[V, 2, N]`` the points' pixels at the earlier
     instant; X ``[V, 3, N]`` -> ``[V, 2, N]`` pixel displacement to the later image.
     """
+    return _flow(theta, Ks, torch.linalg.inv(cam_to_ego), cam_to_ego, uv, X)
+
+
+def _flow(theta: Tensor, Ks: Tensor, ego_to_cam: Tensor, cam_to_ego: Tensor, uv: Tensor, X: Tensor) -> Tensor:
+    """:func:`plane_flow` with the inverse extrinsics given (a fit calls it hundreds of times)."""
     M = se3_exp(theta[:3], theta[3:])
-    T = torch.linalg.inv(cam_to_ego) @ M @ cam_to_ego                                  # [V, 4, 4]
+    T = ego_to_cam @ M @ cam_to_ego                                                    # [V, 4, 4]
     Y = T[:, :3, :3] @ X + T[:, :3, 3:]
     q = Ks @ Y
     return q[:, :2] / q[:, 2:].clamp_min(1e-6) - uv
@@ -155,11 +160,11 @@ def _sample(img: Tensor, uv: Tensor) -> tuple[Tensor, Tensor]:
     """Bilinear samples of ``img [V, C, h, w]`` at pixel coordinates ``uv [V, 2, N]`` (pixel-centre
     convention) -> ``(values [V, C, N]``, ``inside [V, N]``)."""
     h, w = img.shape[-2:]
-    gx = 2 * uv[:, 0] / w - 1
-    gy = 2 * uv[:, 1] / h - 1
-    out = torch.nn.functional.grid_sample(img, torch.stack([gx, gy], -1)[:, None], mode="bilinear",
-                                          padding_mode="border", align_corners=False)[:, :, 0]
-    inside = (uv[:, 0] > 0.5) & (uv[:, 0] < w - 0.5) & (uv[:, 1] > 0.5) & (uv[:, 1] < h - 0.5)
+    size = uv.new_tensor([[w], [h]])                                                  # x by w, y by h
+    grid = (2 * uv / size - 1).transpose(1, 2)[:, None]                               # [V, 1, N, 2]
+    out = torch.nn.functional.grid_sample(img, grid, mode="bilinear", padding_mode="border",
+                                          align_corners=False)[:, :, 0]
+    inside = ((uv > 0.5) & (uv < size - 0.5)).all(1)
     return out, inside
 
 
@@ -228,6 +233,7 @@ def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_
     V, _, H, W = earlier.shape
     g1, g2 = earlier.to(dt).mean(1, keepdim=True), later.to(dt).mean(1, keepdim=True)
     E = cam_to_ego.to(dt)
+    E_inv = torch.linalg.inv(E)
     pw_full = torch.ones(V, 1, H, W, dtype=dt) if weight is None else weight.to(dt)
     free = list(DOF_INDEX[dof])
     idx = (torch.tensor(free),)
@@ -252,25 +258,25 @@ def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_
         pick = lambda t: t.gather(-1, order[:, None].expand(V, t.shape[1], n))               # noqa: E731
         gx = F_.conv2d(F_.pad(b, (1, 1, 0, 0), mode="replicate"), kx)
         gy = F_.conv2d(F_.pad(b, (0, 0, 1, 1), mode="replicate"), kx.transpose(-1, -2))
-        return (pick(a.reshape(V, 1, -1)), torch.cat([b, gx, gy], 1), K, pick(uv), pick(X),
-                pw.gather(1, order))
+        pw = pw.gather(1, order)
+        # the search's cost reads the grey image only (grid_sample treats channels apart: the same
+        # values as the three-channel read), and the prior's pixel mask once per level
+        return (pick(a.reshape(V, 1, -1)), torch.cat([b, gx, gy], 1), K, pick(uv), pick(X), pw,
+                b.contiguous(), pw > 0, (pw > 0).flatten().nonzero()[:, 0])
 
-    def residual(th: Tensor, lv) -> tuple[Tensor, Tensor, Tensor]:
-        a, b3, K, uv, X, pw = lv
-        q = uv + plane_flow(th, K, E, uv, X)
-        s, inside = _sample(b3, q)
-        return s[:, 0] - a[:, 0], s[:, 1:], pw * inside
+    def residual(th: Tensor, lv, grey_only: bool = False) -> tuple[Tensor, Tensor | None, Tensor]:
+        a, b3, K, uv, X, pw, b1 = lv[:7]
+        q = uv + _flow(th, K, E_inv, E, uv, X)
+        s, inside = _sample(b1 if grey_only else b3, q)
+        return s[:, 0] - a[:, 0], None if grey_only else s[:, 1:], pw * inside
 
     def cost(th: Tensor, lv) -> float:
         """Mean truncated absolute residual over the prior's pixels, ``min(|r|, tau)``; a pixel moved
         out of the image counts as unmatched (``tau``), so a motion can lower the cost neither by
         moving pixels out of view nor through the pixels that are not on the ground; with ``keep``
         < 1, the mean of the lowest ``keep`` share of those."""
-        r, _, m = residual(th, lv)
-        pw = lv[5] > 0
-        if not bool(pw.any()):
-            return float("inf")
-        e = torch.where(m > 0, r.abs().clamp(max=tau), torch.full_like(r, tau))[pw]
+        r, _, m = residual(th, lv, grey_only=True)
+        e = r.abs().clamp(max=tau).masked_fill(m <= 0, tau).flatten()[lv[8]]    # the prior's pixels, in order
         if keep < 1:            # the mean of the k lowest, in O(n): those below the k-th, then its ties
             k = max(1, int(keep * e.numel()))
             kth = e.kthvalue(k).values
@@ -281,7 +287,7 @@ def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_
     searched = False
     for level in levels:
         lv = setup(level)
-        if not bool((lv[5] > 0).any()):  # no ground pixel at this level: nothing to align (a search
+        if not bool(lv[7].any()):        # no ground pixel at this level: nothing to align (a search
             continue                     # would pick its grid's first value from equal costs)
         if not searched and search is not None:
             searched = True
@@ -304,14 +310,14 @@ def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_
                 break
             cols = []
             for d in _FD_STEP * torch.eye(6, dtype=dt)[free]:
-                dflow = (plane_flow(theta + d, lv[2], E, lv[3], lv[4]) - plane_flow(theta - d, lv[2], E, lv[3], lv[4])) \
+                dflow = (_flow(theta + d, lv[2], E_inv, E, lv[3], lv[4]) - _flow(theta - d, lv[2], E_inv, E, lv[3], lv[4])) \
                     / (2 * _FD_STEP)
                 cols.append((grad * dflow).sum(1))                                      # [V, N]
             J = torch.stack(cols, -1)[m > 0]                                            # [n, k]
             rr = r[m > 0]
             wt = _robust_weights(rr.abs(), loss) * m[m > 0]
             if keep < 1:        # least-trimmed here too: the residuals beyond the keep share weigh nothing
-                k = min(rr.numel(), max(1, int(keep * int((lv[5] > 0).sum()))))
+                k = min(rr.numel(), max(1, int(keep * int(lv[7].sum()))))
                 wt = wt * (rr.abs() <= rr.abs().kthvalue(k).values)
             A = (J * wt[:, None]).T @ J
             bvec = (J * wt[:, None]).T @ rr
