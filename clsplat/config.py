@@ -34,10 +34,12 @@ class RenderConfig:
                   the serial layout walks a few long chunks per compute unit, the GPU layout
                   many short ones (kernels/order.cl). With "tiles": a merge sort per segment
                   and work-item, or a work-group per segment in local memory.
-    sort_impl:    "depth" (the default: the pairs sorted once by depth, then placed into their
-                  tiles by a stable counting pass, kernels/order.cl; issue 35) or "tiles" (the
-                  baseline: keys scattered into tile segments by atomics, each segment then
-                  sorted, kernels/bin.cl + sort.cl). Both give the same tile lists, key for key.
+    sort_impl:    "depth" (the pairs sorted once by depth, then placed into their tiles by a
+                  stable counting pass, kernels/order.cl; issue 35) or "tiles" (keys scattered
+                  into tile segments by atomics, each segment then sorted, kernels/bin.cl +
+                  sort.cl). Both give the same tile lists, key for key. None: "depth" on CPU
+                  devices, "tiles" on GPUs, where it was measured the faster
+                  (:func:`clsplat.stages.sort_by_depth`).
     sort_chunks:  work-items (chunks) of kernels/order.cl's passes (None: from the layout and
                   the device; tests set it to exercise many chunks on tiny scenes).
     composite_impl: "tuned" (kernels/composite.cl and composite_bwd.cl built with CLS_TUNED=1:
@@ -63,7 +65,7 @@ class RenderConfig:
     pix: int | None = None
     sort_local: int | None = None
     sort_layout: str | None = None
-    sort_impl: str = "depth"
+    sort_impl: str | None = None
     sort_chunks: int | None = None
     composite_impl: str | None = None
     backward_impl: str | None = None
@@ -93,7 +95,7 @@ class RenderConfig:
             raise ValueError(f"pix: expected 1, 2, 4, 8 or 16, got {self.pix}")
         if self.sort_layout not in (None, "serial", "bitonic"):
             raise ValueError(f"sort_layout: expected 'serial' or 'bitonic', got {self.sort_layout!r}")
-        if self.sort_impl not in ("depth", "tiles"):
+        if self.sort_impl not in (None, "depth", "tiles"):
             raise ValueError(f"sort_impl: expected 'depth' or 'tiles', got {self.sort_impl!r}")
         if self.sort_chunks is not None and self.sort_chunks < 1:
             raise ValueError(f"sort_chunks: must be >= 1, got {self.sort_chunks}")

@@ -344,6 +344,16 @@ def _order_chunks(rt: Runtime, cfg: RenderConfig, n: int, n_bins: int, total: in
     return chunks
 
 
+def sort_by_depth(rt: Runtime, cfg: RenderConfig) -> bool:
+    """Whether the tile lists come from one depth sort of all pairs (kernels/order.cl) rather
+    than from binning and a sort per tile (bin.cl + sort.cl): ``RenderConfig.sort_impl``; None:
+    "depth" on CPU devices (PoCL, Oclgrind), where it was measured the faster at 1M Gaussians
+    (bench/notes/engine_cpu_speed.md), and "tiles" on GPUs, whose counting passes over a few
+    chunks leave most of the device idle: on an NVIDIA H200 the per-tile path's kernels took
+    0.2 ms against 3.2 ms on scene A (bench/notes/engine_gpu.md)."""
+    return (cfg.sort_impl or ("depth" if rt.is_cpu else "tiles")) == "depth"
+
+
 def _sort_serial(rt: Runtime, cfg: RenderConfig) -> bool:
     """The serial (CPU) layout of the sort stages, else the GPU one (``cfg.sort_layout``)."""
     return (cfg.sort_layout or ("serial" if rt.is_cpu else "bitonic")) == "serial"
@@ -432,7 +442,7 @@ def early_tile_lists(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths:
     C, N = depths.tensor.shape
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
     slots = C * N * tiles_x * tiles_y
-    if not (rt.pools and cfg.sort_impl == "depth" and cfg.sort_chunks is None
+    if not (rt.pools and sort_by_depth(rt, cfg) and cfg.sort_chunks is None
             and _sort_serial(rt, cfg) and 0 < C * N <= ORDER_SMALL and slots <= EARLY_TILES_MAX
             and max(tiles_x, C * tiles_y) <= ORDER_PACK_MAX):
         return None
@@ -533,13 +543,13 @@ def tile_lists(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Devic
                early: EarlyTiles | None = None,
                pair_tiles: list | None = None) -> tuple[DeviceArray, DeviceArray]:
     """Every tile's list of (camera, Gaussian) keys in depth order: (offsets [C*T+1] int32,
-    read back; keys [M] int64), by ``cfg.sort_impl``: "depth" (:func:`depth_tiles`) or
+    read back; keys [M] int64), by :func:`sort_by_depth`: "depth" (:func:`depth_tiles`) or
     "tiles" (the baseline, :func:`bin_tiles` then :func:`sort_segments`). Same result; the
     baseline also where the depth sort's packed rectangles cannot hold the tile coordinates
     (:data:`ORDER_PACK_MAX`). ``early``: see :func:`depth_tiles` (only ever made where it runs);
     ``pair_tiles``: see :func:`_intersections`."""
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
-    if cfg.sort_impl == "depth" and max(tiles_x, depths.tensor.shape[0] * tiles_y) <= ORDER_PACK_MAX:
+    if sort_by_depth(rt, cfg) and max(tiles_x, depths.tensor.shape[0] * tiles_y) <= ORDER_PACK_MAX:
         return depth_tiles(rt, cfg, rects, depths, width, height, tile_size, events,
                            per_intersection, reserve, early, pair_tiles)
     offsets, keys = bin_tiles(rt, cfg, rects, depths, width, height, tile_size, events,
@@ -683,6 +693,24 @@ def _composite_kernel(rt: Runtime, cfg: RenderConfig, stage: str, defines: dict,
 
 def _build_composite_kernel(rt: Runtime, cfg: RenderConfig, stage: str, defines: dict,
                             tile_size: int) -> cl.Kernel:
+    """The kernel for ``defines``, its batch shrunk (a rebuild per try) until the compiler's own
+    count of its local memory fits :attr:`Runtime.local_mem`: :func:`composite_layout` counts
+    the kernel's arrays, which is exact on PoCL, but NVIDIA's compiler reported 1.0-5.1 KiB more
+    for six of its layouts on an H200 (bench/notes/engine_gpu.md), which the launch check would
+    refuse. The batch only sizes the staging, so images and gradients do not change."""
+    k = _build_composite_kernel_once(rt, cfg, stage, defines, tile_size)
+    while defines.get("BATCH", 1) > 1:
+        used = int(k.get_work_group_info(cl.kernel_work_group_info.LOCAL_MEM_SIZE, rt.device))
+        if used <= rt.local_mem:
+            break
+        batch = defines["BATCH"]
+        defines = defines | {"BATCH": max(1, min(batch - 1, batch * rt.local_mem // used))}
+        k = _build_composite_kernel_once(rt, cfg, stage, defines, tile_size)
+    return k
+
+
+def _build_composite_kernel_once(rt: Runtime, cfg: RenderConfig, stage: str, defines: dict,
+                                 tile_size: int) -> cl.Kernel:
     name = "composite_fwd" if stage == "composite" else stage
     if stage == "composite_bwd_gauss":
         # One build for every device (no CLS_TUNED staging); on PoCL's CPU device the inline

@@ -148,6 +148,15 @@ def test_renders_and_gradients_bitwise_equal(rt, precision, equal_depths):
         assert torch.equal(a, b)
 
 
+def test_default_by_device(rt):
+    """None sorts by depth on CPU devices (PoCL, Oclgrind) and per tile on GPUs; an explicit
+    value is kept on either."""
+    assert RenderConfig().sort_impl is None
+    assert stages.sort_by_depth(rt, RenderConfig()) == rt.is_cpu
+    assert stages.sort_by_depth(rt, RenderConfig(sort_impl="depth"))
+    assert not stages.sort_by_depth(rt, RenderConfig(sort_impl="tiles"))
+
+
 def test_bad_settings_are_one_line():
     with pytest.raises(ValueError, match="^sort_impl: expected 'depth' or 'tiles'"):
         RenderConfig(sort_impl="radix")
