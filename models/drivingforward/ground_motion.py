@@ -22,6 +22,8 @@ Motion parameters ``theta [6]`` = ego-frame axis-angle ``(wx, wy, wz)`` then tra
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 from torch import Tensor
 
@@ -168,6 +170,20 @@ def _sample(img: Tensor, uv: Tensor) -> tuple[Tensor, Tensor]:
     return out, inside
 
 
+class _Level(NamedTuple):
+    """One pyramid level of :func:`fit_ground_motion_direct`, the prior's pixels of each camera
+    first (padded to the busiest camera with weight-0 pixels); N of them a camera."""
+    a: Tensor          # [V, 1, N] grey of the earlier image at those pixels
+    b3: Tensor         # [V, 3, h, w] the later image's grey and its x / y gradients
+    K: Tensor          # [V, 3, 3] intrinsics at this level
+    uv: Tensor         # [V, 2, N] pixel coordinates
+    X: Tensor          # [V, 3, N] the ground points in camera coordinates
+    pw: Tensor         # [V, N] pixel weights
+    b1: Tensor         # [V, 1, h, w] the later image's grey alone (the search's read)
+    used: Tensor       # [V, N] bool: a prior pixel, not padding
+    used_flat: Tensor  # [n] indices of the used pixels in ``pw.flatten()``, in order
+
+
 def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_ego: Tensor, cap: float,
                              levels: tuple[int, ...] = (1,), dof: int = 6, loss: str = "huber",
                              iters: int = 8, search: tuple[float, float, int] | None = (-3.0, 3.0, 61),
@@ -261,22 +277,21 @@ def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_
         pw = pw.gather(1, order)
         # the search's cost reads the grey image only (grid_sample treats channels apart: the same
         # values as the three-channel read), and the prior's pixel mask once per level
-        return (pick(a.reshape(V, 1, -1)), torch.cat([b, gx, gy], 1), K, pick(uv), pick(X), pw,
-                b.contiguous(), pw > 0, (pw > 0).flatten().nonzero()[:, 0])
+        return _Level(pick(a.reshape(V, 1, -1)), torch.cat([b, gx, gy], 1), K, pick(uv), pick(X), pw,
+                      b.contiguous(), pw > 0, (pw > 0).flatten().nonzero()[:, 0])
 
-    def residual(th: Tensor, lv, grey_only: bool = False) -> tuple[Tensor, Tensor | None, Tensor]:
-        a, b3, K, uv, X, pw, b1 = lv[:7]
-        q = uv + _flow(th, K, E_inv, E, uv, X)
-        s, inside = _sample(b1 if grey_only else b3, q)
-        return s[:, 0] - a[:, 0], None if grey_only else s[:, 1:], pw * inside
+    def residual(th: Tensor, lv: _Level, grey_only: bool = False) -> tuple[Tensor, Tensor | None, Tensor]:
+        q = lv.uv + _flow(th, lv.K, E_inv, E, lv.uv, lv.X)
+        s, inside = _sample(lv.b1 if grey_only else lv.b3, q)
+        return s[:, 0] - lv.a[:, 0], None if grey_only else s[:, 1:], lv.pw * inside
 
-    def cost(th: Tensor, lv) -> float:
+    def cost(th: Tensor, lv: _Level) -> float:
         """Mean truncated absolute residual over the prior's pixels, ``min(|r|, tau)``; a pixel moved
         out of the image counts as unmatched (``tau``), so a motion can lower the cost neither by
         moving pixels out of view nor through the pixels that are not on the ground; with ``keep``
         < 1, the mean of the lowest ``keep`` share of those."""
         r, _, m = residual(th, lv, grey_only=True)
-        e = r.abs().clamp(max=tau).masked_fill(m <= 0, tau).flatten()[lv[8]]    # the prior's pixels, in order
+        e = r.abs().clamp(max=tau).masked_fill(m <= 0, tau).flatten()[lv.used_flat]    # the prior's pixels, in order
         if keep < 1:            # the mean of the k lowest, in O(n): those below the k-th, then its ties
             k = max(1, int(keep * e.numel()))
             kth = e.kthvalue(k).values
@@ -287,7 +302,7 @@ def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_
     searched = False
     for level in levels:
         lv = setup(level)
-        if not bool(lv[7].any()):        # no ground pixel at this level: nothing to align (a search
+        if not bool(lv.used.any()):        # no ground pixel at this level: nothing to align (a search
             continue                     # would pick its grid's first value from equal costs)
         if not searched and search is not None:
             searched = True
@@ -310,14 +325,14 @@ def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_
                 break
             cols = []
             for d in _FD_STEP * torch.eye(6, dtype=dt)[free]:
-                dflow = (_flow(theta + d, lv[2], E_inv, E, lv[3], lv[4]) - _flow(theta - d, lv[2], E_inv, E, lv[3], lv[4])) \
-                    / (2 * _FD_STEP)
+                dflow = (_flow(theta + d, lv.K, E_inv, E, lv.uv, lv.X)
+                         - _flow(theta - d, lv.K, E_inv, E, lv.uv, lv.X)) / (2 * _FD_STEP)
                 cols.append((grad * dflow).sum(1))                                      # [V, N]
             J = torch.stack(cols, -1)[m > 0]                                            # [n, k]
             rr = r[m > 0]
             wt = _robust_weights(rr.abs(), loss) * m[m > 0]
             if keep < 1:        # least-trimmed here too: the residuals beyond the keep share weigh nothing
-                k = min(rr.numel(), max(1, int(keep * int(lv[7].sum()))))
+                k = min(rr.numel(), max(1, int(keep * int(lv.used.sum()))))
                 wt = wt * (rr.abs() <= rr.abs().kthvalue(k).values)
             A = (J * wt[:, None]).T @ J
             bvec = (J * wt[:, None]).T @ rr
