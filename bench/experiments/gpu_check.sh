@@ -10,19 +10,7 @@
 #    GPU_IMPLS=1: both backward_impl values and sort_impl=tiles side by side, and their tests;
 #    GPU_SORT=1: both sort_impl values at 100k-1M, and the tests on the GPU's default.
 set -u
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
-export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
-# the source tree as the installed package lays it out (setup.cfg's package_dir)
-for d in kernels bench models; do [ -e clsplat/$d ] || ln -s ../$d clsplat/$d; done
-lib=$(ls /usr/local/nvidia/lib64/libnvidia-opencl.so.1 /usr/lib/x86_64-linux-gnu/libnvidia-opencl.so.1 \
-      /usr/lib64/libnvidia-opencl.so.1 2>/dev/null | head -1)
-[ -n "$lib" ] || lib=$(find /usr /opt /lib -name 'libnvidia-opencl.so*' 2>/dev/null | head -1)
-echo "ICD files: $(ls /etc/OpenCL/vendors 2>/dev/null | tr '\n' ' '); libnvidia-opencl: ${lib:-not found}"
-if [ -n "$lib" ]; then  # the vendors already listed, and the NVIDIA driver's
-  mkdir -p /tmp/icd && cp /etc/OpenCL/vendors/*.icd /tmp/icd/ 2>/dev/null; echo "$lib" > /tmp/icd/nvidia.icd
-  export OCL_ICD_VENDORS=/tmp/icd
-fi
-nvidia-smi -L
+. bench/experiments/gpu_env.sh
 if [ -z "$lib" ] && [ -n "${GPU_ONLY:-}" ]; then  # no GPU driver for OpenCL: only what PoCL there still owes
   timeout 120 python3 -m pytest -q -p no:cacheprovider -rf tests/test_order.py tests/test_bin.py 2>&1 | tail -30 | tee $OUT/pytest_pocl.txt
   exit 0
