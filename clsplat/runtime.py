@@ -259,6 +259,13 @@ class Runtime:
         return self._in_host_memory
 
     @property
+    def fills_count_as_writes(self) -> bool:
+        """False on Oclgrind, whose uninitialised-value checker does not count a fill command
+        as a write (a kernel reading a filled buffer is reported): there zeroed arrays are
+        uploaded from the host, as everywhere before :meth:`DeviceArray.zeros_on_device`."""
+        return "oclgrind" not in self.device.platform.name.lower()
+
+    @property
     def pools(self) -> bool:
         """Whether the array pool is on (:meth:`empty`, see the module docstring): where the
         device computes in the zero-copy arrays' host memory itself (PoCL's CPU device; not
@@ -563,6 +570,8 @@ class Runtime:
             return self._pooled(shape, dtype, nbytes, zero)
         if nbytes >= HOST_CHECK_BYTES or nbytes > self.max_alloc:  # the message only when needed
             self.check_memory(nbytes, f"an intermediate array {list(shape)} {dtype}")
+        if zero and nbytes and not self.shares_host_memory and self.fills_count_as_writes:
+            return DeviceArray.zeros_on_device(self, shape, dtype)  # the copying path (GPUs)
         t = torch.zeros(shape, dtype=dtype) if zero else torch.empty(shape, dtype=dtype)
         return DeviceArray(self, t)
 
@@ -775,11 +784,7 @@ class DeviceArray:
         self.zero_copy = numel > 0 and rt.shares_host_memory
         self.synced_at = rt.launches  # the tensor holds the data as of this many launches
         self.read_only = read_only  # no command writes it: the tensor stays the data
-        nbytes = numel * tensor.dtype.itemsize
-        if nbytes > rt.max_alloc:
-            raise ValueError(f"DeviceArray: {list(tensor.shape)} {tensor.dtype} needs "
-                             f"{nbytes >> 20} MiB, over the device's "
-                             f"{rt.device.max_mem_alloc_size >> 20} MiB allocation limit")
+        _check_alloc(rt, tensor)
         if numel == 0:  # OpenCL has no empty buffers; kernels never read it
             self.buffer = cl.Buffer(rt.context, _RW, 16)
         elif self.zero_copy:
@@ -801,6 +806,22 @@ class DeviceArray:
             self.buffer = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR,
                                     hostbuf=tensor.numpy())
 
+    @classmethod
+    def zeros_on_device(cls, rt: Runtime, shape: tuple, dtype: torch.dtype) -> "DeviceArray":
+        """A new zeroed array ``shape`` of ``dtype`` where the device does not share host memory
+        (the copying path: GPUs, ``CLSPLAT_HOST_MEMORY=copy``): its buffer is allocated with no
+        host data and zeroed by the device (a fill command); its tensor is host memory that holds
+        nothing until :meth:`host` reads the device's zeros or results back. A render's zeroed
+        intermediates (the gradient slots: hundreds of MB for large scenes) then cost neither a
+        host memset nor a transfer of zeros to the device."""
+        a = cls.__new__(cls)
+        a.rt, a.tensor, a.zero_copy, a.read_only = rt, torch.empty(shape, dtype=dtype), False, False
+        a.synced_at = -1  # the tensor holds nothing yet: the first read_back copies the buffer
+        nbytes = _check_alloc(rt, a.tensor)
+        a.buffer = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, nbytes)
+        cl.enqueue_fill_buffer(rt.queue, a.buffer, np.zeros(1, np.uint8), 0, nbytes)
+        return a
+
     def host(self) -> torch.Tensor:
         """The tensor, with every queued command finished and the device's data read back
         (a map and unmap on the zero-copy path, a copy otherwise)."""
@@ -815,6 +836,15 @@ class DeviceArray:
         v.rt, v.tensor, v.buffer = self.rt, self.tensor[:n], self.buffer
         v.zero_copy, v.synced_at, v.read_only = self.zero_copy, self.synced_at, self.read_only
         return v
+
+
+def _check_alloc(rt: Runtime, tensor: torch.Tensor) -> int:
+    """The bytes of a device array over ``tensor``, refused over the device's allocation limit."""
+    nbytes = tensor.numel() * tensor.dtype.itemsize
+    if nbytes > rt.max_alloc:
+        raise ValueError(f"DeviceArray: {list(tensor.shape)} {tensor.dtype} needs {nbytes >> 20} MiB, "
+                         f"over the device's {rt.device.max_mem_alloc_size >> 20} MiB allocation limit")
+    return nbytes
 
 
 def read_back(*arrays: DeviceArray) -> list[torch.Tensor]:

@@ -481,3 +481,30 @@ def test_staged_gradients_copy_only_what_is_cheaper_to_copy(rt):
     assert c.tensor.dtype == torch.float64 and torch.equal(c.tensor, torch.ones(3, 4, dtype=torch.float64))
     z = rt.staged(None, (2, 2), torch.float32)
     assert not z.tensor.any()
+
+
+def test_zeroed_arrays_on_the_copying_path_are_zeroed_by_the_device(monkeypatch, rt):
+    """Where the device keeps its own copies (GPUs, CLSPLAT_HOST_MEMORY=copy), a zeroed array is
+    a fill on the device, with nothing uploaded: it reads back as zeros, a kernel sees zeros, and
+    a render gives the same bits as on the shared path."""
+    import numpy as np
+    from clsplat.bench.scenes import random_frustum_scene, render_args
+    from clsplat.runtime import DeviceArray, Runtime
+    args = render_args(random_frustum_scene(300, 48, 32, seed=1))
+    want = clsplat.rasterization(**args)[0]
+    monkeypatch.setattr(Runtime, "shares_host_memory", property(lambda self: False))
+    monkeypatch.setattr(rt, "_pools_device", None)
+    monkeypatch.setattr(rt, "_plans", type(rt._plans)())  # (kept arrays of the shared path)
+    made = []
+    real = DeviceArray.zeros_on_device.__func__
+    monkeypatch.setattr(DeviceArray, "zeros_on_device", classmethod(
+        lambda cls, *a: made.append(real(cls, *a)) or made[-1]))
+    z = rt.empty((1000,), torch.float32)
+    assert made and z is made[-1] and torch.equal(z.host(), torch.zeros(1000))
+    k = _reduce_kernel(rt)  # sums slots per pair: over a zeroed slot array, zeros
+    rects = rt.array(torch.tensor([[0, 0, 1, 2]], dtype=torch.int32).reshape(1, 1, 4))
+    offs, slots = rt.array(torch.tensor([0], dtype=torch.int32)), rt.empty((2, 1), torch.float32)
+    outs = [rt.array(torch.full((1,), 7.0)) for _ in range(4)] + [rt.array(torch.full((1, 1, 1), 7.0))]
+    rt.launch(k, 1, 64, np.int32(1), rects.buffer, offs.buffer, slots.buffer, *(o.buffer for o in outs))
+    assert float(outs[-1].host()) == 0.0  # the two zeroed slots summed
+    assert torch.equal(clsplat.rasterization(**args)[0], want)
