@@ -259,10 +259,12 @@ class Runtime:
         return self._in_host_memory
 
     @property
-    def fills_count_as_writes(self) -> bool:
-        """False on Oclgrind, whose uninitialised-value checker does not count a fill command
-        as a write (a kernel reading a filled buffer is reported): there zeroed arrays are
-        uploaded from the host, as everywhere before :meth:`DeviceArray.zeros_on_device`."""
+    def device_only_arrays(self) -> bool:
+        """Whether intermediates live on the device alone where it does not share host memory
+        (:meth:`DeviceArray.on_device`). Not on Oclgrind, whose uninitialised-value checker
+        counts neither a fill command as a write nor, once a released buffer's memory is
+        reused, another live buffer's written values (reproduced with three kernels,
+        bench/notes/engine_gpu.md): there every array is uploaded from the host, as before."""
         return "oclgrind" not in self.device.platform.name.lower()
 
     @property
@@ -570,8 +572,8 @@ class Runtime:
             return self._pooled(shape, dtype, nbytes, zero)
         if nbytes >= HOST_CHECK_BYTES or nbytes > self.max_alloc:  # the message only when needed
             self.check_memory(nbytes, f"an intermediate array {list(shape)} {dtype}")
-        if zero and nbytes and not self.shares_host_memory and self.fills_count_as_writes:
-            return DeviceArray.zeros_on_device(self, shape, dtype)  # the copying path (GPUs)
+        if nbytes and not self.shares_host_memory and self.device_only_arrays:
+            return DeviceArray.on_device(self, shape, dtype, zero)  # the copying path (GPUs)
         t = torch.zeros(shape, dtype=dtype) if zero else torch.empty(shape, dtype=dtype)
         return DeviceArray(self, t)
 
@@ -807,19 +809,21 @@ class DeviceArray:
                                     hostbuf=tensor.numpy())
 
     @classmethod
-    def zeros_on_device(cls, rt: Runtime, shape: tuple, dtype: torch.dtype) -> "DeviceArray":
-        """A new zeroed array ``shape`` of ``dtype`` where the device does not share host memory
-        (the copying path: GPUs, ``CLSPLAT_HOST_MEMORY=copy``): its buffer is allocated with no
-        host data and zeroed by the device (a fill command); its tensor is host memory that holds
-        nothing until :meth:`host` reads the device's zeros or results back. A render's zeroed
-        intermediates (the gradient slots: hundreds of MB for large scenes) then cost neither a
-        host memset nor a transfer of zeros to the device."""
+    def on_device(cls, rt: Runtime, shape: tuple, dtype: torch.dtype, zero: bool) -> "DeviceArray":
+        """A new array ``shape`` of ``dtype`` where the device does not share host memory (the
+        copying path: GPUs, ``CLSPLAT_HOST_MEMORY=copy``): its buffer is allocated with no host
+        data, zeroed by the device (a fill command) where ``zero``; its tensor is host memory
+        that holds nothing until :meth:`host` reads the buffer back. A render's intermediates
+        (keys, gradient slots, sort scratch: hundreds of MB for large scenes) then cost neither
+        a host memset nor a transfer of zeros or garbage to the device. Where ``zero`` is False
+        every entry a command reads must be written first, as on every path."""
         a = cls.__new__(cls)
         a.rt, a.tensor, a.zero_copy, a.read_only = rt, torch.empty(shape, dtype=dtype), False, False
         a.synced_at = -1  # the tensor holds nothing yet: the first read_back copies the buffer
         nbytes = _check_alloc(rt, a.tensor)
         a.buffer = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, nbytes)
-        cl.enqueue_fill_buffer(rt.queue, a.buffer, np.zeros(1, np.uint8), 0, nbytes)
+        if zero:
+            cl.enqueue_fill_buffer(rt.queue, a.buffer, np.zeros(1, np.uint8), 0, nbytes)
         return a
 
     def host(self) -> torch.Tensor:

@@ -483,22 +483,37 @@ def test_staged_gradients_copy_only_what_is_cheaper_to_copy(rt):
     assert not z.tensor.any()
 
 
-def test_zeroed_arrays_on_the_copying_path_are_zeroed_by_the_device(monkeypatch, rt):
-    """Where the device keeps its own copies (GPUs, CLSPLAT_HOST_MEMORY=copy), a zeroed array is
-    a fill on the device, with nothing uploaded: it reads back as zeros, a kernel sees zeros, and
-    a render gives the same bits as on the shared path."""
+def test_arrays_on_the_copying_path_live_on_the_device(monkeypatch, rt):
+    """Where the device keeps its own copies (GPUs, CLSPLAT_HOST_MEMORY=copy), an intermediate
+    is a buffer with nothing uploaded, a zeroed one a fill on the device: it reads back as
+    zeros, a kernel sees zeros; with every array nobody zeroes filled with a sentinel first
+    (so that reading an entry before writing it would show), a render forward and backward
+    gives the same bits as on the shared path."""
     import numpy as np
+    import pyopencl as cl
     from clsplat.bench.scenes import random_frustum_scene, render_args
     from clsplat.runtime import DeviceArray, Runtime
     args = render_args(random_frustum_scene(300, 48, 32, seed=1))
-    want = clsplat.rasterization(**args)[0]
+    keys = ("means", "quats", "scales", "opacities", "colors")
+    args_grad = dict(args) | {k: args[k].clone().requires_grad_() for k in keys}
+    img, alpha, _ = clsplat.rasterization(**args_grad)
+    (img.sum() + alpha.sum()).backward()
+    want, want_grads = img.detach(), {k: args_grad[k].grad for k in keys}
+    for k in keys:
+        args_grad[k].grad = None
     monkeypatch.setattr(Runtime, "shares_host_memory", property(lambda self: False))
     monkeypatch.setattr(rt, "_pools_device", None)
     monkeypatch.setattr(rt, "_plans", type(rt._plans)())  # (kept arrays of the shared path)
     made = []
-    real = DeviceArray.zeros_on_device.__func__
-    monkeypatch.setattr(DeviceArray, "zeros_on_device", classmethod(
-        lambda cls, *a: made.append(real(cls, *a)) or made[-1]))
+    real = DeviceArray.on_device.__func__
+
+    def on_device(cls, rt_, shape, dtype, zero):
+        a = real(cls, rt_, shape, dtype, zero)
+        if not zero:  # 0xAB bytes: a NaN as a float, a large negative int
+            cl.enqueue_fill_buffer(rt_.queue, a.buffer, np.full(1, 0xAB, np.uint8), 0, a.tensor.nbytes)
+        made.append(a)
+        return a
+    monkeypatch.setattr(DeviceArray, "on_device", classmethod(on_device))
     z = rt.empty((1000,), torch.float32)
     assert made and z is made[-1] and torch.equal(z.host(), torch.zeros(1000))
     k = _reduce_kernel(rt)  # sums slots per pair: over a zeroed slot array, zeros
@@ -507,4 +522,9 @@ def test_zeroed_arrays_on_the_copying_path_are_zeroed_by_the_device(monkeypatch,
     outs = [rt.array(torch.full((1,), 7.0)) for _ in range(4)] + [rt.array(torch.full((1, 1, 1), 7.0))]
     rt.launch(k, 1, 64, np.int32(1), rects.buffer, offs.buffer, slots.buffer, *(o.buffer for o in outs))
     assert float(outs[-1].host()) == 0.0  # the two zeroed slots summed
-    assert torch.equal(clsplat.rasterization(**args)[0], want)
+    n_before = len(made)
+    img, alpha, _ = clsplat.rasterization(**args_grad)
+    (img.sum() + alpha.sum()).backward()
+    assert len(made) - n_before > 10  # the render's intermediates took this path
+    assert torch.equal(img.detach(), want)
+    assert all(torch.equal(args_grad[k].grad, want_grads[k]) for k in want_grads)
