@@ -263,8 +263,8 @@ class Runtime:
         """Whether intermediates live on the device alone where it does not share host memory
         (:meth:`DeviceArray.on_device`). Not on Oclgrind, whose uninitialised-value checker
         counts neither a fill command as a write nor, once a released buffer's memory is
-        reused, another live buffer's written values
-        (bench/experiments/oclgrind_reuse_uninit.py): there every array is uploaded from the host, as before."""
+        reused, another live buffer's written values (bench/experiments/oclgrind_reuse_uninit.py):
+        there every array is uploaded from the host, as before."""
         return "oclgrind" not in self.device.platform.name.lower()
 
     @property
