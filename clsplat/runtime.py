@@ -178,6 +178,7 @@ class Runtime:
     _limits: tuple = field(default=(), init=False, repr=False)  # (max alloc, global mem) bytes
     _in_host_memory: bool | None = field(default=None, init=False, repr=False)
     _shares: bool | None = field(default=None, init=False, repr=False)  # shares_host_memory, cached
+    _device_only: bool | None = field(default=None, init=False, repr=False)  # device_only_arrays, cached
     _pools_device: bool | None = field(default=None, init=False, repr=False)  # pools' device part, cached
     # whether the tuned compositing kernels' inline exp is this device's library exp bit for
     # bit (clsplat.stages.inline_exp_exact; None until probed)
@@ -265,7 +266,9 @@ class Runtime:
         counts neither a fill command as a write nor, once a released buffer's memory is
         reused, another live buffer's written values (bench/experiments/oclgrind_reuse_uninit.py):
         there every array is uploaded from the host, as before."""
-        return "oclgrind" not in self.device.platform.name.lower()
+        if self._device_only is None:  # (asked by every intermediate: worked out once)
+            self._device_only = "oclgrind" not in self.device.platform.name.lower()
+        return self._device_only
 
     @property
     def pools(self) -> bool:
