@@ -6,7 +6,8 @@
 # 1. installs the wheels (pyopencl's bundles the ICD loader) and points the loader at the driver's
 #    libnvidia-opencl where no ICD file names it; 2. lists the OpenCL devices; 3. gpu_check.py's
 #    accuracy / determinism / kernel-time table on the default device (the GPU); 4. the engine's
-#    own tests on it (they run on PoCL in CI; what fails here is recorded, not hidden).
+#    own tests on it, the stiff-case catalogue (tests/test_stiff.py) with the GPU's per-tile sort
+#    among them (they run on PoCL in CI; what fails here is recorded, not hidden).
 #    GPU_IMPLS=1: both backward_impl values and sort_impl=tiles side by side, and their tests;
 #    GPU_SORT=1: both sort_impl values at 100k-1M, and the tests on the GPU's default.
 set -u
@@ -38,5 +39,5 @@ timeout 240 python3 bench/experiments/gpu_check.py --out $OUT --scenes tiny,10k,
 timeout 120 python3 -m pytest -q -p no:cacheprovider -rf --timeout 60 tests/test_rasterization.py tests/test_autograd.py \
   tests/test_composite.py tests/test_composite_bwd.py tests/test_project.py tests/test_project_bwd.py tests/test_sh.py \
   tests/test_sh_bwd.py tests/test_order.py tests/test_bin.py tests/test_reduce.py tests/test_packed.py \
-  tests/test_gsplat_rendering.py tests/test_composite_bwd_gaussian.py tests/test_portability_limits.py 2>&1 \
-  | tee $OUT/pytest_gpu.txt | tail -60
+  tests/test_gsplat_rendering.py tests/test_composite_bwd_gaussian.py tests/test_portability_limits.py \
+  tests/test_stiff.py 2>&1 | tee $OUT/pytest_gpu.txt | tail -60
