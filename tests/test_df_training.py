@@ -127,3 +127,30 @@ def test_a_bad_value_names_the_field(field, value):
     with pytest.raises(ValueError, match=field) as e:
         TINY.replace(**{field: value})
     assert "\n" not in str(e.value)
+
+
+def test_step_decay_multiplies_both_rates_from_its_step_and_is_off_by_default():
+    """``lr_decay_at=S``: from step S (from 0) on, both groups run at ``lr_decay_factor`` of their
+    rate, on top of the warm-up and the pose's half-life; before S nothing changes. Off in every
+    preset (no scheduler where nothing else needs one); a bad value is a one-line error naming it."""
+    for p in (TINY, SMALL):
+        assert p.lr_decay_at is None
+    assert make_scheduler(make_optimizer(_Toy(), TINY), TINY) is None
+    p = TINY.replace(lr_decay_at=6, lr_decay_factor=0.1)
+    assert [lr_factors(p, s) for s in (0, 5)] == [(1.0, 1.0), (1.0, 1.0)]
+    assert lr_factors(p, 6) == pytest.approx((0.1, 0.1)) and lr_factors(p, 60) == pytest.approx((0.1, 0.1))
+    q = TINY.replace(lr_warmup=4, pose_lr_half_life=8, lr_decay_at=8, lr_decay_factor=0.5)
+    assert lr_factors(q, 8) == pytest.approx((0.5, 0.25))
+    opt = make_optimizer(_Toy(), p)
+    sched = make_scheduler(opt, p)
+    seen = []
+    for _ in range(8):
+        seen.append(_rates(opt))
+        opt.step()
+        sched.step()
+    assert seen[5] == pytest.approx((p.lr, p.lr)) and seen[6] == pytest.approx((p.lr * 0.1, p.lr * 0.1))
+    for bad, what in ((dict(lr_decay_at=0), "lr_decay_at"), (dict(lr_decay_at=True), "lr_decay_at"),
+                      (dict(lr_decay_at=5, lr_decay_factor=0.0), "lr_decay_factor"),
+                      (dict(lr_decay_factor=1.5), "lr_decay_factor")):
+        with pytest.raises(ValueError, match=what):
+            TINY.replace(**bad)

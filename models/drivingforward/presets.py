@@ -145,6 +145,10 @@ class DFPreset(Preset):
         grad_clip: total gradient-norm clip (None: off, as in the paper).
         lr_warmup: the learning rates rise linearly from 1/lr_warmup of their value to all of it
             over the first lr_warmup steps; 0: off, as in the paper.
+        lr_decay_at, lr_decay_factor: None (the paper's constant rate): off. A step S: from step S
+            on (counted from 0) every learning rate is multiplied by lr_decay_factor, monodepth2's
+            step decay (x0.1 for its last quarter). (Issue 32: the depth's AbsRel levels off at a
+            constant rate; off in every preset.)
         warmup_steps: for this many first steps the temporal and spatio-temporal losses train the
             pose network only (the depth is detached from them); 0: off, as in the paper.
         jitter: colour jitter (brightness, contrast, saturation, hue) on network inputs only.
@@ -239,6 +243,8 @@ class DFPreset(Preset):
     grad_clip: float | None = None
     warmup_steps: int = 0
     lr_warmup: int = 0
+    lr_decay_at: int | None = None
+    lr_decay_factor: float = 0.1
     batch_size: int = 1
     steps: int = 1000
     jitter: tuple[float, float, float, float] = (0.2, 0.2, 0.2, 0.05)
@@ -309,6 +315,11 @@ class DFPreset(Preset):
             raise ValueError(f"preset {self.name}: automask_margin must be >= 0, got {self.automask_margin!r}")
         if self.lr_warmup < 0:
             raise ValueError(f"preset {self.name}: lr_warmup must be >= 0, got {self.lr_warmup}")
+        if self.lr_decay_at is not None and (isinstance(self.lr_decay_at, bool) or not isinstance(self.lr_decay_at, int)
+                                             or self.lr_decay_at < 1):
+            raise ValueError(f"preset {self.name}: lr_decay_at must be None or an int >= 1, got {self.lr_decay_at!r}")
+        if not 0 < self.lr_decay_factor <= 1:
+            raise ValueError(f"preset {self.name}: lr_decay_factor must lie in (0, 1], got {self.lr_decay_factor!r}")
         if self.pose_source not in ("network", "dataset", "geometric"):
             raise ValueError(f"preset {self.name}: pose_source must be 'network', 'dataset' or 'geometric', "
                              f"got {self.pose_source!r}")

@@ -44,11 +44,15 @@ def make_optimizer(model, preset) -> torch.optim.Adam:
 
 def lr_factors(preset, step: int) -> tuple[float, float]:
     """The multipliers of (the other networks', the pose network's) learning rates at ``step``
-    (from 0): the linear warm-up of ``preset.lr_warmup`` on both, min(1, (step + 1) / lr_warmup), and
-    on the pose network's alone max(pose_lr_floor, 0.5 ** (step / pose_lr_half_life)) when
+    (from 0): the linear warm-up of ``preset.lr_warmup`` on both, min(1, (step + 1) / lr_warmup),
+    times ``lr_decay_factor`` on both from step ``lr_decay_at`` on (when set), and on the pose
+    network's alone max(pose_lr_floor, 0.5 ** (step / pose_lr_half_life)) when
     ``pose_lr_half_life`` is set (the floor 0.0 unless the preset names one)."""
     n = preset.lr_warmup
     warm = min(1.0, (step + 1) / n) if n else 1.0
+    at = getattr(preset, "lr_decay_at", None)
+    if at is not None and step >= at:
+        warm *= preset.lr_decay_factor
     h = getattr(preset, "pose_lr_half_life", None)
     floor = getattr(preset, "pose_lr_floor", 0.0)
     return warm, warm * (max(floor, 0.5 ** (step / h)) if h else 1.0)
@@ -57,9 +61,10 @@ def lr_factors(preset, step: int) -> tuple[float, float]:
 def make_scheduler(opt: torch.optim.Optimizer, preset) -> torch.optim.lr_scheduler.LambdaLR | None:
     """The learning-rate schedule of :func:`lr_factors` as a per-group ``LambdaLR`` over
     :func:`make_optimizer`'s two groups (None when it is constant: no ``lr_warmup``, no
-    ``pose_lr_half_life``). Its state (the step) travels in the checkpoint, so a resumed run
-    continues the decay where it stopped."""
-    if preset.lr_warmup == 0 and getattr(preset, "pose_lr_half_life", None) is None:
+    ``lr_decay_at``, no ``pose_lr_half_life``). Its state (the step) travels in the checkpoint, so
+    a resumed run continues the decay where it stopped."""
+    if (preset.lr_warmup == 0 and getattr(preset, "lr_decay_at", None) is None
+            and getattr(preset, "pose_lr_half_life", None) is None):
         return None
     return torch.optim.lr_scheduler.LambdaLR(opt, [lambda s: lr_factors(preset, s)[0],
                                                    lambda s: lr_factors(preset, s)[1]])
