@@ -318,7 +318,8 @@ class DFPreset(Preset):
         if self.lr_decay_at is not None and (isinstance(self.lr_decay_at, bool) or not isinstance(self.lr_decay_at, int)
                                              or self.lr_decay_at < 1):
             raise ValueError(f"preset {self.name}: lr_decay_at must be None or an int >= 1, got {self.lr_decay_at!r}")
-        if not 0 < self.lr_decay_factor <= 1:
+        f = self.lr_decay_factor
+        if isinstance(f, bool) or not isinstance(f, (int, float)) or not 0 < f <= 1:
             raise ValueError(f"preset {self.name}: lr_decay_factor must lie in (0, 1], got {self.lr_decay_factor!r}")
         if self.pose_source not in ("network", "dataset", "geometric"):
             raise ValueError(f"preset {self.name}: pose_source must be 'network', 'dataset' or 'geometric', "
