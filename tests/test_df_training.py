@@ -24,6 +24,18 @@ def _rates(opt) -> tuple[float, float]:
     return opt.param_groups[0]["lr"], opt.param_groups[1]["lr"]
 
 
+def _rates_over(preset, steps: int) -> list[tuple[float, float]]:
+    """The two groups' rates at steps 0 .. steps-1 under ``preset``'s optimiser and schedule."""
+    opt = make_optimizer(_Toy(), preset)
+    sched = make_scheduler(opt, preset)
+    seen = []
+    for _ in range(steps):
+        seen.append(_rates(opt))
+        opt.step()
+        sched.step()
+    return seen
+
+
 def test_every_preset_leaves_both_fields_off():
     for p in (TINY, SMALL):
         assert p.pose_lr_half_life is None and p.pose_grad_clip is None
@@ -32,13 +44,7 @@ def test_every_preset_leaves_both_fields_off():
 
 def test_half_life_halves_the_pose_rate_and_only_it():
     p = TINY.replace(pose_lr=1e-3, pose_lr_half_life=10)
-    opt = make_optimizer(_Toy(), p)
-    sched = make_scheduler(opt, p)
-    seen = []
-    for _ in range(31):
-        seen.append(_rates(opt))
-        opt.step()
-        sched.step()
+    seen = _rates_over(p, 31)
     assert all(r == pytest.approx(p.lr) for r, _ in seen)               # the other networks: constant
     for s in (0, 10, 20, 30):                                            # the pose: 0.5 ** (s / 10)
         assert seen[s][1] == pytest.approx(1e-3 * 0.5 ** (s / 10), rel=1e-12)
@@ -143,11 +149,5 @@ def test_step_decay_multiplies_both_rates_from_its_step_and_is_off_by_default():
     assert lr_factors(p, 6) == pytest.approx((0.1, 0.1)) and lr_factors(p, 60) == pytest.approx((0.1, 0.1))
     q = TINY.replace(lr_warmup=4, pose_lr_half_life=8, lr_decay_at=8, lr_decay_factor=0.5)
     assert lr_factors(q, 8) == pytest.approx((0.5, 0.25))
-    opt = make_optimizer(_Toy(), p)
-    sched = make_scheduler(opt, p)
-    seen = []
-    for _ in range(8):
-        seen.append(_rates(opt))
-        opt.step()
-        sched.step()
+    seen = _rates_over(p, 8)
     assert seen[5] == pytest.approx((p.lr, p.lr)) and seen[6] == pytest.approx((p.lr * 0.1, p.lr * 0.1))
