@@ -12,6 +12,15 @@ import torch
 import clsplat
 
 
+def _skip_where_the_pool_is_off(rt) -> None:
+    """Skip a test of the array pool or the kept inputs where they are off by design: they exist only
+    where the device computes in the arrays' host memory (PoCL's CPU device, not with
+    ``CLSPLAT_HOST_MEMORY=copy``; :attr:`Runtime.pools`' device part), so nothing there to test."""
+    if not (rt.computes_in_host_memory and rt.shares_host_memory):
+        pytest.skip("the pool and kept inputs are on only where the device computes in host memory "
+                    "(PoCL's CPU device, not with CLSPLAT_HOST_MEMORY=copy)")
+
+
 def _pocl_spec() -> str:
     """The "platform:device" index of PoCL's first device (not assumed to be 0:0: on a GPU host
     the GPU driver's platform may come first)."""
@@ -299,8 +308,7 @@ def test_array_pool_hands_out_only_arrays_nothing_holds(rt, monkeypatch):
     Runtime.array of a pooled array's memory gives that array."""
     import numpy as np
     from clsplat.runtime import POOL_ARRAY_BYTES, POOL_PER_SHAPE, POOL_SHAPES
-    if not (rt.computes_in_host_memory and rt.shares_host_memory):
-        pytest.skip("the pool is on only where the device computes in host memory (PoCL's CPU device, not with CLSPLAT_HOST_MEMORY=copy)")
+    _skip_where_the_pool_is_off(rt)
     rt.release_pool()
     a = rt.empty((7, 3), torch.float32)
     a.tensor.fill_(5)
@@ -369,8 +377,7 @@ def test_kept_input_arrays_follow_their_tensors(rt):
     else holds the memory, and never more than KEEP_INPUTS."""
     import numpy as np
     from clsplat.runtime import KEEP_INPUTS
-    if not (rt.computes_in_host_memory and rt.shares_host_memory):
-        pytest.skip("inputs are kept only where the device computes in host memory (PoCL's CPU device, not with CLSPLAT_HOST_MEMORY=copy)")
+    _skip_where_the_pool_is_off(rt)
     rt.release_pool()
     rt.empty((1,), torch.float32)  # (the pool on: keep needs it)
     k = _reduce_kernel(rt)
@@ -404,8 +411,7 @@ def test_small_renders_make_no_arrays_and_returned_tensors_stay_valid(make_scene
     are never overwritten by the next (which sees inputs changed in place)."""
     from clsplat import runtime as R
     rt = clsplat.get_runtime()
-    if not (rt.computes_in_host_memory and rt.shares_host_memory):
-        pytest.skip("the pool is on only where the device computes in host memory (PoCL's CPU device, not with CLSPLAT_HOST_MEMORY=copy)")
+    _skip_where_the_pool_is_off(rt)
     scene = make_scene(0, N=60, C=1, width=48, height=32, dtype=torch.float32)
     for k in ("means", "quats", "scales", "opacities", "colors"):
         scene[k] = scene[k].clone().requires_grad_()
