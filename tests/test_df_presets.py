@@ -81,3 +81,12 @@ def test_no_preset_holds_the_datas_motion():
             for x in _numbers(getattr(p, field.name)):
                 for m in motions:
                     assert not (x != 0 and abs(abs(x) - m) <= 0.02 * m), (name, field.name, x, m)
+
+
+def test_small_odometry_is_small_with_the_given_motion_recipe():
+    """Issue 32: the given-motion preset departs from small only by the fields chosen for that mode
+    on validation streets (the depth recipe and the step decay), and uses the data's motion."""
+    small, odo = get_preset("drivingforward", "small"), get_preset("drivingforward", "small-odometry")
+    diff = {f.name for f in dataclasses.fields(small) if getattr(small, f.name) != getattr(odo, f.name)}
+    assert diff == {"name", "pose_source", "w_smooth", "ground_prior_cap", "lr_decay_at", "steps"}
+    assert odo.pose_source == "dataset" and odo.lr_decay_at < odo.steps

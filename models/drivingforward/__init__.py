@@ -2,7 +2,7 @@
 Gaussian splatting of surround-view driving scenes from any subset of cameras and frames,
 trained self-supervised.
 
-    presets     tiny / small / paper (DrivingForwardPreset, registered under "drivingforward")
+    presets     tiny / small / small-odometry / paper (DrivingForwardPreset, registered under "drivingforward")
     depth       the depth network (ResNet-18 encoder, scale-aware decoder, ground prior)
     pose        the pose network (one rig motion from all cameras fused in a bird's-eye grid)
     ground_motion  the rig motion fitted to the road's flow or images through the ground plane (a probe, issue 32)

@@ -1,6 +1,6 @@
 """``clsplat train drivingforward`` and ``clsplat eval drivingforward``.
 
-    clsplat train drivingforward --data synthetic|pandaset:PATH|nuscenes:PATH --preset tiny|small|paper
+    clsplat train drivingforward --data synthetic|pandaset:PATH|nuscenes:PATH --preset tiny|small|small-odometry|paper
                                  --steps N --out DIR [--resume] [--weights RESNET18.pth]
                                  [--lpips-vgg VGG.pth --lpips-lin LIN.pth] [--eval-scenes K]
                                  [--pose network|dataset] [--set FIELD=VALUE ...] [--eval-split val|test]
