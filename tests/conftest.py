@@ -121,7 +121,8 @@ def torchrun_two(tmp_path, family: str, args: list[str], timeout: int = 600) -> 
     r = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
                         str(port), str(script), *args, "--out", str(tmp_path / "two")],
                        capture_output=True, text=True, timeout=timeout, env=env)
-    assert r.returncode == 0, r.stderr[-3000:]
+    # torchrun's own report fills the tail of stderr: the ranks' output (where a rank died) is before it
+    assert r.returncode == 0, f"stdout: ...{r.stdout[-1500:]}\nstderr: {r.stderr[:2500]}\n...{r.stderr[-800:]}"
     assert "2 process(es)" in r.stdout
     return (torch.load(tmp_path / "one" / "checkpoint.pt", weights_only=True),
             torch.load(tmp_path / "two" / "checkpoint.pt", weights_only=True))
