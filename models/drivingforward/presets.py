@@ -433,7 +433,7 @@ SMALL = register("drivingforward", DFPreset(
 #   AbsRel 0.190 / 0.168 against 0.205 / 0.191 at the constant rate, delta1 0.807 / 0.810 against
 #   0.766 / 0.769; run once on the test streets (seeds 0-2): AbsRel 0.61 / 0.66 / 0.64x the layout
 #   baseline's (constant rate 0.69 / 0.78 / 0.67x), delta1 0.84-0.85, scale 0.91-1.03 in every speed bin.
-# About 45 minutes on the 2-core machine (1.4 s a step).
+# 1800 steps took 1.4-2.3 s each on the 2-core machine with the street cache (42-70 minutes).
 SMALL_ODOMETRY = register("drivingforward", SMALL.replace(
     name="small-odometry", pose_source="dataset", w_smooth=0.01, ground_prior_cap=10.0,
     lr_decay_at=1500, steps=1800))
