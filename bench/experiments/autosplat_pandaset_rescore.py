@@ -178,9 +178,11 @@ def main(argv: list[str] | None = None) -> None:
 
 
 def _seeds(out: list[dict]) -> None:
-    """Runs named ``PREFIX_<street>_<config>_s<seed>`` grouped by street and config: mean (min..max)."""
+    """Runs named ``PREFIX_<street>_<config>_s<seed>`` grouped by street and config: mean (min..max).
+    The street is the folder's kind, the first name part that starts with ``p`` (``pbusy``,
+    ``pclassicnoisy``, ...), so the prefix may hold parts of its own (``i36s14_test_pbusy_cl_s3``)."""
     import statistics
-    name = re.compile(r"^[^_]+_(?P<street>[^_]+)_(?P<config>.+)_s(?P<seed>\d+)$")
+    name = re.compile(r"^[^_]+(?:_[^p_][^_]*)*_(?P<street>p[^_]+)_(?P<config>.+)_s(?P<seed>\d+)$")
     groups: dict[tuple[str, str], list[dict]] = {}
     for o in out:
         g = name.match(o["run"])
