@@ -17,13 +17,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 
 from . import plan, stages
 from .config import RenderConfig
 from .packed import PackedMeans2d, pack_pairs
 from .runtime import DeviceArray, Runtime, read_back
+from .validate import all_finite
 
 __all__ = ["Settings", "ProjectFn", "ShFn", "RasterizeFn"]
 
@@ -79,7 +79,7 @@ def _array(s: Settings, t: torch.Tensor, read_only: bool = False) -> DeviceArray
 
 
 def _finite_grad(name: str, g: torch.Tensor | None) -> None:
-    if g is not None and not np.isfinite(g.detach().numpy()).all():  # numpy: see clsplat.validate
+    if g is not None and not all_finite(g.detach().numpy()):
         raise ValueError(f"grad_output ({name}): contains NaN or Inf; the loss or its "
                          "gradient is not finite")
 
