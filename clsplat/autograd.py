@@ -21,7 +21,7 @@ import torch
 
 from . import plan, stages
 from .config import RenderConfig
-from .packed import PackedMeans2d, pack_pairs
+from .packed import PackedMeans2d, gather_pairs, pack_pairs
 from .runtime import DeviceArray, Runtime, read_back
 from .validate import all_finite
 
@@ -117,7 +117,7 @@ class ProjectFn(torch.autograd.Function):
         if s.pack:  # the packed meta["means2d"] of the visible pairs, on the loss path
             ctx.route = PackedMeans2d(pack_pairs(outs[4].unsqueeze(0)))
             s.packed_route = (ctx.route, outs[0].detach())  # (detached: no cycle via grad_fn)
-            outs.append(outs[0].reshape(-1, 2).index_select(0, ctx.route.pairs.flat))
+            outs.append(gather_pairs(outs[0], ctx.route.pairs.flat))
         # gradients of unused outputs (depths in most calls) come as None, not zeros torch made:
         # the backward stages None as a kept zero array (Runtime.staged)
         ctx.set_materialize_grads(False)

