@@ -683,9 +683,8 @@ class Runtime:
 
     @contextmanager
     def scratch(self) -> Iterator[Callable[[tuple, torch.dtype], "DeviceArray"]]:
-        """``with rt.scratch() as alloc:`` ``alloc(shape, dtype)`` gives a zeroed DeviceArray
-        (``zero=False``: not zeroed, every entry a command reads must be written first), valid
-        until the block ends, over memory this runtime keeps for the next block.
+        """``with rt.scratch() as alloc:`` ``alloc(shape, dtype)`` gives a zeroed DeviceArray,
+        valid until the block ends, over memory this runtime keeps for the next block.
 
         A training loop's backward needs the same large intermediate array every step; fresh
         memory of that size comes from the OS with every page faulted in on first touch (90 ms
@@ -695,10 +694,10 @@ class Runtime:
         """
         taken: list[torch.Tensor] = []
 
-        def alloc(shape: tuple, dtype: torch.dtype, zero: bool = True) -> "DeviceArray":
+        def alloc(shape: tuple, dtype: torch.dtype) -> "DeviceArray":
             nbytes = math.prod(int(d) for d in shape) * dtype.itemsize
             if 0 < nbytes <= POOL_ARRAY_BYTES and self.pools:
-                return self.empty(shape, dtype, zero)  # small: a pooled array
+                return self.empty(shape, dtype)  # small: a pooled array, zeroed
             if nbytes >= HOST_CHECK_BYTES or nbytes > self.max_alloc:
                 self.check_memory(nbytes, f"an intermediate array {list(shape)} {dtype}")
             with self._scratch_lock:
@@ -711,8 +710,7 @@ class Runtime:
                 mem = torch.empty(nbytes, dtype=torch.uint8)
             taken.append(mem)
             t = mem[:nbytes].view(dtype).view(tuple(shape))
-            if zero:
-                t.zero_()
+            t.zero_()
             return DeviceArray(self, t)
 
         try:

@@ -892,7 +892,7 @@ def composite_bwd(rt: Runtime, cfg: RenderConfig, fwd: dict, v_out: DeviceArray,
 
     ``fwd`` holds the forward's DeviceArrays: means2d, conics, opacities, extents, feats, rects,
     offsets, keys, out (out_feats), T, last; optionally "pair_tiles" (:func:`isect_offsets`). v_out [C,H,W,CH], v_T [C,H,W]. ``alloc(shape,
-    dtype, zero)`` makes the slots array (default ``rt.empty``; e.g. ``Runtime.scratch``'s).
+    dtype)`` makes the zeroed slots array (default ``rt.empty``; e.g. ``Runtime.scratch``'s).
     ``reduce_into``: :func:`_reduce_outputs`' arrays, which the per-Gaussian kernel's one launch
     fills itself (FUSED_REDUCE; only as :func:`composite_bwd_reduced` decides).
     Returns (slots [M, G], isect_offsets [C*N]).
@@ -915,9 +915,7 @@ def composite_bwd(rt: Runtime, cfg: RenderConfig, fwd: dict, v_out: DeviceArray,
     rt.check_memory(M * G * (8 if cfg.precision == "float64" else 4),
                     f"means, scales: the backward's gradient slots ({M} intersections x {G} values)")
     offs = isect_offsets(rt, fwd["rects"], fwd.get("pair_tiles"))
-    # the per-Gaussian kernel writes every slot (zeros where nothing reaches), the per-pixel
-    # one only the samples that reach a pixel
-    slots = (alloc or rt.empty)((M, G), cfg.dtype, zero=not gauss)
+    slots = (alloc or rt.empty)((M, G), cfg.dtype)
     f = fwd
     # The first launch computes the geometry gradients (and colour chunk 0); each further
     # launch only the colour gradients of its chunk of channels.

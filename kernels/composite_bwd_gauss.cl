@@ -28,12 +28,9 @@
  * from global memory (WIDE).
  *
  * Slots: the layout of composite_bwd.cl (SLOT_G values per intersection, colour from column
- * SLOT_COLOR0), reduced per pair by reduce.cl. Every launch writes the columns it owns (the
- * geometry's in the GEOM_GRAD launch, its chunk's colours) of every sample of its tile, zeros
- * where no pixel is reached (past the tile's last contributor, outside the extent, untouched):
- * so the caller need not zero them (at 1M Gaussians a 130 MB fill on the calling thread).
- * With FUSED_REDUCE (small calls on PoCL's CPU device, one launch: see the end of the kernel)
- * the last work-item to finish sums them here instead.
+ * SLOT_COLOR0), reduced per pair by reduce.cl; the caller zeroes them (a sample no pixel reaches
+ * is not written). With FUSED_REDUCE (small calls on PoCL's CPU device, one launch: see the end
+ * of the kernel) the last work-item to finish sums them here instead.
  *
  * Build parameters: REAL_DOUBLE, TILE, PIX, CHANNELS, CCHUNK, GEOM_GRAD, COLOR_GRAD, ABSGRAD,
  * BWD_DIVIDE, SLOT_G, SLOT_COLOR0, ALPHA_MIN, ALPHA_MAX, CLS_POCL_CPU, FUSED_REDUCE.
@@ -58,16 +55,6 @@ inline int2 index_range(REAL c, REAL bound, REAL base, int n) {
     const REAL hi = CLS_CEIL(c + bound - base - (REAL)CLS_PIXEL_CENTRE) + 2;
     /* Clamp before converting: a far off-screen mean would overflow int. */
     return (int2)((int)CLS_FMIN((REAL)n, CLS_FMAX((REAL)0, lo)), (int)CLS_FMIN((REAL)n, CLS_FMAX((REAL)0, hi)));
-}
-
-/* Zeros into the columns of ``slot`` this launch owns (see "Slots" above). */
-inline void zero_slot(__global REAL *slot, const int ch0) {
-#if GEOM_GRAD
-    for (int j = 0; j < (ABSGRAD ? 8 : 6); ++j) slot[j] = 0;
-#endif
-#if COLOR_GRAD
-    for (int ch = 0; ch < CCHUNK && ch0 + ch < CHANNELS; ++ch) slot[SLOT_COLOR0 + ch0 + ch] = 0;
-#endif
 }
 
 __kernel __attribute__((reqd_work_group_size(1, 1, 1)))
@@ -153,11 +140,8 @@ void composite_bwd_gauss(COMPOSITE_BWD_ARGS
 #endif
         const uint cg = key_id(keys[start + i]);
         const REAL ey = extents[2 * cg + 1];
+        if (ey < 0) continue; /* no pixel reaches ALPHA_MIN (outside_extent's first test) */
         __global REAL *slot = slots + (size_t)pair_slot(cg, tx, ty, rects, isect_offsets) * SLOT_G;
-        if (ey < 0) { /* no pixel reaches ALPHA_MIN (outside_extent's first test) */
-            zero_slot(slot, ch0);
-            continue;
-        }
 #if CLS_PREFETCH
         /* its slot, written after the visits below: fetched for writing meanwhile */
         __builtin_prefetch(slot, 1);
@@ -284,10 +268,7 @@ void composite_bwd_gauss(COMPOSITE_BWD_ARGS
                 l_T[s] = T;
             }
         }
-        if (!touched) {
-            zero_slot(slot, ch0);
-            continue;
-        }
+        if (!touched) continue; /* its slot stays zero */
 #if GEOM_GRAD
         {
             const REAL sx = -VSUM(m_x), sy = -VSUM(m_y); /* sums of v_sigma dx, v_sigma dy */
@@ -307,9 +288,6 @@ void composite_bwd_gauss(COMPOSITE_BWD_ARGS
         for (int ch = 0; ch < CCHUNK && ch0 + ch < CHANNELS; ++ch) slot[SLOT_COLOR0 + ch0 + ch] = VSUM(acc_c[ch]);
 #endif
     }
-    /* the samples behind every pixel's last contributor: no gradient */
-    for (int i = start + n_used, end = tile_offsets[tile + 1]; i < end; ++i)
-        zero_slot(slots + (size_t)pair_slot(key_id(keys[i]), tx, ty, rects, isect_offsets) * SLOT_G, ch0);
 #if FUSED_REDUCE
     /* The work-item that finishes last sums every pair's slots (reduce_pair: reduce.cl's sums,
      * the same bits), which saves a small call the reduce's launch and its wake-up of the

@@ -160,51 +160,6 @@ def test_empty_tiles_one_gaussian_and_opaque_stacks(loss_grads):
             assert _rel(got[k], want[k]) < REL32, (divide, k)
 
 
-@pytest.mark.parametrize("precision,channels,mode,absgrad,divide,opacity,n", [
-    ("float32", None, "RGB", False, False, (0.05, 1.0), 1500),     # the default: fused reduce
-    ("float32", None, "RGB+ED", True, True, (0.99, 0.999), 1500),  # early stops, back to front
-    ("float64", None, "RGB", True, False, (0.05, 1.0), 1500),
-    ("float32", 40, "RGB", True, False, (0.05, 1.0), 1500),        # two colour launches
-    ("float32", None, "RGB", True, False, (0.05, 1.0), 40000),     # slots > POOL_ARRAY_BYTES: scratch
-])
-def test_every_slot_is_written_so_no_fill_is_needed(monkeypatch, precision, channels, mode, absgrad,
-                                                    divide, opacity, n, loss_grads):
-    """The per-Gaussian kernel writes every slot of its tiles' samples (zeros where nothing is
-    reached: past the last contributor, outside the extent, untouched), so its slots are not
-    zeroed: with every float array nobody zeroes (pooled or scratch) filled with NaN first, the
-    gradients are bitwise those of a clean run, in both layouts."""
-    from clsplat.runtime import Runtime
-    dtype = torch.float64 if precision == "float64" else torch.float32
-    sc = _scene(n=n, channels=channels, dtype=dtype, opacity=opacity)
-    kw = dict(precision=precision, mode=mode, absgrad=absgrad, divide=divide)
-    want = {p: _run(loss_grads, sc, "gaussian", packed=p, **kw) for p in (True, False)}
-    real_empty, real_scratch = Runtime.empty, Runtime.scratch
-    poisoned = []
-
-    def poison(a, zero):
-        if not zero and a.tensor.is_floating_point():
-            a.tensor.fill_(float("nan"))
-            poisoned.append(a.tensor.shape)
-        return a
-
-    def empty(self, shape, dtype, zero=True):
-        return poison(real_empty(self, shape, dtype, zero), zero)
-
-    from contextlib import contextmanager
-
-    @contextmanager
-    def scratch(self):
-        with real_scratch(self) as alloc:
-            yield lambda shape, dtype, zero=True: poison(alloc(shape, dtype, zero), zero)
-    monkeypatch.setattr(Runtime, "empty", empty)
-    monkeypatch.setattr(Runtime, "scratch", scratch)
-    for packed in (True, False):
-        got = _run(loss_grads, sc, "gaussian", packed=packed, **kw)
-        for k, v in want[packed].items():
-            assert torch.equal(got[k], v), (packed, k)
-    assert any(len(shape) == 2 and shape[0] > 1000 for shape in poisoned), poisoned[:5]
-
-
 def test_default_by_device_and_bad_value():
     rt = get_runtime()
     assert stages.backward_gaussian(rt, RenderConfig()) == (rt.is_pocl_cpu and stages.BACKWARD_IMPL_CPU == "gaussian")
