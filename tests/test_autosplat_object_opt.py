@@ -80,3 +80,5 @@ def test_the_fields_are_off_in_every_preset_but_where_chosen():
     for name in ("tiny", "small", "paper"):
         p = get_preset("autosplat", name)
         assert (p.object_lr_scale, p.object_grad_threshold) == (1.0, 0.0), name
+    # chosen for demo on validation streets (issue 36, session 15)
+    assert get_preset("autosplat", "demo").object_lr_scale == 3.0
