@@ -1,4 +1,6 @@
 """clsplat.validate's value checks: the one-pass finite test against numpy's exact one."""
+import warnings
+
 import numpy as np
 import pytest
 import torch
@@ -44,3 +46,11 @@ def test_check_finite_names_the_argument_and_counts():
     with pytest.raises(ValueError, match=r"^means: contains 2 NaN or Inf value\(s\)$"):
         check_finite("means", t)
     check_finite("means", torch.zeros(4, 3))
+
+
+def test_no_runtime_warning_for_infinities_or_overflow():
+    big = np.finfo(np.float32).max
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert not all_finite(np.array([np.inf, -np.inf], np.float32))
+        assert all_finite(np.array([big, big], np.float32))
