@@ -153,6 +153,10 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--json", type=Path, default=None, help="write the figures here too")
     ap.add_argument("--from-json", action="store_true", help="RUNS are --json files of earlier calls: tables only")
     a = ap.parse_args(argv)
+    need = "" if a.from_json else "metrics.json"
+    for r in a.runs:  # (before any street is generated: a run still training fails at once, in one line)
+        if not (r / need).is_file():
+            ap.error(f"runs: {r / need} not found ({'a --json file' if a.from_json else 'a finished run folder'} expected)")
     torch.set_num_threads(1)
     cache: dict = {}
     if a.from_json:
