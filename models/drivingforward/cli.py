@@ -3,7 +3,7 @@
     clsplat train drivingforward --data synthetic|pandaset:PATH|nuscenes:PATH --preset tiny|small|small-odometry|paper
                                  --steps N --out DIR [--resume] [--weights RESNET18.pth]
                                  [--lpips-vgg VGG.pth --lpips-lin LIN.pth] [--eval-scenes K]
-                                 [--pose network|dataset] [--set FIELD=VALUE ...] [--eval-split val|test]
+                                 [--pose network|dataset|geometric] [--set FIELD=VALUE ...] [--eval-split val|test]
                                  [--val-every N] [--val-scenes K]
                                  [--view [--view-port P] [--view-every N]]
     clsplat eval drivingforward --checkpoint FILE --data ... [--cameras ...] [--offsets ...]
