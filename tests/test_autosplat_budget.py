@@ -66,6 +66,23 @@ def test_the_cap_holds_and_never_cuts_below_the_preset_steps():
     assert object_budget(SCALED.replace(fg_steps=50, fg_steps_max=10), many, 1000).fg_steps == 50
 
 
+def test_steps_rescale_the_scene_terms_with_the_schedule():
+    """``--steps N`` (with_total_steps) scales the scene's added foreground iterations by the same
+    factor as the four stages: a short run on a busy street stays short."""
+    from clsplat.models.autosplat.presets import with_total_steps
+    demo = get_preset("autosplat", "demo")
+    total = sum(demo.stage_steps().values())
+    many = _pixels([[400, 400]] * 30)                       # a busy street: the cap binds
+    full = object_budget(demo, many, 1000).fg_steps
+    assert full == demo.fg_steps_max
+    short = with_total_steps(demo, total // 10)
+    assert sum(short.stage_steps().values()) == total // 10
+    assert (short.fg_steps_per_track, short.fg_steps_per_area) == pytest.approx(
+        (demo.fg_steps_per_track * (total // 10) / total, demo.fg_steps_per_area * (total // 10) / total))
+    assert object_budget(short, many, 1000).fg_steps <= full // 10 + 2
+    assert with_total_steps(demo, total) == demo                # the preset's own length: unchanged
+
+
 def test_object_points_and_caps_follow_the_box_pixels():
     p = TINY.replace(object_points_per_pixel=0.5, object_points_min=20)   # object_points 200
     b = object_budget(p, _pixels([[10, 30], [0, 300], [1000, 2000], [0, 0]]), 10_000)

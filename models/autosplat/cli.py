@@ -11,7 +11,8 @@
         [--views recorded|far-side|lane-change|appearance ...]
 
 ``--no-decompose`` is plain 3DGS from LiDAR (one static set, no objects, no phase 1). ``--steps N``
-rescales the preset's four stages to N iterations in all, each keeping its share. ``--batch-size B``
+rescales the preset's four stages to N iterations in all, each keeping its share (and the
+iterations a scene's objects add, by the same factor). ``--batch-size B``
 trains on B frames per iteration (default 1); under ``torchrun`` the ranks share them (data
 parallel on the shared loop, so B must be at least the number of processes). ``--views``
 picks the test sets scored (:mod:`.viewsets`; default ``recorded lane-change``): ``far-side``

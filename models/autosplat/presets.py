@@ -240,8 +240,9 @@ def with_total_steps(preset: AutoSplatPreset, steps: int) -> AutoSplatPreset:
     """``preset`` with its four-stage schedule rescaled to ``steps`` iterations in all (``--steps``):
     each stage keeps its share (the last stage with any iterations takes the rounding), and
     densification starts at the same fraction of a stage. The foreground's scene terms
-    (``fg_steps_per_track``, ``fg_steps_per_area``, ``fg_steps_max``) are left as they are: they say
-    what the scene's objects need, not a share of the schedule."""
+    (``fg_steps_per_track``, ``fg_steps_per_area``, ``fg_steps_max``) scale by the same factor, so
+    that the iterations a scene's objects add keep their share too: ``--steps 20`` on a busy street
+    runs ~20 iterations and a few more for its movers, not the full preset's 480 added ones."""
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
         raise ValueError(f"--steps: expected a positive number of iterations, got {steps!r}")
     stages = preset.stage_steps()
@@ -250,7 +251,11 @@ def with_total_steps(preset: AutoSplatPreset, steps: int) -> AutoSplatPreset:
     last = [k for k, v in stages.items() if v][-1]
     new[last] += steps - sum(new.values())
     fields = dict(zip(("bg_phase1_steps", "bg_phase2_steps", "fg_steps", "fusion_steps"), new.values()))
-    return preset.replace(**fields, densify_start=int(preset.densify_start * steps // total))
+    f = steps / total
+    return preset.replace(**fields, densify_start=int(preset.densify_start * steps // total),
+                          fg_steps_per_track=preset.fg_steps_per_track * f,
+                          fg_steps_per_area=preset.fg_steps_per_area * f,
+                          fg_steps_max=int(preset.fg_steps_max * steps // total))
 
 
 # demo: the sidewalk in the road set and 20 of phase 1's 40 iterations given to phase 2 (issue 19,
