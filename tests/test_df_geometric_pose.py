@@ -76,6 +76,23 @@ def test_geometric_keep_reads_a_crawling_window_that_the_plain_fit_reads_as_stan
     assert float(plain[:3, 3].norm()) < 0.2 * float(gt[2][:3, 3].norm())   # the failure: read as standing
 
 
+@pytest.mark.slow
+def test_the_yaw_search_reads_a_turn_that_the_fit_without_it_reads_as_driving_straight(preset, varied):
+    """A training street turning 1.1 degrees a frame at 2.9 m/s: Gauss-Newton from zero yaw, with the
+    trimmed cost, leaves nearly the whole turn out (about 1 degree of rotation error both ways);
+    ``geometric_max_yaw_rate`` 30 deg/s searches the yaw first and reads it (issue 32)."""
+    from clsplat.models.common.metrics import pose_errors
+    p = preset.replace(geometric_keep=0.75)
+    s = _window(varied, 16, p)
+    gt = gt_ego_motion(s)
+    true = (gt[0].double(), gt[2].double())
+    plain = [pose_errors(m.double(), t)["r_err_deg"] for m, t in zip(window_motions(s, p), true)]
+    turned = [pose_errors(m.double(), t)["r_err_deg"]
+              for m, t in zip(window_motions(s, p.replace(geometric_max_yaw_rate=30.0)), true)]
+    assert min(plain) > 0.8, plain
+    assert max(turned) < 0.25, turned
+
+
 def test_geometric_motions_drive_the_warps_and_leave_the_pose_network_untrained(sample):
     torch.manual_seed(0)
     m = DrivingForward(get_preset("drivingforward", "tiny").replace(pose_source="geometric"))
@@ -98,12 +115,15 @@ def test_the_fits_size_defaults_to_the_presets_and_bad_fields_are_refused():
     assert geometric_size(tiny) == (tiny.height, tiny.width)
     assert tiny.pose_source == "network" and get_preset("drivingforward", "small").pose_source == "network"
     assert tiny.geometric_keep == 1.0 and get_preset("drivingforward", "small").geometric_keep == 1.0   # off
+    assert tiny.geometric_max_yaw_rate == 0.0 == get_preset("drivingforward", "small").geometric_max_yaw_rate
     assert tiny.replace(geometric_size=[176, 320]).geometric_size == (176, 320)   # a checkpoint's list
     for field, value in (("geometric_size", (176,)), ("geometric_size", (4, 320)), ("geometric_size", (176.0, 320)),
                          ("geometric_size", (100, 176)),
                          ("geometric_search", 1), ("geometric_search", True), ("geometric_max_speed", 0.0),
                          ("geometric_max_speed", float("inf")), ("geometric_keep", 0.0), ("geometric_keep", 1.5),
-                         ("geometric_keep", True), ("pose_source", "lidar")):
+                         ("geometric_keep", True), ("geometric_max_yaw_rate", -1.0),
+                         ("geometric_max_yaw_rate", float("nan")), ("geometric_max_yaw_rate", True),
+                         ("pose_source", "lidar")):
         with pytest.raises(ValueError, match=field):
             tiny.replace(**{field: value})
 

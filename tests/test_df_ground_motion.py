@@ -173,3 +173,49 @@ def test_keep_trims_pixels_that_keep_pace_with_the_ego_so_a_crawl_is_not_read_sh
     for bad in (0.0, 1.5, True, float("nan")):
         with pytest.raises(ValueError, match="keep"):
             fit_ground_motion_direct(a, b, K, E, 12.0, keep=bad)
+
+
+def test_a_yaw_search_reads_a_turn_and_leaves_the_fit_unchanged_when_off() -> None:
+    """A turn of 1.5 degrees a frame at 0.8 m over a smooth textured ground: with the yaw searched first
+    the fit reads the turn and the translation (the varied world's turning windows, which the fit
+    without it reads as driving straight, are tests/test_df_geometric_pose.py's). Without the search
+    the fit is the same as before, bit for bit; a bad grid is refused."""
+    K, E = _rig()
+    K = K.clone()
+    K[:, :2] *= 2.0                                                        # 32 x 56 images
+    yaw = math.radians(1.5)
+    theta = torch.tensor([0.0, 0.0, yaw, 0.8, 0.0, 0.0], dtype=torch.float64)
+    earlier = _render_ground(K, E, torch.eye(4, dtype=torch.float64), 32, 56)
+    later = _render_ground(K, E, se3_exp(theta[:3], theta[3:]), 32, 56)
+    kw = {"dof": 6, "search": (-3.0, 3.0, 301), "keep": 0.75}
+
+    def yaw_of(M):
+        return float(torch.atan2(M[1, 0], M[0, 0]))
+    plain = fit_ground_motion_direct(earlier, later, K, E, 12.0, **kw)
+    searched = fit_ground_motion_direct(earlier, later, K, E, 12.0, yaw_search=(-0.05, 0.05, 41), **kw)
+    assert abs(yaw_of(searched) - yaw) < 0.1 * yaw, yaw_of(searched)
+    assert float((searched[:3, 3] - theta[3:]).norm()) < 0.05 * 0.8, searched[:3, 3]
+    assert torch.equal(fit_ground_motion_direct(earlier, later, K, E, 12.0, yaw_search=None, **kw), plain)
+    for bad in ((0.05, -0.05, 41), (-0.05, 0.05, 1), (-0.05, 0.05), (-0.05, 0.05, True)):
+        with pytest.raises(ValueError, match="yaw_search"):
+            fit_ground_motion_direct(earlier, later, K, E, 12.0, yaw_search=bad)
+
+
+def test_a_depth_in_place_of_the_plane_gives_the_planes_motion_where_the_ground_is_the_plane() -> None:
+    """``depth`` (a probe's upper bound: the data's own depth) places the prior's pixels in 3D; on a
+    ground that is the calibrated plane it is the plane's depth, so the fit is the same; a bad map is
+    refused by name."""
+    K, E = _rig()
+    K = K.clone()
+    K[:, :2] *= 2.0
+    theta = torch.tensor([0.0, 0.0, 0.01, 0.6, 0.0, 0.0], dtype=torch.float64)
+    earlier = _render_ground(K, E, torch.eye(4, dtype=torch.float64), 32, 56)
+    later = _render_ground(K, E, se3_exp(theta[:3], theta[3:]), 32, 56)
+    Z = ground_prior_depth(K, E, 32, 56, 12.0)
+    Zs = torch.where(Z < 12.0, Z, torch.full_like(Z, 1e4))                # the sky set far, as a probe does
+    a = fit_ground_motion_direct(earlier, later, K, E, 12.0, dof=3)
+    b = fit_ground_motion_direct(earlier, later, K, E, 12.0, dof=3, depth=Zs)
+    assert torch.allclose(a, b, atol=1e-9)
+    for bad in (Zs[:, :, :10], Zs.clone().fill_(float("nan")), -Zs):
+        with pytest.raises(ValueError, match="depth"):
+            fit_ground_motion_direct(earlier, later, K, E, 12.0, depth=bad)

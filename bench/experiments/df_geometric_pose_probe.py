@@ -4,7 +4,9 @@ against the data's, per window and per speed bin (median % in the moving bins, m
 standing, and the tail: the 90th percentile and the largest error; the rotation error in degrees
 beside it), beside the constant-motion control when ``--control N`` training windows are given.
 ``--split train`` reads the windows a ``--pose geometric`` run trains its depth on: a median hides the
-few windows whose wrong motion the depth is taught with.
+few windows whose wrong motion the depth is taught with. ``--true-depth``: the same fit with the
+generator's depth in place of the calibrated ground plane (an upper bound: how much of the error is
+the plane's).
 No training: the fit has no weights, so this is what ``--pose geometric`` reports, at the cost of
 the fits alone (~3 CPU s a fit at 176x320).
 
@@ -28,6 +30,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--size", type=int, nargs=2, metavar=("H", "W"), default=None,
                    help="geometric_size (default: the preset's, else its own size)")
     p.add_argument("--keep", type=float, default=None, help="geometric_keep (default: the preset's)")
+    p.add_argument("--max-yaw-rate", type=float, default=None, help="geometric_max_yaw_rate, deg/s (default: the preset's)")
+    p.add_argument("--true-depth", action="store_true",
+                   help="an upper bound: the fit places the ground pixels with the data's own depth, not the "
+                        "calibrated plane (synthetic data)")
     p.add_argument("--control", type=int, default=0, metavar="N",
                    help="constant-motion control: camera 0's mean true motion over N training windows")
     p.add_argument("--json", default=None, help="write per-window results here")
@@ -54,6 +60,8 @@ def main(argv: list[str] | None = None) -> int:
             preset = preset.replace(geometric_size=tuple(a.size))
         if a.keep is not None:
             preset = preset.replace(geometric_keep=a.keep)
+        if a.max_yaw_rate is not None:
+            preset = preset.replace(geometric_max_yaw_rate=a.max_yaw_rate)
         src = parse_data(a.data, default_world="varied")
     except ValueError as e:
         p.error(str(e))
@@ -77,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"window {i}: {e}; stopping")
             break
         T_true = camera0_motion(s)
-        M_prev, M = (m.double() for m in load_window_motions(src, i, preset, a.split, None, s))
+        M_prev, M = (m.double() for m in load_window_motions(src, i, preset, a.split, None, s, a.true_depth))
         E0 = s["cam_to_ego"][0].double()
         err = pose_errors(torch.linalg.inv(E0) @ M @ E0, T_true)
         # the fit's own check, no truth: t -> t+1 against the inverse of t -> t-1 (equal at constant

@@ -22,6 +22,7 @@ with a frame elsewhere (real PandaSet's roof LiDAR) its plane, and so its motion
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Sequence
 
 import torch
@@ -34,6 +35,8 @@ __all__ = ["GROUND_CAP_DEFAULT", "geometric_size", "window_motions", "load_windo
 
 #: metres of ground the fit reads when the preset has no ground_prior_cap (the probe's setting)
 GROUND_CAP_DEFAULT = 20.0
+#: yaw values the fit tries when the preset's ``geometric_max_yaw_rate`` > 0
+YAW_SEARCH = 41
 
 
 def geometric_size(preset) -> tuple[int, int]:
@@ -41,7 +44,7 @@ def geometric_size(preset) -> tuple[int, int]:
     return tuple(preset.geometric_size) if preset.geometric_size is not None else (preset.height, preset.width)
 
 
-def window_motions(sample: dict, preset) -> list[Tensor]:
+def window_motions(sample: dict, preset, true_depth: bool = False) -> list[Tensor]:
     """The rig's motion from frame t to t-1 and to t+1 of a triplet, from its images.
 
     Args:
@@ -49,6 +52,8 @@ def window_motions(sample: dict, preset) -> list[Tensor]:
             ``cam_to_ego``, ``timestamps [3]``), at any size.
         preset: gives ``ground_prior_cap``, ``geometric_search``, ``geometric_max_speed``,
             ``geometric_keep``.
+        true_depth: place the ground pixels with the sample's own depth of frame t (``depths``)
+            instead of the calibrated plane: a probe's upper bound, never a run's pose.
     Returns:
         ``[M_{t->t-1}, M_{t->t+1}]``, each ``[4, 4]`` in the images' dtype: ego coordinates at t to
         ego coordinates at the other frame (:func:`~.data.gt_ego_motion`'s convention).
@@ -62,15 +67,25 @@ def window_motions(sample: dict, preset) -> list[Tensor]:
         if not dt > 0:
             raise ValueError(f"timestamps: frames t-1, t, t+1 must have distinct times, got {ts.tolist()}")
         bound = preset.geometric_max_speed * dt
+        yaw = math.radians(float(preset.geometric_max_yaw_rate)) * dt
         M = fit_ground_motion_direct(images[1], images[other], sample["Ks"], E, cap,
                                      search=(-bound, bound, preset.geometric_search),
-                                     keep=float(preset.geometric_keep))
+                                     yaw_search=(-yaw, yaw, YAW_SEARCH) if yaw > 0 else None,
+                                     keep=float(preset.geometric_keep),
+                                     depth=_finite_depth(sample["depths"][1][:, None]) if true_depth else None)
         out.append(M.to(images.dtype))
     return out
 
 
+def _finite_depth(d: Tensor) -> Tensor:
+    """A depth map with its sky (infinite, or 0 where nothing was hit) set far: the fit reads only
+    the ground prior's pixels, which are never sky, but checks the whole map."""
+    far = torch.full_like(d, 1e4)
+    return torch.where(torch.isfinite(d) & (d > 0), d, far)
+
+
 def load_window_motions(source, index: int, preset, split: str = "train", cameras: Sequence[str] | None = None,
-                        sample: dict | None = None) -> list[Tensor]:
+                        sample: dict | None = None, true_depth: bool = False) -> list[Tensor]:
     """:func:`window_motions` of window ``index``, its frames read at :func:`geometric_size`.
 
     ``sample``: the window already loaded at the preset's size, reused when that is the fit's size
@@ -80,4 +95,4 @@ def load_window_motions(source, index: int, preset, split: str = "train", camera
     if sample is None or size != (preset.height, preset.width):
         sample = load_triplet(source, index, dataclasses.replace(preset, height=size[0], width=size[1]),
                               split, cameras)
-    return window_motions(sample, preset)
+    return window_motions(sample, preset, true_depth)

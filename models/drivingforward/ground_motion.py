@@ -187,7 +187,9 @@ class _Level(NamedTuple):
 def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_ego: Tensor, cap: float,
                              levels: tuple[int, ...] = (1,), dof: int = 6, loss: str = "huber",
                              iters: int = 8, search: tuple[float, float, int] | None = (-3.0, 3.0, 61),
-                             weight: Tensor | None = None, tau: float = 0.05, keep: float = 1.0) -> Tensor:
+                             weight: Tensor | None = None, tau: float = 0.05, keep: float = 1.0,
+                             depth: Tensor | None = None,
+                             yaw_search: tuple[float, float, int] | None = None) -> Tensor:
     """The rig motion that best aligns the later images with the earlier ones on the ground.
 
     A direct (photometric) form of :func:`fit_ground_motion`: every pixel whose ray meets the ground
@@ -216,6 +218,15 @@ def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_
             cam_to_ego ``[V, 4, 4]`` (ego frame on the ground); cap: metres.
         weight: ``[V, 1, H, W]`` >= 0 prior pixel weights (0: left out; a block counts at a level
             only if all its pixels count); None: ones.
+        yaw_search: ``(lo, hi, count)`` radians: after the forward search, the yaw (ego z) is
+            chosen from that grid by the same cost, then the forward translation again from 21
+            values within one of its grid steps. Gauss-Newton from zero yaw does not reach a turn's
+            1-2 degrees a frame: the trimmed cost drops the far pixels the turn moves most, and the
+            fit reads a turning window as driving straight (issue 32). None: no yaw search.
+        depth: ``[V, 1, H, W]`` z-depth (m) of the earlier frame that places the prior's pixels in
+            3D instead of the calibrated plane (the same pixels: those the plane puts within
+            ``cap``); None: the plane. A measurement's upper bound (the data's own depth: what
+            the fit would read if the road were the plane), never a model's input.
     Returns:
         ``M [4, 4]`` float64, ego coordinates at the earlier instant to the later one; the identity
         where no pixel sees the ground within ``cap`` (no evidence of motion).
@@ -242,6 +253,16 @@ def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_
         if not ok or not float(search[0]) < float(search[1]):
             raise ValueError(f"search: expected None or (lo, hi, count) metres with lo < hi and an int count >= 2, "
                              f"got {search!r}")
+    if depth is not None and (depth.shape != (earlier.shape[0], 1, *earlier.shape[-2:])
+                              or not bool(torch.isfinite(depth).all()) or not bool((depth > 0).all())):
+        raise ValueError(f"depth: expected a finite positive [V, 1, H, W] z-depth like the images, got "
+                         f"{list(depth.shape)}")
+    if yaw_search is not None:
+        ok = isinstance(yaw_search, (tuple, list)) and len(yaw_search) == 3 and not isinstance(yaw_search[2], bool) \
+            and isinstance(yaw_search[2], int) and yaw_search[2] >= 2
+        if not ok or not float(yaw_search[0]) < float(yaw_search[1]):
+            raise ValueError(f"yaw_search: expected None or (lo, hi, count) radians with lo < hi and an int "
+                             f"count >= 2, got {yaw_search!r}")
     if not levels or any(isinstance(v, bool) or not isinstance(v, int) or v < 1 for v in levels):
         raise ValueError(f"levels: expected a non-empty sequence of ints >= 1, got {levels!r}")
     dt = torch.float64
@@ -264,7 +285,11 @@ def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_
         Z = ground_prior_depth(K, E, h, w, cap)
         pw = F_.avg_pool2d(pw_full, level) if level > 1 else pw_full
         pw = (pw * (pw > 1 - 1e-9) * (Z < cap)).reshape(V, -1)
-        uv, X = ground_points(K, Z)
+        if depth is not None:
+            Zd = depth.to(dt)
+            uv, X = ground_points(K, F_.avg_pool2d(Zd, level) if level > 1 else Zd)
+        else:
+            uv, X = ground_points(K, Z)
         # Only the prior's pixels enter a cost or a step, so the rest is never moved or sampled: each
         # camera's own pixels first, in raster order (the same sums in the same order as over the
         # whole image), padded to the busiest camera with pixels of weight 0 (2-3x fewer samples).
@@ -319,6 +344,18 @@ def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_
                     if best is None or c < best[0]:
                         best = (c, th)
             theta = best[1]
+            if yaw_search is not None:
+                grids = ((2, torch.linspace(float(yaw_search[0]), float(yaw_search[1]), int(yaw_search[2]),
+                                            dtype=dt)),
+                         (3, float(theta[3]) + torch.linspace(-step_m, step_m, 21, dtype=dt)))
+                for k, grid in grids:
+                    for v in grid:
+                        th = theta.clone()
+                        th[k] = v
+                        c = cost(th, lv)
+                        if c < best[0]:
+                            best = (c, th)
+                    theta = best[1]
         for _ in range(iters):
             r, grad, m = residual(theta, lv)                                            # [V, N], [V, 2, N]
             if not bool((m > 0).any()):

@@ -168,6 +168,10 @@ class DFPreset(Preset):
         geometric_keep: share of the ground pixels whose residuals the "geometric" fit's search
             averages, the lowest (a least-trimmed cost: pixels off the road plane drop out, so a
             crawling car no longer reads as standing); 1.0: all (issue 32; off in every preset).
+        geometric_max_yaw_rate: degrees/s; > 0: the "geometric" fit also searches the yaw over +-
+            this times the frame interval (41 values) after the forward translation, so that a
+            turning window is not read as driving straight (a generic bound on a car's yaw rate;
+            issue 32, off in every preset: 0, no yaw search).
         pose_translation_init: initial camera-0 translation (metres, camera frame, earlier ->
             later) of the pose network, set through the decoder's output bias; None: the paper's
             zero-mean initialisation.
@@ -254,6 +258,7 @@ class DFPreset(Preset):
     geometric_search: int = 301
     geometric_max_speed: float = 30.0
     geometric_keep: float = 1.0
+    geometric_max_yaw_rate: float = 0.0
     pose_translation_init: tuple[float, float, float] | None = None
     detach_render_pose: bool = False
     supersample: int = 1
@@ -337,6 +342,10 @@ class DFPreset(Preset):
         v = self.geometric_max_speed
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < float("inf"):
             raise ValueError(f"preset {self.name}: geometric_max_speed must be a finite number > 0 (m/s), got {v!r}")
+        y = self.geometric_max_yaw_rate
+        if isinstance(y, bool) or not isinstance(y, (int, float)) or not 0 <= y < 360:
+            raise ValueError(f"preset {self.name}: geometric_max_yaw_rate must be a number in [0, 360) "
+                             f"(degrees/s; 0: no yaw search), got {y!r}")
         k = self.geometric_keep
         if isinstance(k, bool) or not isinstance(k, (int, float)) or not 0 < k <= 1:
             raise ValueError(f"preset {self.name}: geometric_keep must be a share in (0, 1], got {k!r}")
