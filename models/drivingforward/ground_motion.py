@@ -145,6 +145,17 @@ def _check_iters(iters) -> None:
         raise ValueError(f"iters: expected an int >= 0 (Gauss-Newton steps), got {iters!r}")
 
 
+def _check_grid(name: str, grid, unit: str) -> None:
+    """A search grid ``(lo, hi, count)``: None, or lo < hi and an int count >= 2; else a ValueError."""
+    if grid is None:
+        return
+    ok = isinstance(grid, (tuple, list)) and len(grid) == 3 and not isinstance(grid[2], bool) \
+        and isinstance(grid[2], int) and grid[2] >= 2
+    if not ok or not float(grid[0]) < float(grid[1]):
+        raise ValueError(f"{name}: expected None or (lo, hi, count) {unit} with lo < hi and an int count >= 2, "
+                         f"got {grid!r}")
+
+
 def _robust_weights(e: Tensor, loss: str, ref: Tensor | None = None) -> Tensor:
     """IRLS weights of residual magnitudes ``e`` (any shape): Huber / Cauchy at a scale from the
     median of ``ref`` (default ``e``; 1.4826 MAD), or ones."""
@@ -247,22 +258,12 @@ def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_
     if isinstance(keep, bool) or not isinstance(keep, (int, float)) or not 0 < keep <= 1:
         raise ValueError(f"keep: expected a share of the pixels in (0, 1], got {keep!r}")
     _check_iters(iters)
-    if search is not None:
-        ok = isinstance(search, (tuple, list)) and len(search) == 3 and not isinstance(search[2], bool) \
-            and isinstance(search[2], int) and search[2] >= 2
-        if not ok or not float(search[0]) < float(search[1]):
-            raise ValueError(f"search: expected None or (lo, hi, count) metres with lo < hi and an int count >= 2, "
-                             f"got {search!r}")
+    _check_grid("search", search, "metres")
+    _check_grid("yaw_search", yaw_search, "radians")
     if depth is not None and (depth.shape != (earlier.shape[0], 1, *earlier.shape[-2:])
                               or not bool(torch.isfinite(depth).all()) or not bool((depth > 0).all())):
         raise ValueError(f"depth: expected a finite positive [V, 1, H, W] z-depth like the images, got "
                          f"{list(depth.shape)}")
-    if yaw_search is not None:
-        ok = isinstance(yaw_search, (tuple, list)) and len(yaw_search) == 3 and not isinstance(yaw_search[2], bool) \
-            and isinstance(yaw_search[2], int) and yaw_search[2] >= 2
-        if not ok or not float(yaw_search[0]) < float(yaw_search[1]):
-            raise ValueError(f"yaw_search: expected None or (lo, hi, count) radians with lo < hi and an int "
-                             f"count >= 2, got {yaw_search!r}")
     if not levels or any(isinstance(v, bool) or not isinstance(v, int) or v < 1 for v in levels):
         raise ValueError(f"levels: expected a non-empty sequence of ints >= 1, got {levels!r}")
     dt = torch.float64
