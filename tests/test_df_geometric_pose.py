@@ -93,6 +93,29 @@ def test_the_yaw_search_reads_a_turn_that_the_fit_without_it_reads_as_driving_st
     assert max(turned) < 0.25, turned
 
 
+def test_a_street_caches_fits_are_kept_reused_bitwise_and_refitted_when_a_field_changes(tmp_path, monkeypatch):
+    """``synthetic-cache:DIR``: a window's fitted motions are kept beside its street and read back bit
+    for bit instead of fitted again; another fit field, a damaged file, or another source kind fits."""
+    from clsplat.models.drivingforward import geometric_pose as G
+    p = get_preset("drivingforward", "tiny").replace(pose_source="geometric", geometric_size=(32, 56))
+    src = parse_data(f"synthetic-cache:{tmp_path}", default_world="varied")
+    fits = []
+    real = G.window_motions
+    monkeypatch.setattr(G, "window_motions", lambda *a, **k: (fits.append(1), real(*a, **k))[1])
+    first = G.load_window_motions(src, 4, p)
+    kept = sorted((tmp_path / "geometric").glob("*.pt"))
+    assert len(fits) == 1 and len(kept) == 1
+    again = G.load_window_motions(src, 4, p)
+    assert len(fits) == 1 and all(torch.equal(a, b) for a, b in zip(first, again))
+    G.load_window_motions(src, 4, p.replace(geometric_keep=0.75))              # another field: fitted
+    assert len(fits) == 2 and len(list((tmp_path / "geometric").glob("*.pt"))) == 2
+    kept[0].write_bytes(b"not a tensor file")                                  # damaged: fitted, rewritten
+    assert all(torch.equal(a, b) for a, b in zip(G.load_window_motions(src, 4, p), first)) and len(fits) == 3
+    assert len(G.load_window_motions(src, 4, p)) == 2 and len(fits) == 3
+    G.load_window_motions(parse_data("synthetic", default_world="varied"), 4, p)   # no cache: always fitted
+    assert len(fits) == 4
+
+
 def test_geometric_motions_drive_the_warps_and_leave_the_pose_network_untrained(sample):
     torch.manual_seed(0)
     m = DrivingForward(get_preset("drivingforward", "tiny").replace(pose_source="geometric"))

@@ -43,7 +43,8 @@ def load_triplet(source: DataSource, index: int, preset, split: str = "train",
         (when the data has depth maps; inf = sky), else ``lidar_depth [V, H, W]`` at t when it has
         LiDAR (NaN: no return), ``viewmats [3, V, 4, 4]`` world-to-camera,
         ``ego_to_world [3, 4, 4]``, ``timestamps [3]`` (seconds, float64), ``names`` (list of camera
-        names).
+        names), and ``street_file`` (str) when the window was read from a street cache
+        (``synthetic-cache:DIR``: the street's file, which names it).
     """
     kw = {"dt": preset.scenes_dt, "supersample": preset.supersample, "depth_only": depth_only} \
         if source.synthetic_streets else {}
@@ -54,6 +55,8 @@ def load_triplet(source: DataSource, index: int, preset, split: str = "train",
            "cam_to_ego": frames[1]["cam_to_ego"], "viewmats": torch.stack([f["viewmats"] for f in frames]),
            "ego_to_world": torch.stack([f["ego_to_world"] for f in frames]), "names": list(seq.camera_names),
            "timestamps": torch.tensor([float(f.timestamp) for f in seq.frames[:3]], dtype=torch.float64)}
+    if seq.metadata.get("cache_file"):
+        out["street_file"] = str(seq.metadata["cache_file"])
     if not depth_only:
         out["images"] = torch.stack([f["images"] for f in frames])
     if all("depths" in f for f in frames):
