@@ -144,3 +144,14 @@ def test_one_name_for_one_meaning_across_the_presets():
            for k, v in pgt.to_dict().items()}
     check_preset_matches(old, pgt, "old.pt")                 # no error: the same preset under old names
     assert preset_from_saved("pgt", old) == pgt
+
+
+@pytest.mark.slow   # trains PGT's tiny preset for one step
+def test_a_run_names_the_opencl_device_it_renders_on(tmp_path, capsys):
+    """The first line of a run names the renderer (platform and device), so that a log says where
+    its times and bits came from (bench/experiments/gpu_models.sh reads it)."""
+    import clsplat
+    assert console(["train", "pgt", "--preset", "tiny", "--no-progress", "--out", str(tmp_path / "run"),
+                    *TINY_RUN["pgt"]]) == 0
+    head = [line for line in capsys.readouterr().out.splitlines() if "torch threads" in line][0]
+    assert head.endswith(f", renderer {clsplat.get_runtime().name}"), head

@@ -17,7 +17,7 @@ for dev in gpu pocl; do
       --steps ${STEPS:-10} --out /tmp/run_${f}_$dev --no-progress > /tmp/run_${f}_$dev.log 2>&1
     rc=$?
     echo "$f on $dev: rc $rc, $(python3 -c "import time; print(f'{time.time() - $t0:.1f}')") s wall" | tee -a $OUT/summary.txt
-    grep -m1 "^runtime\|device" /tmp/run_${f}_$dev.log | head -1 | tee -a $OUT/summary.txt
+    grep -m1 -o "renderer .*" /tmp/run_${f}_$dev.log | tee -a $OUT/summary.txt   # the OpenCL device the run used
     tail -n 3 /tmp/run_${f}_$dev.log | tee -a $OUT/summary.txt
     [ -f /tmp/run_${f}_$dev/metrics.json ] && cp /tmp/run_${f}_$dev/metrics.json $OUT/${f}_$dev.json
   done

@@ -223,7 +223,9 @@ def _train(family: Family, args: argparse.Namespace) -> int:
     seed_everything(args.seed)
     distributed_info()  # under torchrun: the process group the run folder's ranks meet in
     rank0 = distributed_info()[0] == 0
-    print(f"{family.title}: data {getattr(job.data, 'name', args.data)}, torch threads {threads}", flush=True)
+    from clsplat.runtime import get_runtime
+    print(f"{family.title}: data {getattr(job.data, 'name', args.data)}, torch threads {threads}, "
+          f"renderer {get_runtime(args.device).name}", flush=True)
     summary = None
     with RunFolder(args.out, resume=args.resume) as rf:  # the lock; outputs staged, then published as a group
         job.stage = rf.stage
