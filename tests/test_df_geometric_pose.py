@@ -91,6 +91,8 @@ def test_the_yaw_search_reads_a_turn_that_the_fit_without_it_reads_as_driving_st
               for m, t in zip(window_motions(s, p.replace(geometric_max_yaw_rate=30.0)), true)]
     assert min(plain) > 0.8, plain
     assert max(turned) < 0.25, turned
+    with pytest.raises(ValueError, match="true_depth"):   # the probe's bound needs depth maps
+        window_motions({k: v for k, v in s.items() if k != "depths"}, p, true_depth=True)
 
 
 def test_a_street_caches_fits_are_kept_reused_bitwise_and_refitted_when_a_field_changes(tmp_path, monkeypatch):

@@ -38,6 +38,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="constant-motion control: camera 0's mean true motion over N training windows")
     p.add_argument("--json", default=None, help="write per-window results here")
     a = p.parse_args(argv)
+    if a.true_depth and not a.data.startswith("synthetic"):
+        p.error(f"--true-depth: {a.data!r} has no depth maps (synthetic data only)")
     if a.windows is not None and a.windows < 1:
         p.error(f"--windows: expected an int >= 1, got {a.windows}")
     if a.start < 0 or a.control < 0:

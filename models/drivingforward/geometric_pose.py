@@ -59,13 +59,15 @@ def window_motions(sample: dict, preset, true_depth: bool = False) -> list[Tenso
         sample: :func:`~.data.load_triplet`'s dict (``images [3, V, 3, H, W]``, ``Ks``,
             ``cam_to_ego``, ``timestamps [3]``), at any size.
         preset: gives ``ground_prior_cap``, ``geometric_search``, ``geometric_max_speed``,
-            ``geometric_keep``.
+            ``geometric_keep``, ``geometric_max_yaw_rate``.
         true_depth: place the ground pixels with the sample's own depth of frame t (``depths``)
             instead of the calibrated plane: a probe's upper bound, never a run's pose.
     Returns:
         ``[M_{t->t-1}, M_{t->t+1}]``, each ``[4, 4]`` in the images' dtype: ego coordinates at t to
         ego coordinates at the other frame (:func:`~.data.gt_ego_motion`'s convention).
     """
+    if true_depth and "depths" not in sample:
+        raise ValueError("true_depth: the data has no depth maps (the generator's streets have; recordings do not)")
     images, ts = sample["images"], sample["timestamps"].double()
     cap = preset.ground_prior_cap if preset.ground_prior_cap is not None else GROUND_CAP_DEFAULT
     E = sample["cam_to_ego"].double()
