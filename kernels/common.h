@@ -471,6 +471,40 @@ typedef struct {
     REAL a, b, d;                  /* 2D covariance J V V^T J^T, before eps2d */
 } Ewa;
 
+/* The Jacobian clamp's bounds on x/z (right, left) and y/z (down, up) of camera K: the view
+ * frustum widened by CLS_FRUSTUM_MARGIN of tan(fov/2) on each side. */
+inline REAL4 frustum_limits(__global const REAL *K, int width, int height) {
+    const REAL fx = K[0], fy = K[4], cx = K[2], cy = K[5];
+    const REAL tan_fovx = (REAL)0.5 * width / fx, tan_fovy = (REAL)0.5 * height / fy;
+    return (REAL4)((width - cx) / fx + (REAL)CLS_FRUSTUM_MARGIN * tan_fovx,
+                   cx / fx + (REAL)CLS_FRUSTUM_MARGIN * tan_fovx,
+                   (height - cy) / fy + (REAL)CLS_FRUSTUM_MARGIN * tan_fovy,
+                   cy / fy + (REAL)CLS_FRUSTUM_MARGIN * tan_fovy);
+}
+
+/* Upper bounds on the pixel radii (x, y) that project gives a pair with camera-frame mean p
+ * (z > 0), from the scales' squared norm s2 = |s|^2 alone, before any EWA work. The 2D
+ * covariance's xx entry is |[j00, 0, j02] Rv M|^2 + eps2d <= (fx/z)^2 (1 + Lx^2) |Rv|_F^2 s2 +
+ * eps2d, with Lx the clamp's bound on |x/z| and |M|_F = |s| (R(q) is a rotation); the radius is
+ * RADIUS_SIGMA (the largest extent either radius rule allows) times its square root, rounded
+ * up. The factor and the added 2 px cover that rounding and the arithmetic's, so a pair these
+ * bounds put off-screen is one the full computation culls too: the culled set, and with it
+ * every output, is unchanged (tests/test_project.py, the off-screen case). */
+inline REAL2 radius_bounds(REAL3 p, const REAL *Rv, REAL s2, REAL eps2d, __global const REAL *K,
+                           REAL4 lim) {
+    const REAL rz = 1 / p.z;
+    const REAL w2 = Rv[0] * Rv[0] + Rv[1] * Rv[1] + Rv[2] * Rv[2] + Rv[3] * Rv[3] + Rv[4] * Rv[4]
+                    + Rv[5] * Rv[5] + Rv[6] * Rv[6] + Rv[7] * Rv[7] + Rv[8] * Rv[8];
+    /* (squares: a principal point outside the image makes one limit negative) */
+    const REAL lx2 = CLS_FMAX(lim.x * lim.x, lim.y * lim.y), ly2 = CLS_FMAX(lim.z * lim.z, lim.w * lim.w);
+    const REAL e = CLS_FMAX(eps2d, (REAL)0);
+    const REAL jx = K[0] * rz, jy = K[4] * rz;
+    const REAL ax = jx * jx * (1 + lx2) * w2 * s2 + e;
+    const REAL ay = jy * jy * (1 + ly2) * w2 * s2 + e;
+    const REAL f = (REAL)RADIUS_SIGMA * (REAL)1.001;
+    return (REAL2)(f * CLS_SQRT(ax) + 2, f * CLS_SQRT(ay) + 2);
+}
+
 /* p: camera-frame mean (z > 0); Rv: row-major world-to-camera rotation; M = R(q) S. */
 inline Ewa ewa_splat(REAL3 p, const REAL *Rv, const REAL *M, __global const REAL *K,
                      int width, int height) {
@@ -478,12 +512,9 @@ inline Ewa ewa_splat(REAL3 p, const REAL *Rv, const REAL *M, __global const REAL
     for (int i = 0; i < 3; ++i)
         for (int j = 0; j < 3; ++j)
             e.V[3 * i + j] = Rv[3 * i] * M[j] + Rv[3 * i + 1] * M[3 + j] + Rv[3 * i + 2] * M[6 + j];
-    const REAL fx = K[0], fy = K[4], cx = K[2], cy = K[5];
-    const REAL tan_fovx = (REAL)0.5 * width / fx, tan_fovy = (REAL)0.5 * height / fy;
-    const REAL lim_xp = (width - cx) / fx + (REAL)CLS_FRUSTUM_MARGIN * tan_fovx;
-    const REAL lim_xn = cx / fx + (REAL)CLS_FRUSTUM_MARGIN * tan_fovx;
-    const REAL lim_yp = (height - cy) / fy + (REAL)CLS_FRUSTUM_MARGIN * tan_fovy;
-    const REAL lim_yn = cy / fy + (REAL)CLS_FRUSTUM_MARGIN * tan_fovy;
+    const REAL fx = K[0], fy = K[4];
+    const REAL4 lim = frustum_limits(K, width, height);
+    const REAL lim_xp = lim.x, lim_xn = lim.y, lim_yp = lim.z, lim_yn = lim.w;
     const REAL rz = 1 / p.z, ux = p.x * rz, uy = p.y * rz;
     e.clip_x = ux > lim_xp || ux < -lim_xn;
     e.clip_y = uy > lim_yp || uy < -lim_yn;

@@ -49,15 +49,27 @@ __kernel void project(const int C, const int N,
                             vm[8] * m.x + vm[9] * m.y + vm[10] * m.z + vm[11]);
     depths[cg] = p.z;
     if (!(p.z >= near_plane && p.z <= far_plane)) return;
+    const REAL Rv[9] = {vm[0], vm[1], vm[2], vm[4], vm[5], vm[6], vm[8], vm[9], vm[10]};
+    const REAL s0 = scales[3 * g], s1 = scales[3 * g + 1], s2 = scales[3 * g + 2];
+    const REAL rz = 1 / p.z;
+    const REAL2 xy = (REAL2)(K[0] * p.x * rz + K[2], K[4] * p.y * rz + K[5]);
+
+    /* Off screen by more than any radius its scales allow: culled before the EWA. Of a surround
+     * rig's pairs about half lie in front of a camera, and more than half of those beside its
+     * image (scene B: 26 % of all pairs, against 21 % visible). A mean on the image needs no
+     * bound (it cannot be culled this way), so one camera's view pays four comparisons. */
+    if (p.z > 0 && !(xy.x >= 0 && xy.x < width && xy.y >= 0 && xy.y < height)) {
+        const REAL2 rb = radius_bounds(p, Rv, s0 * s0 + s1 * s1 + s2 * s2, eps2d, K,
+                                       frustum_limits(K, width, height));
+        if (xy.x + rb.x <= 0 || xy.x - rb.x >= width || xy.y + rb.y <= 0 || xy.y - rb.y >= height) return;
+    }
 
     /* World covariance M M^T with M = R S. */
     REAL Rq[9];
     quat_to_rotmat((REAL4)(quats[4 * g], quats[4 * g + 1], quats[4 * g + 2], quats[4 * g + 3]), Rq);
-    const REAL s0 = scales[3 * g], s1 = scales[3 * g + 1], s2 = scales[3 * g + 2];
     REAL M[9] = {Rq[0] * s0, Rq[1] * s1, Rq[2] * s2,
                  Rq[3] * s0, Rq[4] * s1, Rq[5] * s2,
                  Rq[6] * s0, Rq[7] * s1, Rq[8] * s2};
-    const REAL Rv[9] = {vm[0], vm[1], vm[2], vm[4], vm[5], vm[6], vm[8], vm[9], vm[10]};
     const Ewa e = ewa_splat(p, Rv, M, K, width, height);
     REAL a = e.a, d = e.d;
     const REAL b = e.b;
@@ -88,8 +100,6 @@ __kernel void project(const int C, const int N,
     const REAL ryf = CLS_FMIN(rcap, CLS_CEIL(extent * CLS_SQRT(d)));
     if (rxf <= radius_clip && ryf <= radius_clip) return;
 
-    const REAL rz = 1 / p.z;
-    const REAL2 xy = (REAL2)(K[0] * p.x * rz + K[2], K[4] * p.y * rz + K[5]);
     if (xy.x + rxf <= 0 || xy.x - rxf >= width || xy.y + ryf <= 0 || xy.y - ryf >= height) return;
     const int2 rad = (int2)((int)rxf, (int)ryf);
     const int4 rect = tile_rect(xy, rad, tiles_x, tiles_y);

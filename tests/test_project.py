@@ -156,6 +156,36 @@ def test_culling(rt, cfg64, camera, run_project, ref_project):
     assert got_vis.any() and not got_vis.all()
 
 
+@pytest.mark.parametrize("eps2d", [0.3, 0.0])
+def test_offscreen_means_cull_exactly_as_the_full_projection(rt, cfg64, make_scene, run_project, ref_project,
+                                                             eps2d):
+    """project culls a pair whose mean is off the image by more than its scales' radius bound
+    (common.h radius_bounds) before the EWA: that early test may only cull what the full
+    computation culls. Means scattered well beyond the frustum with large, anisotropic scales
+    (needles reaching into the image), cameras with off-centre principal points, one of them
+    outside the image (a negative frustum limit): visibility, radii and every output as the
+    reference's, and off-screen means both culled and kept, so both outcomes of the test occur."""
+    scene = make_scene(7, N=3000, C=4, width=64, height=48, scale_range=(0.01, 1.5))
+    g = torch.Generator().manual_seed(3)
+    scene["means"] = (torch.rand(3000, 3, generator=g, dtype=F64) - 0.5) * 9.0
+    scene["scales"][::5, 0] *= 20.0            # needles
+    Ks = scene["Ks"].clone()
+    Ks[1, 0, 2] += 40.0                        # principal point beyond the right edge
+    Ks[2, 1, 2] -= 30.0                        # ... above the top edge
+    scene["Ks"] = Ks
+    got = run_project(rt, cfg64, scene, eps2d=eps2d)
+    want = ref_project(scene, cfg64, eps2d=eps2d)
+    check_against_reference(got, want, 1e-9)
+    vm = scene["viewmats"]
+    p = torch.einsum("cij,nj->cni", vm[:, :3, :3], scene["means"]) + vm[:, None, :3, 3]
+    front = p[..., 2] > 0.01
+    u = Ks[:, None, 0, 0] * p[..., 0] / p[..., 2] + Ks[:, None, 0, 2]
+    v = Ks[:, None, 1, 1] * p[..., 1] / p[..., 2] + Ks[:, None, 1, 2]
+    off = ~((u >= 0) & (u < 64) & (v >= 0) & (v < 48))
+    assert (want["visible"] & off).sum() > 50        # kept though the mean is off the image
+    assert (front & off & ~want["visible"]).sum() > 500
+
+
 def test_extents_bound_where_alpha_reaches_alpha_min(rt, make_scene, run_project, ref_project, cfg64):
     """extents[c, g] = (x, y) distances beyond which alpha < ALPHA_MIN on every row/column;
     compositing skips samples past them, so they must equal sqrt(2 ln(o / ALPHA_MIN) cov_ii)."""
