@@ -59,6 +59,8 @@ class Settings:
     # rects' data_ptr -> stages.EarlyTiles: a small call's tile lists, launched by ProjectFn
     # right behind the projection (one wait for both), for RasterizeFn to take
     early: dict | None = None
+    # rects' data_ptr -> the projection's tiles [C,N] (stages.Projection), for RasterizeFn's counts
+    tiles: dict | None = None
     # ProjectFn (one batch element, packed): also outputs the packed meta["means2d"] [nnz, 2],
     # its pairs' route set as packed_route (no gathering node between them)
     pack: bool = False
@@ -100,9 +102,9 @@ class ProjectFn(torch.autograd.Function):
                                         s.tile_size, events=s.events)
         # (aliases: autograd sets its node on the tensors returned, never on a pooled array's own)
         outs = [t.detach() for t in read_back(p.means2d, p.conics, p.depths, p.opacities, p.radii,
-                                                p.rects, p.extents,
+                                                p.rects, p.extents, p.tiles,
                                                 *((early.offsets,) if early else ()))[:7]]
-        p.rects.read_only = True  # no later command writes the rectangles: read without a wait
+        p.rects.read_only = p.tiles.read_only = True  # no later command writes them: read without a wait
         if s.arrays is None:
             s.arrays = {}
         s.arrays.update((a.tensor.data_ptr(), a) for a in (p.means2d, p.conics, p.depths, p.opacities,
@@ -112,6 +114,9 @@ class ProjectFn(torch.autograd.Function):
             if s.early is None:
                 s.early = {}
             s.early[p.rects.tensor.data_ptr()] = early
+        if s.tiles is None:
+            s.tiles = {}
+        s.tiles[p.rects.tensor.data_ptr()] = p.tiles
         ctx.mark_non_differentiable(*outs[4:])
         ctx.route = None
         if s.pack:  # the packed meta["means2d"] of the visible pairs, on the loss path
@@ -222,10 +227,13 @@ class RasterizeFn(torch.autograd.Function):
         if early is not None and (early.rects is not a["rects"] or early.depths is not d):
             early = None  # (not this projection's: the lists are built here)
         pair_tiles = [] if want_grad else None  # (for the backward's slot offsets)
+        tiles = s.tiles.pop(rects.data_ptr(), None) if s.tiles else None
+        if tiles is not None and tiles.tensor.shape != rects.shape[:-1]:
+            tiles = None  # (not this projection's: counted from the rectangles)
         offsets, keys = stages.tile_lists(rt, cfg, a["rects"], d, s.width,
                                           s.height, s.tile_size, events=s.events,
                                           per_intersection=per_isect, reserve=s.pixel_reserve,
-                                          early=early, pair_tiles=pair_tiles)
+                                          early=early, pair_tiles=pair_tiles, tiles=tiles)
         out, T, last = stages.composite(rt, cfg, a["means2d"], a["conics"], a["opacities"],
                                         a["extents"], a["feats"], offsets, keys, s.width, s.height,
                                         s.tile_size, save_last=want_grad, events=s.events)

@@ -44,7 +44,8 @@ class Projection:
     means2d [C,N,2], conics [C,N,3], depths [C,N], radii [C,N,2] int32 (0 = culled),
     opacities [C,N] (times the antialiasing compensation when enabled), rects [C,N,4] int32
     tile rectangle (x0, y0, x1, y1), half-open, extents [C,N,2] screen distances in x and y
-    beyond which the sample's alpha is below ALPHA_MIN (-1: nowhere above it).
+    beyond which the sample's alpha is below ALPHA_MIN (-1: nowhere above it), tiles [C,N]
+    int32 the tiles in each rectangle (0 = culled).
     """
 
     means2d: DeviceArray
@@ -54,6 +55,7 @@ class Projection:
     opacities: DeviceArray
     rects: DeviceArray
     extents: DeviceArray
+    tiles: DeviceArray
 
 
 def project(rt: Runtime, cfg: RenderConfig, means: DeviceArray, quats: DeviceArray,
@@ -72,7 +74,8 @@ def project(rt: Runtime, cfg: RenderConfig, means: DeviceArray, quats: DeviceArr
     e = lambda shape, t=dt: rt.empty(shape, t, zero=False)  # noqa: E731
     out = Projection(
         means2d=e((C, N, 2)), conics=e((C, N, 3)), depths=e((C, N)), radii=e((C, N, 2), torch.int32),
-        opacities=e((C, N)), rects=e((C, N, 4), torch.int32), extents=e((C, N, 2)))
+        opacities=e((C, N)), rects=e((C, N, 4), torch.int32), extents=e((C, N, 2)),
+        tiles=e((C, N), torch.int32))
     k = rt.kernel("project", "project", cfg.defines(tile_size) | {
         "ANTIALIASED": antialiased, "CLS_POCL_CPU": rt.is_pocl_cpu}, cfg.fast_math)
     R = _np_real(cfg)
@@ -81,7 +84,7 @@ def project(rt: Runtime, cfg: RenderConfig, means: DeviceArray, quats: DeviceArr
         opacities.buffer, viewmats.buffer, Ks.buffer, np.int32(width), np.int32(height),
         R(near_plane), R(far_plane), R(eps2d), R(radius_clip), np.int32(tiles_x), np.int32(tiles_y),
         out.means2d.buffer, out.conics.buffer, out.depths.buffer, out.radii.buffer,
-        out.opacities.buffer, out.rects.buffer, out.extents.buffer))
+        out.opacities.buffer, out.rects.buffer, out.extents.buffer, out.tiles.buffer))
     return out
 
 
@@ -138,29 +141,38 @@ def _scan_exclusive(rt: Runtime, src: DeviceArray, dst: DeviceArray, events) -> 
 
 def _intersections(rt: Runtime, rects: DeviceArray, per_intersection: int, reserve: int,
                    per_pair: int = 0, per_touching: int = 0, unused: int = 0,
-                   pair_tiles: list | None = None) -> tuple[int, int]:
+                   pair_tiles: list | None = None, tiles: DeviceArray | None = None) -> tuple[int, int]:
     """(intersections M, pairs that touch a tile) from rects [C,N,4], after the memory checks.
 
     The exact total from the rectangles, in int64 and before any per-tile work: an int32
     scan would wrap silently, and counting ~1e9 intersections only to refuse them is slow.
-    In numpy: torch's element-wise ops over the [C*N, 4] rectangles cost 10-100 ms of CPU time
-    at 1M pairs on the 2-core VM (its threads spin), numpy's one thread 9 ms.
-    ``per_pair`` bytes per pair and ``per_touching`` per pair that touches a tile (the depth
-    sort's arrays), less ``unused`` of the ``per_intersection`` bytes per intersection (the
-    per-tile sort's scratch, which the depth sort does not allocate), are checked with them,
-    spread over the intersections. ``pair_tiles``: a list that receives each pair's tile count
-    [C*N] int32 (numpy), from which :func:`isect_offsets` needs no second pass over the rects.
+    ``tiles``: the projection's tile count per pair ([C,N] int32, :class:`Projection`), summed
+    instead of the rectangles (one contiguous 4-byte read a pair against four strided ones and
+    their temporaries: 1.0 against 20 ms on scene B's 1.95M pairs). In numpy: torch's
+    element-wise ops over 1M pairs cost 10-100 ms of CPU time on the 2-core VM (its threads
+    spin), numpy's one thread a few. ``per_pair`` bytes per pair and ``per_touching`` per pair
+    that touches a tile (the depth sort's arrays), less ``unused`` of the ``per_intersection``
+    bytes per intersection (the per-tile sort's scratch, which the depth sort does not allocate),
+    are checked with them, spread over the intersections. ``pair_tiles``: a list that receives
+    each pair's tile count [C*N] int32 (``tiles`` itself where given, else a numpy array), from
+    which :func:`isect_offsets` needs no second pass over the rects.
     """
-    r = rects.host().reshape(-1, 4).numpy()
-    w, h = r[:, 2] - r[:, 0], r[:, 3] - r[:, 1]
-    total = int(np.dot(w.astype(np.int64), h))
+    if tiles is not None:
+        t = tiles.host().reshape(-1).numpy()
+        total, n = int(t.sum(dtype=np.int64)), int(np.count_nonzero(t))
+        counts, pairs = tiles, t.size
+    else:
+        r = rects.host().reshape(-1, 4).numpy()
+        w, h = r[:, 2] - r[:, 0], r[:, 3] - r[:, 1]
+        total = int(np.dot(w.astype(np.int64), h))
+        n = int(np.count_nonzero((w > 0) & (h > 0)))
+        counts, pairs = (w * h if pair_tiles is not None else None), len(r)
     if total >= 2**31 - 1:
         raise ValueError(f"means, scales: {total} (camera, Gaussian, tile) intersections exceed the "
                          "int32 index range; render fewer cameras, fewer or smaller Gaussians per call")
-    n = int(np.count_nonzero((w > 0) & (h > 0)))
     if pair_tiles is not None:
-        pair_tiles.append(w * h)  # (int32: the total, their sum, is below 2^31 - 1)
-    extra = max(0, per_pair * len(r) + per_touching * n - unused * total)
+        pair_tiles.append(counts)  # (int32: the total, their sum, is below 2^31 - 1)
+    extra = max(0, per_pair * pairs + per_touching * n - unused * total)
     check_intersection_memory(rt, total, per_intersection + (-(-extra // total) if total else 0), reserve)
     rt.check_memory(total * 8, f"means, scales: the keys of {total} (camera, Gaussian, tile) "
                     "intersections (render fewer cameras, fewer or smaller Gaussians per call)")
@@ -170,7 +182,8 @@ def _intersections(rt: Runtime, rects: DeviceArray, per_intersection: int, reser
 def bin_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: DeviceArray,
               width: int, height: int, tile_size: int,
               events: list | None = None, per_intersection: int = 16,
-              reserve: int = 0, pair_tiles: list | None = None) -> tuple[DeviceArray, DeviceArray]:
+              reserve: int = 0, pair_tiles: list | None = None,
+              tiles: DeviceArray | None = None) -> tuple[DeviceArray, DeviceArray]:
     """Count, scan and scatter (camera, Gaussian, tile) intersections into tile segments.
 
     rects [C,N,4] int32 tile rectangles and depths [C,N] from :func:`project`. Before any
@@ -188,7 +201,7 @@ def bin_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Device
     counts = rt.empty((C * tpc + 1,), torch.int32)
     offsets = rt.empty((C * tpc + 1,), torch.int32)
     defines = cfg.defines(tile_size)
-    total, _ = _intersections(rt, rects, per_intersection, reserve, pair_tiles=pair_tiles)
+    total, _ = _intersections(rt, rects, per_intersection, reserve, pair_tiles=pair_tiles, tiles=tiles)
     common = (np.int32(C * N), np.int32(tiles_x), np.int32(tpc), np.int32(N), rects.buffer)
     _record(events, "bin_count", rt.launch(rt.kernel("bin", "count_tiles", defines), C * N, LOCAL_1D,
                                            *common, counts.buffer))
@@ -457,7 +470,8 @@ def depth_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Devi
                 width: int, height: int, tile_size: int, events: list | None = None,
                 per_intersection: int = 16, reserve: int = 0,
                 early: EarlyTiles | None = None,
-                pair_tiles: list | None = None) -> tuple[DeviceArray, DeviceArray]:
+                pair_tiles: list | None = None,
+                tiles: DeviceArray | None = None) -> tuple[DeviceArray, DeviceArray]:
     """Tile lists in depth order, from one depth sort of the pairs (kernels/order.cl).
 
     rects [C,N,4] int32 and depths [C,N] from :func:`project`; ``per_intersection`` and
@@ -479,7 +493,7 @@ def depth_tiles(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Devi
     # two key arrays and the sorted rectangles (24); the per-tile sort's 8-byte scratch per
     # intersection (in plan.intersection_bytes) is not allocated
     total, n = _intersections(rt, rects, per_intersection, reserve, per_pair=8, per_touching=24, unused=8,
-                              pair_tiles=pair_tiles)
+                              pair_tiles=pair_tiles, tiles=tiles)
     if early is not None:
         if early.rects is not rects or early.depths is not depths:
             raise ValueError("early: tile lists launched for other rectangles or depths")
@@ -541,19 +555,20 @@ def tile_lists(rt: Runtime, cfg: RenderConfig, rects: DeviceArray, depths: Devic
                width: int, height: int, tile_size: int, events: list | None = None,
                per_intersection: int = 16, reserve: int = 0,
                early: EarlyTiles | None = None,
-               pair_tiles: list | None = None) -> tuple[DeviceArray, DeviceArray]:
+               pair_tiles: list | None = None,
+               tiles: DeviceArray | None = None) -> tuple[DeviceArray, DeviceArray]:
     """Every tile's list of (camera, Gaussian) keys in depth order: (offsets [C*T+1] int32,
     read back; keys [M] int64), by :func:`sort_by_depth`: "depth" (:func:`depth_tiles`) or
     "tiles" (the baseline, :func:`bin_tiles` then :func:`sort_segments`). Same result; the
     baseline also where the depth sort's packed rectangles cannot hold the tile coordinates
     (:data:`ORDER_PACK_MAX`). ``early``: see :func:`depth_tiles` (only ever made where it runs);
-    ``pair_tiles``: see :func:`_intersections`."""
+    ``pair_tiles``, ``tiles``: see :func:`_intersections`."""
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
     if sort_by_depth(rt, cfg) and max(tiles_x, depths.tensor.shape[0] * tiles_y) <= ORDER_PACK_MAX:
         return depth_tiles(rt, cfg, rects, depths, width, height, tile_size, events,
-                           per_intersection, reserve, early, pair_tiles)
+                           per_intersection, reserve, early, pair_tiles, tiles)
     offsets, keys = bin_tiles(rt, cfg, rects, depths, width, height, tile_size, events,
-                              per_intersection, reserve, pair_tiles)
+                              per_intersection, reserve, pair_tiles, tiles)
     # bin_tiles has read the offsets back and nothing writes them after the scan
     sort_segments(rt, cfg, keys, offsets, events=events, host_offsets=offsets.tensor)
     return offsets, keys
@@ -824,12 +839,15 @@ def gauss_layout(rt: Runtime, cfg: RenderConfig, tile_size: int, channels: int) 
     return pix, chunk
 
 
-def isect_offsets(rt: Runtime, rects: DeviceArray, pair_tiles: np.ndarray | None = None) -> DeviceArray:
+def isect_offsets(rt: Runtime, rects: DeviceArray, pair_tiles=None) -> DeviceArray:
     """[C*N] first gradient slot of each pair: exclusive prefix of its tile count
-    (``pair_tiles``, [C*N] int32, where the forward counted them: :func:`_intersections`)."""
+    (``pair_tiles``, [C*N] int32 numpy or the projection's ``tiles`` array, where the forward
+    counted them: :func:`_intersections`)."""
     if pair_tiles is None:
         r = rects.host().reshape(-1, 4).numpy()  # numpy: a few us against ~40 for torch's ops
         n = (r[:, 2] - r[:, 0]) * (r[:, 3] - r[:, 1])
+    elif isinstance(pair_tiles, DeviceArray):
+        n = pair_tiles.host().reshape(-1).numpy()
     else:
         n = pair_tiles
     if rt.pools and 0 < n.nbytes:  # written in place into a pooled array (the device's memory)

@@ -22,6 +22,26 @@ def expected_intersections(rects: torch.Tensor, tiles_x: int, tiles_y: int) -> l
     return out
 
 
+def test_projection_tile_counts_give_the_rectangles_totals(rt, cfg32, make_scene, run_project):
+    """The projection's per-pair tile counts (Projection.tiles, what the intersection count and
+    the backward's slot offsets sum) equal the rectangles' areas, culled pairs 0; counted from
+    them, the total, the touching pairs and the slot offsets are the rectangles' own."""
+    scene = make_scene(5, N=300, C=3, width=40, height=56, dtype=torch.float32)
+    scene["means"] = scene["means"] * 4  # some beside or behind a camera
+    got = run_project(rt, cfg32, scene, tile_size=8)
+    p = got["_proj"]
+    r = got["rects"]
+    area = ((r[..., 2] - r[..., 0]) * (r[..., 3] - r[..., 1])).to(torch.int32)
+    assert torch.equal(p.tiles.host(), area)
+    assert (area == 0).any() and (area > 1).any()
+    from_rects, from_tiles = [], []
+    a = stages._intersections(rt, p.rects, 16, 0, pair_tiles=from_rects)
+    b = stages._intersections(rt, p.rects, 16, 0, pair_tiles=from_tiles, tiles=p.tiles)
+    assert a == b and a[0] == int(area.sum()) and a[1] == int((area > 0).sum())
+    assert torch.equal(stages.isect_offsets(rt, p.rects, from_rects[0]).host(),
+                       stages.isect_offsets(rt, p.rects, from_tiles[0]).host())
+
+
 @pytest.mark.parametrize("scan", ["host", "device"])
 @pytest.mark.parametrize("tile_size,precision", [(16, "float64"), (8, "float32"), (32, "float64"), (4, "float32")])
 def test_bin_counts_offsets_and_keys(rt, make_scene, run_project, ref_project, tile_size, precision, scan,
