@@ -102,9 +102,9 @@ class ProjectFn(torch.autograd.Function):
                                         s.tile_size, events=s.events)
         # (aliases: autograd sets its node on the tensors returned, never on a pooled array's own)
         outs = [t.detach() for t in read_back(p.means2d, p.conics, p.depths, p.opacities, p.radii,
-                                                p.rects, p.extents, p.tiles,
+                                                p.rects, p.extents, *((p.tiles,) if p.tiles is not None else ()),
                                                 *((early.offsets,) if early else ()))[:7]]
-        p.rects.read_only = p.tiles.read_only = True  # no later command writes them: read without a wait
+        p.rects.read_only = True  # no later command writes the rectangles: read without a wait
         if s.arrays is None:
             s.arrays = {}
         s.arrays.update((a.tensor.data_ptr(), a) for a in (p.means2d, p.conics, p.depths, p.opacities,
@@ -114,9 +114,11 @@ class ProjectFn(torch.autograd.Function):
             if s.early is None:
                 s.early = {}
             s.early[p.rects.tensor.data_ptr()] = early
-        if s.tiles is None:
-            s.tiles = {}
-        s.tiles[p.rects.tensor.data_ptr()] = p.tiles
+        if p.tiles is not None:
+            p.tiles.read_only = True  # (as the rectangles)
+            if s.tiles is None:
+                s.tiles = {}
+            s.tiles[p.rects.tensor.data_ptr()] = p.tiles
         ctx.mark_non_differentiable(*outs[4:])
         ctx.route = None
         if s.pack:  # the packed meta["means2d"] of the visible pairs, on the loss path

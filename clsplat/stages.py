@@ -45,7 +45,7 @@ class Projection:
     opacities [C,N] (times the antialiasing compensation when enabled), rects [C,N,4] int32
     tile rectangle (x0, y0, x1, y1), half-open, extents [C,N,2] screen distances in x and y
     beyond which the sample's alpha is below ALPHA_MIN (-1: nowhere above it), tiles [C,N]
-    int32 the tiles in each rectangle (0 = culled).
+    int32 the tiles in each rectangle (0 = culled), or None below :data:`TILE_COUNTS_MIN_PAIRS`.
     """
 
     means2d: DeviceArray
@@ -55,7 +55,13 @@ class Projection:
     opacities: DeviceArray
     rects: DeviceArray
     extents: DeviceArray
-    tiles: DeviceArray
+    tiles: DeviceArray | None
+
+
+#: pairs (C * N) from which the projection also writes each pair's tile count (Projection.tiles):
+#: summing it beats reading the rectangles from ~1e5 pairs on (scene B's 1.95M: 1 against 20 ms),
+#: while below, one more array per call is a share of a small call's fixed cost
+TILE_COUNTS_MIN_PAIRS = 1 << 15
 
 
 def project(rt: Runtime, cfg: RenderConfig, means: DeviceArray, quats: DeviceArray,
@@ -75,16 +81,18 @@ def project(rt: Runtime, cfg: RenderConfig, means: DeviceArray, quats: DeviceArr
     out = Projection(
         means2d=e((C, N, 2)), conics=e((C, N, 3)), depths=e((C, N)), radii=e((C, N, 2), torch.int32),
         opacities=e((C, N)), rects=e((C, N, 4), torch.int32), extents=e((C, N, 2)),
-        tiles=e((C, N), torch.int32))
+        tiles=e((C, N), torch.int32) if C * N >= TILE_COUNTS_MIN_PAIRS else None)
     k = rt.kernel("project", "project", cfg.defines(tile_size) | {
-        "ANTIALIASED": antialiased, "CLS_POCL_CPU": rt.is_pocl_cpu}, cfg.fast_math)
+        "ANTIALIASED": antialiased, "CLS_POCL_CPU": rt.is_pocl_cpu,
+        "TILE_COUNTS": out.tiles is not None}, cfg.fast_math)
     R = _np_real(cfg)
     _record(events, "project", rt.launch(
         k, C * N, LOCAL_1D, np.int32(C), np.int32(N), means.buffer, quats.buffer, scales.buffer,
         opacities.buffer, viewmats.buffer, Ks.buffer, np.int32(width), np.int32(height),
         R(near_plane), R(far_plane), R(eps2d), R(radius_clip), np.int32(tiles_x), np.int32(tiles_y),
         out.means2d.buffer, out.conics.buffer, out.depths.buffer, out.radii.buffer,
-        out.opacities.buffer, out.rects.buffer, out.extents.buffer, out.tiles.buffer))
+        out.opacities.buffer, out.rects.buffer, out.extents.buffer,
+        (out.rects if out.tiles is None else out.tiles).buffer))  # (without TILE_COUNTS the last argument is not read)
     return out
 
 

@@ -3,8 +3,8 @@
  * One work-item per (camera, Gaussian) pair cg = c * N + g. Culled pairs get radii 0 and an
  * empty tile rectangle, so no later stage touches them.
  *
- * Build parameters: REAL_DOUBLE, TILE, ANTIALIASED (0/1), the radius knobs of common.h, and
- * CLS_POCL_CPU (inline sqrt, ceil, floor, min, max: common.h).
+ * Build parameters: REAL_DOUBLE, TILE, ANTIALIASED (0/1), TILE_COUNTS (0/1: write tiles), the
+ * radius knobs of common.h, and CLS_POCL_CPU (inline sqrt, ceil, floor, min, max: common.h).
  */
 
 __kernel void project(const int C, const int N,
@@ -25,8 +25,8 @@ __kernel void project(const int C, const int N,
                       __global REAL *opac_cg,  /* [C, N] opacity used in compositing */
                       __global int *rects,     /* [C, N, 4] tile rectangle x0 y0 x1 y1 */
                       __global REAL *extents,  /* [C, N, 2] |dx|, |dy| beyond which alpha < ALPHA_MIN */
-                      __global int *tiles)     /* [C, N] tiles in the rectangle: the host sums these
-                                                * (4 bytes a pair) instead of reading the rectangles */
+                      __global int *tiles)     /* [C, N] tiles in the rectangle (TILE_COUNTS): the host
+                                                * sums these (4 bytes a pair) instead of the rectangles */
 {
     const int cg = get_global_id(0);
     if (cg >= C * N) return; /* no barrier in this kernel */
@@ -44,7 +44,9 @@ __kernel void project(const int C, const int N,
     conics[3 * cg] = conics[3 * cg + 1] = conics[3 * cg + 2] = 0;
     opac_cg[cg] = 0;
     extents[2 * cg] = extents[2 * cg + 1] = 0;
+#if TILE_COUNTS
     tiles[cg] = 0;
+#endif
 
     const REAL3 m = (REAL3)(means[3 * g], means[3 * g + 1], means[3 * g + 2]);
     const REAL3 p = (REAL3)(vm[0] * m.x + vm[1] * m.y + vm[2] * m.z + vm[3],
@@ -129,5 +131,7 @@ __kernel void project(const int C, const int N,
     rects[4 * cg + 1] = rect.y;
     rects[4 * cg + 2] = rect.z;
     rects[4 * cg + 3] = rect.w;
+#if TILE_COUNTS
     tiles[cg] = (rect.z - rect.x) * (rect.w - rect.y); /* <= tiles_x * tiles_y */
+#endif
 }

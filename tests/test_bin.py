@@ -22,10 +22,13 @@ def expected_intersections(rects: torch.Tensor, tiles_x: int, tiles_y: int) -> l
     return out
 
 
-def test_projection_tile_counts_give_the_rectangles_totals(rt, cfg32, make_scene, run_project):
+def test_projection_tile_counts_give_the_rectangles_totals(rt, cfg32, make_scene, run_project, monkeypatch):
     """The projection's per-pair tile counts (Projection.tiles, what the intersection count and
     the backward's slot offsets sum) equal the rectangles' areas, culled pairs 0; counted from
-    them, the total, the touching pairs and the slot offsets are the rectangles' own."""
+    them, the total, the touching pairs and the slot offsets are the rectangles' own. Below
+    TILE_COUNTS_MIN_PAIRS pairs the projection writes none."""
+    assert run_project(rt, cfg32, make_scene(5, N=10, C=1))["_proj"].tiles is None
+    monkeypatch.setattr(stages, "TILE_COUNTS_MIN_PAIRS", 1)
     scene = make_scene(5, N=300, C=3, width=40, height=56, dtype=torch.float32)
     scene["means"] = scene["means"] * 4  # some beside or behind a camera
     got = run_project(rt, cfg32, scene, tile_size=8)
@@ -115,3 +118,22 @@ def test_bad_host_scan_setting_is_one_line(rt, cfg32, make_scene, run_project, m
     monkeypatch.setenv("CLSPLAT_HOST_SCAN", "yes")
     with pytest.raises(ValueError, match="^CLSPLAT_HOST_SCAN: expected 0, 1 or unset"):
         stages.bin_tiles(rt, cfg32, got["_proj"].rects, got["_proj"].depths, 64, 48, 16)
+
+
+def test_rasterization_counts_from_tiles_or_rectangles_alike(make_scene, monkeypatch):
+    """A render whose intersections and slot offsets are counted from the projection's tile
+    counts gives the bits of one counted from the rectangles: image, alpha and every gradient."""
+    import clsplat
+
+    def run(min_pairs: int) -> list:
+        monkeypatch.setattr(stages, "TILE_COUNTS_MIN_PAIRS", min_pairs)
+        sc = make_scene(9, N=400, C=3, width=40, height=56, dtype=torch.float32)
+        sc["means"] = sc["means"] * 3
+        p = {k: sc[k].clone().requires_grad_() for k in ("means", "quats", "scales", "opacities", "colors")}
+        img, alpha, _ = clsplat.rasterization(p["means"], p["quats"], p["scales"], p["opacities"], p["colors"],
+                                              sc["viewmats"], sc["Ks"], 40, 56)
+        (img.square().sum() + alpha.sum()).backward()
+        return [img.detach(), alpha.detach()] + [p[k].grad for k in p]
+
+    for a, b in zip(run(1), run(1 << 40)):
+        assert torch.equal(a, b)
