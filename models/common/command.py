@@ -18,6 +18,7 @@ folder keeps the previous run, the partial one stays staged for ``--resume``).
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -194,8 +195,23 @@ def _main(command: str, family: Family, body: Callable[[Family, argparse.Namespa
 
 
 def train_main(family: Family, argv: list[str]) -> int:
-    """``clsplat train FAMILY ARGV``; returns the exit status."""
-    return _main("train", family, _train, argv)
+    """``clsplat train FAMILY ARGV``; returns the exit status (a worker rank under torchrun
+    ends the process with it instead: :func:`_end_worker_rank`)."""
+    rc = _main("train", family, _train, argv)
+    _end_worker_rank(rc)
+    return rc
+
+
+def _end_worker_rank(rc: int) -> None:
+    """Under torchrun, a rank other than 0 ends here with its exit status, its output flushed,
+    without the interpreter's teardown. Its work is done (the run ended at a barrier and the
+    process group is down), and a worker exiting normally aborted in a library's static
+    destructors under load ("terminate called without an active exception", SIGABRT, seen twice
+    in fresh-clone test runs), which made torchrun report a finished run as failed."""
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1 and int(os.environ.get("RANK", "0")) != 0:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(rc)
 
 
 def eval_main(family: Family, argv: list[str]) -> int:
