@@ -21,6 +21,7 @@ import torch
 
 from clsplat.models.common.data import parse_data
 from clsplat.models.common.presets import apply_sets, get_preset
+from clsplat.models.drivingforward.data import DEFAULT_WORLD
 from clsplat.models.drivingforward.geometric_pose import load_window_motions
 import clsplat.models.drivingforward.presets  # noqa: F401  (registers the family's presets)
 
@@ -38,7 +39,8 @@ def main() -> None:
     a = p.parse_args()
     torch.set_num_threads(a.threads)
     preset = apply_sets(get_preset("drivingforward", a.preset), a.set, pose_source="geometric")
-    source = parse_data(f"synthetic-cache:{a.cache}", seed=a.seed)
+    # the train command's world (a cache street is keyed by its whole config: another world is another street)
+    source = parse_data(f"synthetic-cache:{a.cache}", seed=a.seed, default_world=DEFAULT_WORLD)
     order = range(a.last, a.first - 1, -1) if a.reverse else range(a.first, a.last + 1)
     for i in order:
         t0 = time.perf_counter()
