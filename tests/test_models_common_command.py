@@ -154,3 +154,31 @@ def test_registry_lists_every_family_and_models_common_imports_none():
                     ([a.name for a in n.names] if isinstance(n, ast.Import) else [n.module or ""])
                     for n in ast.walk(ast.parse(p.read_text())))]
     assert named == []
+
+
+def test_a_worker_rank_ends_with_its_exit_status_and_rank0_returns(monkeypatch):
+    """Under torchrun a rank other than 0 ends the process with ``os._exit(status)`` once the
+    command is done (no interpreter teardown: a worker's normal exit aborted in a library's
+    static destructors under load); rank 0 and a single process return to the caller."""
+    from clsplat.models.common import command
+
+    ended = []
+
+    class Ended(Exception):
+        pass
+
+    def fake_exit(code):
+        ended.append(code)
+        raise Ended
+
+    monkeypatch.setattr(command.os, "_exit", fake_exit)
+    for world, rank in (("1", "0"), ("2", "0")):
+        monkeypatch.setenv("WORLD_SIZE", world)
+        monkeypatch.setenv("RANK", rank)
+        command._end_worker_rank(0)
+    assert ended == []
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    monkeypatch.setenv("RANK", "1")
+    with pytest.raises(Ended):
+        command._end_worker_rank(2)
+    assert ended == [2]
