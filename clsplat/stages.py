@@ -859,14 +859,19 @@ def isect_offsets(rt: Runtime, rects: DeviceArray, pair_tiles=None) -> DeviceArr
     else:
         n = pair_tiles
     if rt.pools and 0 < n.nbytes:  # written in place into a pooled array (the device's memory)
-        # (int32 sums: their total, the intersection count, was checked below 2^31 - 1)
+        # (int32 sums: their total, the intersection count, was checked below 2^31 - 1).
+        # torch's int32 scan, not numpy's: numpy accumulates small ints in int64 and casts back,
+        # 4.4 against 0.65 ms for scene B's 1.95M pairs (one thread), the same values.
         out = rt.empty(n.shape, torch.int32, zero=False)
-        o = out.tensor.numpy()
+        o = out.tensor.reshape(-1)
         o[0] = 0
-        np.cumsum(n[:-1], out=o[1:])
+        torch.cumsum(torch.from_numpy(n[:-1]), 0, dtype=torch.int32, out=o[1:])
         return out
-    n = n.astype(np.int64)
-    return rt.from_host((np.cumsum(n) - n).astype(np.int32))
+    o = np.zeros(n.shape, np.int32)
+    if n.size > 1:
+        torch.cumsum(torch.from_numpy(np.ascontiguousarray(n[:-1], np.int32)), 0, dtype=torch.int32,
+                     out=torch.from_numpy(o[1:]))
+    return rt.from_host(o)
 
 
 #: Small calls on PoCL's CPU device: up to this many slot values (intersections x values per

@@ -45,6 +45,22 @@ def test_projection_tile_counts_give_the_rectangles_totals(rt, cfg32, make_scene
                        stages.isect_offsets(rt, p.rects, from_tiles[0]).host())
 
 
+@pytest.mark.parametrize("pooled", [True, False])
+def test_isect_offsets_are_the_exclusive_prefix_of_the_tile_counts(rt, pooled, monkeypatch):
+    """The backward's slot offsets (torch's int32 scan, written into a pooled array or, with the
+    pool off, uploaded) equal numpy's int64 exclusive prefix of the tile counts, culled pairs
+    (0 tiles) included, down to one pair."""
+    if not pooled:
+        monkeypatch.setattr(rt, "pool_limit", 0)
+        assert not rt.pools
+    rng = np.random.default_rng(3)
+    for P in (1, 2, 1000, 70_001):
+        n = np.where(rng.random(P) < 0.3, rng.integers(1, 9, P), 0).astype(np.int32)
+        want = (np.cumsum(n.astype(np.int64)) - n).astype(np.int32)
+        got = stages.isect_offsets(rt, None, n).host().reshape(-1).numpy()
+        assert got.dtype == np.int32 and np.array_equal(got, want), P
+
+
 @pytest.mark.parametrize("scan", ["host", "device"])
 @pytest.mark.parametrize("tile_size,precision", [(16, "float64"), (8, "float32"), (32, "float64"), (4, "float32")])
 def test_bin_counts_offsets_and_keys(rt, make_scene, run_project, ref_project, tile_size, precision, scan,
