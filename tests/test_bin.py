@@ -47,13 +47,15 @@ def test_projection_tile_counts_give_the_rectangles_totals(rt, cfg32, make_scene
 
 @pytest.mark.parametrize("pooled", [True, False])
 def test_isect_offsets_are_the_exclusive_prefix_of_the_tile_counts(rt, pooled, monkeypatch):
-    """The backward's slot offsets (torch's int32 scan, written into a pooled array or, with the
-    pool off, uploaded) equal numpy's int64 exclusive prefix of the tile counts, culled pairs
-    (0 tiles) included, down to one pair."""
+    """The backward's slot offsets (numpy's scan for few pairs, torch's int32 scan from
+    TORCH_SCAN_MIN_PAIRS on; written into a pooled array or, with the pool off, uploaded) equal
+    numpy's int64 exclusive prefix of the tile counts, culled pairs (0 tiles) included, down to
+    one pair."""
     if not pooled:
         monkeypatch.setattr(rt, "pool_limit", 0)
         assert not rt.pools
     rng = np.random.default_rng(3)
+    assert 1000 < stages.TORCH_SCAN_MIN_PAIRS < 70_001  # both scans below
     for P in (1, 2, 1000, 70_001):
         n = np.where(rng.random(P) < 0.3, rng.integers(1, 9, P), 0).astype(np.int32)
         want = (np.cumsum(n.astype(np.int64)) - n).astype(np.int32)

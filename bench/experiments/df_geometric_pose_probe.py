@@ -31,6 +31,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="geometric_size (default: the preset's, else its own size)")
     p.add_argument("--keep", type=float, default=None, help="geometric_keep (default: the preset's)")
     p.add_argument("--max-yaw-rate", type=float, default=None, help="geometric_max_yaw_rate, deg/s (default: the preset's)")
+    p.add_argument("--search", type=int, default=None, help="geometric_search, the forward grid's count (default: the preset's)")
     p.add_argument("--true-depth", action="store_true",
                    help="an upper bound: the fit places the ground pixels with the data's own depth, not the "
                         "calibrated plane (synthetic data)")
@@ -64,6 +65,8 @@ def main(argv: list[str] | None = None) -> int:
             preset = preset.replace(geometric_keep=a.keep)
         if a.max_yaw_rate is not None:
             preset = preset.replace(geometric_max_yaw_rate=a.max_yaw_rate)
+        if a.search is not None:
+            preset = preset.replace(geometric_search=a.search)
         src = parse_data(a.data, default_world="varied")
     except ValueError as e:
         p.error(str(e))
