@@ -1,0 +1,58 @@
+"""Two ``df_geometric_pose_probe.py --json`` files of the same windows side by side (issue 32): per
+speed bin the median and largest translation error, the windows over 10 % and the rotation tail,
+then the windows that cross 10 % (or 0.5 degrees) from one file to the other.
+
+    .venv/bin/python bench/experiments/df_probe_compare.py A.json B.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+
+BINS = ("standing", "0.5-5", "5-10", "10-15")
+
+
+def _bin(speed: float) -> str:
+    return "standing" if speed < 0.5 else "0.5-5" if speed < 5 else "5-10" if speed < 10 else "10-15"
+
+
+def _crosses(x: dict, y: dict) -> bool:
+    return (y["t_err_pct"] > 10) != (x["t_err_pct"] > 10) or (y["r_err_deg"] > 0.5) != (x["r_err_deg"] > 0.5)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("a")
+    p.add_argument("b")
+    args = p.parse_args(argv)
+    a, b = (json.load(open(f))["windows"] for f in (args.a, args.b))
+    if [w["window"] for w in a] != [w["window"] for w in b]:
+        p.error("the two files hold different windows")
+    rows: dict[str, list] = {}
+    for x, y in zip(a, b):
+        rows.setdefault(_bin(x["speed"]), []).append((x, y))
+    for k in BINS:
+        r = rows.get(k, [])
+        if not r:
+            continue
+        if k == "standing":
+            print(f"{k} n {len(r)}: mean error A {np.mean([x['t_err_m'] for x, _ in r]):.4f} m, "
+                  f"B {np.mean([y['t_err_m'] for _, y in r]):.4f} m")
+            continue
+        e = [[w["t_err_pct"] for w in pair] for pair in r]
+        rot = [[w["r_err_deg"] for w in pair] for pair in r]
+        ea, eb = np.array(e).T
+        ra, rb = np.array(rot).T
+        print(f"{k} n {len(r)}: median A {np.median(ea):.2f} % B {np.median(eb):.2f} % | max A {ea.max():.1f} "
+              f"B {eb.max():.1f} | > 10 %: A {(ea > 10).sum()} B {(eb > 10).sum()} | rotation max A {ra.max():.2f} "
+              f"B {rb.max():.2f} deg (> 0.5: {(ra > 0.5).sum()} / {(rb > 0.5).sum()})")
+    cross = [(x["window"], round(x["t_err_pct"], 1), round(y["t_err_pct"], 1)) for x, y in zip(a, b)
+             if x["t_err_pct"] is not None and y["t_err_pct"] is not None and _crosses(x, y)]
+    print("windows crossing 10 % or 0.5 deg (window, A %, B %):", cross)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
