@@ -1,10 +1,12 @@
 """The 10k render's forward and backward right after other torch work, as in a training loop or in
 ``clsplat bench peers``' interleaved rounds (issue 35; bench/notes/engine_peers.md, session 18).
 
-    .venv/bin/python bench/experiments/interleave_cost.py none|compute|alloc
+    .venv/bin/python bench/experiments/interleave_cost.py none|compute|alloc|touch|hot
 
 Before each timed call: nothing (``none``), ~100 ms of two-thread elementwise torch work over 16 MB
-arrays (``compute``), or that and 400 MB of fresh tensors touched and freed (``alloc``). One
+arrays (``compute``), or that and 400 MB of fresh tensors touched and freed (``alloc``); or, one
+thread, a sum over 400 MB made once (``touch``: caches cold, no allocation) or ~100 ms of vector
+maths on 1 MB (``hot``: the cores busy, the caches not flushed). One
 forward + backward of ``random_frustum_scene(10_000)`` (640x352, SH 3), one torch thread for it;
 prints the medians of 12 calls. ``MALLOPT=BYTES``: glibc's mmap and trim thresholds raised first.
 """
@@ -18,8 +20,16 @@ sc = random_frustum_scene(10_000, name="x"); a = render_args(sc)
 w = torch.rand(1, sc["height"], sc["width"], 3)
 big = torch.rand(4_000_000)
 mode = sys.argv[1]
+huge = torch.rand(100_000_000) if mode == "touch" else None   # 400 MB, made once
+small = torch.rand(250_000)
 def other():
     if mode == "none": return
+    if mode == "touch":                                            # read 400 MB, one thread, no allocation
+        torch.set_num_threads(1); float(huge.sum()); return
+    if mode == "hot":                                              # ~100 ms of vector maths in cache, one thread
+        torch.set_num_threads(1)
+        for _ in range(400): small.sin_()
+        return
     torch.set_num_threads(2)
     x = big
     for _ in range(20): x = (x * 1.0001 + 0.5).sin()      # ~100+ ms of 2-thread torch work
