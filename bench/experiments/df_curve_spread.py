@@ -20,6 +20,8 @@ def spread(run: Path, span: int) -> dict:
         if line.strip():
             p = json.loads(line)
             points[int(p["step"])] = p
+    if not points:
+        raise ValueError("no curve points")
     last = max(points)
     window = [points[s] for s in sorted(points) if s >= last - span]
     a = [p["abs_rel"] for p in window]
@@ -33,12 +35,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("runs", nargs="+", type=Path)
     p.add_argument("--span", type=int, default=100, help="steps before the last point (default 100)")
     a = p.parse_args(argv)
+    if a.span < 0:
+        p.error(f"--span: expected steps >= 0, got {a.span}")
     print("| run | last step | points | AbsRel mean | sd | min | max | scale |")
     print("|---|---|---|---|---|---|---|---|")
     for run in a.runs:
-        if not (run / "val_curve.jsonl").is_file():
-            p.error(f"{run}: no val_curve.jsonl")
-        r = spread(run, a.span)
+        try:
+            r = spread(run, a.span)
+        except (OSError, ValueError, KeyError) as e:
+            p.error(f"runs: {run} has no readable val_curve.jsonl with points ({e})")
         print(f"| {run.name} | {r['last']} | {r['n']} | {r['mean']:.3f} | {r['sd']:.3f} | {r['min']:.3f} | "
               f"{r['max']:.3f} | {r['scale_min']:.2f}-{r['scale_max']:.2f} |")
     return 0

@@ -9,13 +9,11 @@ from __future__ import annotations
 import argparse
 import json
 
+from pathlib import Path
+
 import numpy as np
 
-BINS = ("standing", "0.5-5", "5-10", "10-15")
-
-
-def _bin(speed: float) -> str:
-    return "standing" if speed < 0.5 else "0.5-5" if speed < 5 else "5-10" if speed < 10 else "10-15"
+from clsplat.data.synthetic import SPEED_BINS, speed_bin
 
 
 def _crosses(x: dict, y: dict) -> bool:
@@ -24,16 +22,19 @@ def _crosses(x: dict, y: dict) -> bool:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("a")
-    p.add_argument("b")
+    p.add_argument("a", type=Path)
+    p.add_argument("b", type=Path)
     args = p.parse_args(argv)
-    a, b = (json.load(open(f))["windows"] for f in (args.a, args.b))
+    try:
+        a, b = (json.loads(f.read_text())["windows"] for f in (args.a, args.b))
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        p.error(f"a / b: expected two df_geometric_pose_probe.py --json files ({e})")
     if [w["window"] for w in a] != [w["window"] for w in b]:
         p.error("the two files hold different windows")
     rows: dict[str, list] = {}
     for x, y in zip(a, b):
-        rows.setdefault(_bin(x["speed"]), []).append((x, y))
-    for k in BINS:
+        rows.setdefault(speed_bin(x["speed"]), []).append((x, y))
+    for k in SPEED_BINS:
         r = rows.get(k, [])
         if not r:
             continue

@@ -19,7 +19,10 @@ from clsplat.bench.scenes import random_frustum_scene, render_args
 sc = random_frustum_scene(10_000, name="x"); a = render_args(sc)
 w = torch.rand(1, sc["height"], sc["width"], 3)
 big = torch.rand(4_000_000)
-mode = sys.argv[1]
+MODES = ("none", "compute", "alloc", "touch", "hot")
+mode = sys.argv[1] if len(sys.argv) == 2 else ""
+if mode not in MODES:
+    sys.exit(f"interleave_cost.py: mode: expected one of {', '.join(MODES)}, got {' '.join(sys.argv[1:])!r}")
 huge = torch.rand(100_000_000) if mode == "touch" else None   # 400 MB, made once
 small = torch.rand(250_000)
 def other():
