@@ -13,16 +13,17 @@ prints the medians of 12 calls. ``MALLOPT=BYTES``: glibc's mmap and trim thresho
 import os, ctypes
 if os.environ.get("MALLOPT"):
     _l = ctypes.CDLL("libc.so.6"); _v = int(os.environ["MALLOPT"]); _l.mallopt(-3, _v); _l.mallopt(-1, 2 * _v)
-import sys, time, torch
-import clsplat
-from clsplat.bench.scenes import random_frustum_scene, render_args
-sc = random_frustum_scene(10_000, name="x"); a = render_args(sc)
-w = torch.rand(1, sc["height"], sc["width"], 3)
-big = torch.rand(4_000_000)
+import sys, time
 MODES = ("none", "compute", "alloc", "touch", "hot")
 mode = sys.argv[1] if len(sys.argv) == 2 else ""
 if mode not in MODES:
     sys.exit(f"interleave_cost.py: mode: expected one of {', '.join(MODES)}, got {' '.join(sys.argv[1:])!r}")
+import clsplat  # (before torch: its thread and allocator defaults, clsplat/threads.py)
+import torch
+from clsplat.bench.scenes import random_frustum_scene, render_args
+sc = random_frustum_scene(10_000, name="x"); a = render_args(sc)
+w = torch.rand(1, sc["height"], sc["width"], 3)
+big = torch.rand(4_000_000)
 huge = torch.rand(100_000_000) if mode == "touch" else None   # 400 MB, made once
 small = torch.rand(250_000)
 def other():
