@@ -193,6 +193,9 @@ class _Level(NamedTuple):
     b1: Tensor         # [V, 1, h, w] the later image's grey alone (the search's read)
     used: Tensor       # [V, N] bool: a prior pixel, not padding
     used_flat: Tensor  # [n] indices of the used pixels in ``pw.flatten()``, in order
+    norm: Tensor       # [3, 3] pixel coordinates to grid_sample's, plus one ([0, 2] across the image)
+    Xh: Tensor         # [V, 4, N] ``X`` in homogeneous coordinates (the search's one product a camera)
+    pad: Tensor        # [V, N] bool: padding, not a prior pixel (``~used``)
 
 
 def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_ego: Tensor, cap: float,
@@ -303,27 +306,44 @@ def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_
         pw = pw.gather(1, order)
         # the search's cost reads the grey image only (grid_sample treats channels apart: the same
         # values as the three-channel read), and the prior's pixel mask once per level
-        return _Level(pick(a.reshape(V, 1, -1)), torch.cat([b, gx, gy], 1), K, pick(uv), pick(X), pw,
-                      b.contiguous(), pw > 0, (pw > 0).flatten().nonzero()[:, 0])
+        norm = torch.tensor([[2 / w, 0, 0], [0, 2 / h, 0], [0, 0, 1]], dtype=dt)      # pixels -> [0, 2]
+        X = pick(X)
+        return _Level(pick(a.reshape(V, 1, -1)), torch.cat([b, gx, gy], 1), K, pick(uv), X, pw,
+                      b.contiguous(), pw > 0, (pw > 0).flatten().nonzero()[:, 0], norm,
+                      torch.cat([X, torch.ones_like(X[:, :1])], 1), pw <= 0)
 
-    def residual(th: Tensor, lv: _Level, grey_only: bool = False) -> tuple[Tensor, Tensor | None, Tensor]:
+    def residual(th: Tensor, lv: _Level) -> tuple[Tensor, Tensor, Tensor]:
         q = lv.uv + _flow(th, lv.K, E_inv, E, lv.uv, lv.X)
-        s, inside = _sample(lv.b1 if grey_only else lv.b3, q)
-        return s[:, 0] - lv.a[:, 0], None if grey_only else s[:, 1:], lv.pw * inside
+        s, inside = _sample(lv.b3, q)
+        return s[:, 0] - lv.a[:, 0], s[:, 1:], lv.pw * inside
 
     def cost(th: Tensor, lv: _Level) -> float:
         """Mean truncated absolute residual over the prior's pixels, ``min(|r|, tau)``; a pixel moved
         out of the image counts as unmatched (``tau``), so a motion can lower the cost neither by
         moving pixels out of view nor through the pixels that are not on the ground; with ``keep``
-        < 1, the mean of the lowest ``keep`` share of those."""
-        r, _, m = residual(th, lv, grey_only=True)
-        e = r.abs().clamp(max=tau).masked_fill(m <= 0, tau).flatten()[lv.used_flat]    # the prior's pixels, in order
+        < 1, the mean of the lowest ``keep`` share of those.
+
+        The search calls this hundreds of times a fit, so the read is :func:`residual`'s in fewer
+        passes over the pixels: the motion, the extrinsics, the intrinsics and grid_sample's
+        normalisation folded into one 3x4 matrix a camera, applied by one batched product (the same
+        pixels and the same bilinear read; the coordinates differ from :func:`_flow`'s by rounding)."""
+        h, w = lv.b1.shape[-2:]
+        P = lv.norm @ lv.K @ (E_inv @ se3_exp(th[:3], th[3:]) @ E)[:, :3]             # [V, 3, 4]
+        q = torch.bmm(P, lv.Xh)                                                         # [V, 3, N]
+        g = (q[:, :2] / q[:, 2:].clamp_min(1e-6)).sub_(1)                               # grid_sample's [-1, 1]
+        lim = g.new_tensor([[1 - 1 / w], [1 - 1 / h]])                                   # pixel centres 0.5 .. w - 0.5
+        inside = (g.abs() < lim).all(1)
+        s = torch.nn.functional.grid_sample(lv.b1, g.transpose(1, 2)[:, None], mode="bilinear",
+                                            padding_mode="border", align_corners=False)[:, 0, 0]
+        # the padding's pixels at +inf: never among the lowest k, nor in a sum below the k-th
+        e = (s - lv.a[:, 0]).abs_().clamp_(max=tau).masked_fill_(~inside, tau).masked_fill_(lv.pad, float("inf"))
+        n = lv.used_flat.numel()
         if keep < 1:            # the mean of the k lowest, in O(n): those below the k-th, then its ties
-            k = max(1, int(keep * e.numel()))
-            kth = e.kthvalue(k).values
+            k = max(1, int(keep * n))
+            kth = e.flatten().kthvalue(k).values
             below = e < kth
-            return float((e[below].sum() + kth * (k - int(below.sum()))) / k)
-        return float(e.mean())
+            return float((torch.where(below, e, 0.0).sum() + kth * (k - int(below.sum()))) / k)
+        return float(torch.where(lv.pad, 0.0, e).sum() / n)
 
     searched = False
     for level in levels:
