@@ -24,10 +24,12 @@ instance-pixel class PSNR.
 Instance ids are the generator's track ids; the run's track ids are matched through the cuboids'
 ``uuid`` (``synthetic-<seed>-<track>``, written by :func:`clsplat.data.pandaset.write_pandaset`).
 
-    .venv/bin/python bench/experiments/autosplat_pandaset_rescore.py RUN [RUN ...] [--json OUT.json]
+    .venv/bin/python bench/experiments/autosplat_pandaset_rescore.py RUN [RUN ...] [--json OUT.json] [--frames train]
     .venv/bin/python bench/experiments/autosplat_pandaset_rescore.py --from-json OUT.json [...]
 
-Prints one markdown row per run (held-out PSNR, dB), then, for runs named
+Prints one markdown row per run (held-out PSNR, dB; ``--frames train``: on the frames the run trained
+on, against ``metrics.json``'s ``train`` image PSNR, so that an object gap there reads as underfitting),
+then, for runs named
 ``PREFIX_<street>_<config>_s<seed>``, the mean (min..max) over seeds per street and config.
 ``--from-json`` reads the ``--json`` files of earlier calls instead of runs (tables only).
 """
@@ -61,8 +63,10 @@ def _street(seed: int, world: str, height: int, width: int, frames: int, dt: flo
     return generate_sequence(cfg, world_params=replace(draw_world(seed, world), grade=0.0, vcurv=0.0, crossfall=0.0))
 
 
-def analyse(run: Path, world: str, cache: dict) -> dict:
-    """``{"run", "metrics": {part: psnr}, "pixels": {part: n}, "inside": share}`` of one run."""
+def analyse(run: Path, world: str, cache: dict, frames: str = "test") -> dict:
+    """``{"run", "metrics": {part: psnr}, "pixels": {part: n}, "inside": share}`` of one run, on its
+    held-out frames (``frames="test"``) or on its training frames (``"train"``: what the run fitted;
+    a gap there is underfitting, not a failure to generalise to held-out instants)."""
     from clsplat.models.autosplat.evaluate import trainer_from_checkpoint
     from clsplat.models.autosplat.init import moving_track_ids
     from clsplat.models.autosplat.object_report import object_class, track_masks
@@ -105,7 +109,7 @@ def analyse(run: Path, world: str, cache: dict) -> dict:
     sse = {p: 0.0 for p in PARTS}
     num = {p: 0 for p in PARTS}
     inside = [0, 0]
-    for i in d.test_frames:
+    for i in (d.test_frames if frames == "test" else d.train_frames):
         with torch.no_grad():
             r = tr.render_frame(i).numpy().astype(np.float64)
         t = np.clip(d.images[i].numpy().astype(np.float64), 0, 1)
@@ -137,10 +141,14 @@ def analyse(run: Path, world: str, cache: dict) -> dict:
             sse[f"box/{k}"] += err[msk].sum()
             num[f"box/{k}"] += int(msk.sum()) * 3
     pc = (m.get("objects") or {}).get("per_class", {})
-    return {"run": run.name, "metrics": {p: _psnr(sse[p], num[p]) for p in PARTS},
+    if frames == "train" and "train" not in m:
+        raise ValueError(f"{run}: metrics.json has no training-frame scores (a run with --views recorded has)")
+    image = m["all"]["psnr"] if frames == "test" else m["train"]["psnr"]
+    return {"run": run.name, "frames": frames, "metrics": {p: _psnr(sse[p], num[p]) for p in PARTS},
             "pixels": {p: num[p] // 3 for p in PARTS}, "inside": inside[0] / max(1, inside[1]),
-            "metrics_json": {"image": m["all"]["psnr"], "objects": m["all"].get("psnr_objects"),
-                             **{c: pc[c]["psnr"] for c in ("car", "pedestrian", "other") if c in pc and pc[c]["pixels"]}},
+            "metrics_json": {"image": image, "objects": (m["all"] if frames == "test" else m["train"]).get("psnr_objects"),
+                             **({c: pc[c]["psnr"] for c in ("car", "pedestrian", "other") if c in pc and pc[c]["pixels"]}
+                                if frames == "test" else {})},
             "moving": {"true": len(true_moving), "run": len(run_moving),
                        "run_not_true": len({to_gen.get(t) for t in run_moving} - true_moving)}}
 
@@ -152,6 +160,8 @@ def main(argv: list[str] | None = None) -> None:
                     "classic where the folder's name holds 'classic')")
     ap.add_argument("--json", type=Path, default=None, help="write the figures here too")
     ap.add_argument("--from-json", action="store_true", help="RUNS are --json files of earlier calls: tables only")
+    ap.add_argument("--frames", choices=("test", "train"), default="test",
+                    help="score the held-out frames (default) or the training frames (underfit or not)")
     a = ap.parse_args(argv)
     need = "" if a.from_json else "metrics.json"
     for r in a.runs:  # (before any street is generated: a run still training fails at once, in one line)
@@ -162,7 +172,10 @@ def main(argv: list[str] | None = None) -> None:
     if a.from_json:
         out = [o for fj in a.runs for o in json.loads(fj.read_text())]
     else:
-        out = [analyse(r, a.world or ("classic" if "classic" in r.name else "busy"), cache) for r in a.runs]
+        try:
+            out = [analyse(r, a.world or ("classic" if "classic" in r.name else "busy"), cache, a.frames) for r in a.runs]
+        except ValueError as e:
+            sys.exit(f"autosplat_pandaset_rescore.py: {e}")
     f = lambda x: "–" if x is None else f"{x:.2f}"  # noqa: E731
     print("| run | image (pooled) | instance px: car / pedestrian / other / all moving / parked cars | image − inst car / ped "
           "| box px (metrics.json's): car / pedestrian / other / all | metrics.json car / ped / other / objects "
