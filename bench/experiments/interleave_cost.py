@@ -6,15 +6,17 @@
 Before each timed call: nothing (``none``), ~100 ms of two-thread elementwise torch work over 16 MB
 arrays (``compute``), or that and 400 MB of fresh tensors touched and freed (``alloc``); or, one
 thread, a sum over 400 MB made once (``touch``: caches cold, no allocation) or ~100 ms of vector
-maths on 1 MB (``hot``: the cores busy, the caches not flushed). One
+maths on 1 MB (``hot``: one core busy, the caches not flushed, the other core idle), or the same
+while another process spins on the other core until just before the call (``hotspin``: no core
+idle; if ``hot``'s cost goes with it, an idle core's wake-up is what the call pays). One
 forward + backward of ``random_frustum_scene(10_000)`` (640x352, SH 3), one torch thread for it;
 prints the medians of 12 calls. ``MALLOPT=BYTES``: glibc's mmap and trim thresholds raised first.
 """
 import os, ctypes
 if os.environ.get("MALLOPT"):
     _l = ctypes.CDLL("libc.so.6"); _v = int(os.environ["MALLOPT"]); _l.mallopt(-3, _v); _l.mallopt(-1, 2 * _v)
-import sys, time
-MODES = ("none", "compute", "alloc", "touch", "hot")
+import subprocess, sys, time
+MODES = ("none", "compute", "alloc", "touch", "hot", "hotspin")
 mode = sys.argv[1] if len(sys.argv) == 2 else ""
 if mode not in MODES:
     sys.exit(f"interleave_cost.py: mode: expected one of {', '.join(MODES)}, got {' '.join(sys.argv[1:])!r}")
@@ -30,9 +32,12 @@ def other():
     if mode == "none": return
     if mode == "touch":                                            # read 400 MB, one thread, no allocation
         torch.set_num_threads(1); float(huge.sum()); return
-    if mode == "hot":                                              # ~100 ms of vector maths in cache, one thread
+    if mode in ("hot", "hotspin"):                                 # ~100 ms of vector maths in cache, one thread
         torch.set_num_threads(1)
+        spin = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if mode == "hotspin" else None
         for _ in range(400): small.sin_()
+        if spin is not None:
+            spin.kill(); spin.wait()
         return
     torch.set_num_threads(2)
     x = big
