@@ -24,7 +24,7 @@ instance-pixel class PSNR.
 Instance ids are the generator's track ids; the run's track ids are matched through the cuboids'
 ``uuid`` (``synthetic-<seed>-<track>``, written by :func:`clsplat.data.pandaset.write_pandaset`).
 
-    .venv/bin/python bench/experiments/autosplat_pandaset_rescore.py RUN [RUN ...] [--json OUT.json] [--frames train]
+    .venv/bin/python bench/experiments/autosplat_pandaset_rescore.py RUN [RUN ...] [--json OUT.json] [--frames train] [--tracks]
     .venv/bin/python bench/experiments/autosplat_pandaset_rescore.py --from-json OUT.json [...]
 
 Prints one markdown row per run (held-out PSNR, dB; ``--frames train``: on the frames the run trained
@@ -61,6 +61,43 @@ def _street(seed: int, world: str, height: int, width: int, frames: int, dt: flo
     if world == "classic":   # the writer's classic street: the generator's own ground
         return generate_sequence(cfg)
     return generate_sequence(cfg, world_params=replace(draw_world(seed, world), grade=0.0, vcurv=0.0, crossfall=0.0))
+
+
+def _track_speed(seq, tid: int) -> float:
+    """Mean speed (m/s) of track ``tid``'s box centre over the frames that hold it."""
+    pts = [(f.timestamp, b.center) for f in seq.frames for b in f.boxes if b.track_id == tid]
+    if len(pts) < 2:
+        return 0.0
+    return float(np.linalg.norm(pts[-1][1] - pts[0][1]) / max(pts[-1][0] - pts[0][0], 1e-9))
+
+
+def track_table(o: dict) -> str:
+    """Markdown: one run's truly moving tracks by PSNR on their instance pixels, then the cars pooled
+    by size (their pixels over the scored frames, in thirds) and by speed (0-5, 5-10, 10+ m/s)."""
+    tr = o.get("tracks") or {}
+    f = lambda x: "–" if x is None else f"{x:.2f}"  # noqa: E731
+    rows = sorted(tr.items(), key=lambda kv: (kv[1]["psnr"] is None, kv[1]["psnr"] or 0.0))
+    out = [f"{o['run']} ({o.get('frames', 'test')} frames): moving tracks by PSNR on their instance pixels",
+           "| track | class | speed m/s | pixels | PSNR |", "|---|---|---|---|---|"]
+    out += [f"| {t} | {v['class']} | {v['speed_mps']:.1f} | {v['pixels']} | {f(v['psnr'])} |" for t, v in rows]
+    cars = [v for v in tr.values() if v["class"] == "car" and v["psnr"] is not None]
+    if cars:
+        def pooled(vs: list) -> str:
+            n = sum(v["pixels"] for v in vs)
+            sse = sum(v["pixels"] * 10 ** (-v["psnr"] / 10) for v in vs)
+            return f"{-10 * np.log10(max(sse / n, 1e-12)):.2f} ({len(vs)} tracks, {n} px)"
+        px = sorted(v["pixels"] for v in cars)
+        cut = (px[len(px) // 3], px[2 * len(px) // 3])
+        out += ["", "| cars | pooled PSNR |", "|---|---|"]
+        for name, keep in (("smallest third", lambda v: v["pixels"] < cut[0]),
+                           ("middle third", lambda v: cut[0] <= v["pixels"] < cut[1]),
+                           ("largest third", lambda v: v["pixels"] >= cut[1]),
+                           ("0-5 m/s", lambda v: v["speed_mps"] < 5), ("5-10 m/s", lambda v: 5 <= v["speed_mps"] < 10),
+                           ("10+ m/s", lambda v: v["speed_mps"] >= 10)):
+            vs = [v for v in cars if keep(v)]
+            if vs:
+                out.append(f"| {name} | {pooled(vs)} |")
+    return "\n".join(out)
 
 
 def analyse(run: Path, world: str, cache: dict, frames: str = "test") -> dict:
@@ -109,6 +146,8 @@ def analyse(run: Path, world: str, cache: dict, frames: str = "test") -> dict:
     sse = {p: 0.0 for p in PARTS}
     num = {p: 0 for p in PARTS}
     inside = [0, 0]
+    track_sse: dict[int, float] = {}
+    track_n: dict[int, int] = {}
     for i in (d.test_frames if frames == "test" else d.train_frames):
         with torch.no_grad():
             r = tr.render_frame(i).numpy().astype(np.float64)
@@ -124,6 +163,10 @@ def analyse(run: Path, world: str, cache: dict, frames: str = "test") -> dict:
             k = kind_true.get(int(tid))
             if k in union_inst:
                 union_inst[k] |= inst == tid
+            if int(tid) in true_moving:
+                one = inst == tid
+                track_sse[int(tid)] = track_sse.get(int(tid), 0.0) + float(err[one].sum())
+                track_n[int(tid)] = track_n.get(int(tid), 0) + int(one.sum())
             if int(tid) in true_moving and int(tid) in own:
                 inside[0] += int((own[int(tid)] & (inst == tid)).sum())
                 inside[1] += int((inst == tid).sum())
@@ -149,6 +192,8 @@ def analyse(run: Path, world: str, cache: dict, frames: str = "test") -> dict:
             "metrics_json": {"image": image, "objects": (m["all"] if frames == "test" else m["train"]).get("psnr_objects"),
                              **({c: pc[c]["psnr"] for c in ("car", "pedestrian", "other") if c in pc and pc[c]["pixels"]}
                                 if frames == "test" else {})},
+            "tracks": {str(t): {"class": kind_true[t], "speed_mps": _track_speed(gen, t), "pixels": track_n[t],
+                                "psnr": _psnr(track_sse[t], 3 * track_n[t])} for t in sorted(track_n)},
             "moving": {"true": len(true_moving), "run": len(run_moving),
                        "run_not_true": len({to_gen.get(t) for t in run_moving} - true_moving)}}
 
@@ -162,6 +207,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--from-json", action="store_true", help="RUNS are --json files of earlier calls: tables only")
     ap.add_argument("--frames", choices=("test", "train"), default="test",
                     help="score the held-out frames (default) or the training frames (underfit or not)")
+    ap.add_argument("--tracks", action="store_true",
+                    help="also each run's moving tracks by PSNR, and its cars pooled by size and by speed")
     a = ap.parse_args(argv)
     need = "" if a.from_json else "metrics.json"
     for r in a.runs:  # (before any street is generated: a run still training fails at once, in one line)
@@ -189,6 +236,9 @@ def main(argv: list[str] | None = None) -> None:
               + " / ".join(f(p[f'box/{k}']) for k in ("car", "pedestrian", "other", "objects"))
               + " | " + " / ".join(f(j.get(k)) for k in ("car", "pedestrian", "other", "objects"))
               + f" | {mv['true']} / {mv['run']} ({mv['run_not_true']}) | {o['inside']:.3f} |")
+    if a.tracks:
+        for o in out:
+            print("\n" + track_table(o))
     if a.json:
         a.json.write_text(json.dumps(out, indent=1))
     _seeds(out)
