@@ -192,7 +192,7 @@ class _Level(NamedTuple):
     pw: Tensor         # [V, N] pixel weights
     b1: Tensor         # [V, 1, h, w] the later image's grey alone (the search's read)
     used: Tensor       # [V, N] bool: a prior pixel, not padding
-    used_flat: Tensor  # [n] indices of the used pixels in ``pw.flatten()``, in order
+    n_used: int        # the prior's pixels over all cameras (``used.sum()``)
     norm: Tensor       # [3, 3] pixel coordinates to grid_sample's, plus one ([0, 2] across the image)
     Xh: Tensor         # [V, 4, N] ``X`` in homogeneous coordinates (the search's one product a camera)
     pad: Tensor        # [V, N] bool: padding, not a prior pixel (``~used``)
@@ -309,7 +309,7 @@ def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_
         norm = torch.tensor([[2 / w, 0, 0], [0, 2 / h, 0], [0, 0, 1]], dtype=dt)      # pixels -> [0, 2]
         X = pick(X)
         return _Level(pick(a.reshape(V, 1, -1)), torch.cat([b, gx, gy], 1), K, pick(uv), X, pw,
-                      b.contiguous(), pw > 0, (pw > 0).flatten().nonzero()[:, 0], norm,
+                      b.contiguous(), pw > 0, int((pw > 0).sum()), norm,
                       torch.cat([X, torch.ones_like(X[:, :1])], 1), pw <= 0)
 
     def residual(th: Tensor, lv: _Level) -> tuple[Tensor, Tensor, Tensor]:
@@ -337,7 +337,7 @@ def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_
                                             padding_mode="border", align_corners=False)[:, 0, 0]
         # the padding's pixels at +inf: never among the lowest k, nor in a sum below the k-th
         e = (s - lv.a[:, 0]).abs_().clamp_(max=tau).masked_fill_(~inside, tau).masked_fill_(lv.pad, float("inf"))
-        n = lv.used_flat.numel()
+        n = lv.n_used
         if keep < 1:            # the mean of the k lowest, in O(n): those below the k-th, then its ties
             k = max(1, int(keep * n))
             kth = e.flatten().kthvalue(k).values
@@ -390,7 +390,7 @@ def fit_ground_motion_direct(earlier: Tensor, later: Tensor, Ks: Tensor, cam_to_
             rr = r[m > 0]
             wt = _robust_weights(rr.abs(), loss) * m[m > 0]
             if keep < 1:        # least-trimmed here too: the residuals beyond the keep share weigh nothing
-                k = min(rr.numel(), max(1, int(keep * int(lv.used.sum()))))
+                k = min(rr.numel(), max(1, int(keep * lv.n_used)))
                 wt = wt * (rr.abs() <= rr.abs().kthvalue(k).values)
             A = (J * wt[:, None]).T @ J
             bvec = (J * wt[:, None]).T @ rr
