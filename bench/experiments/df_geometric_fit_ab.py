@@ -77,5 +77,6 @@ def main() -> None:
     print("CPU s a fit: other", [round(x, 2) for x in times["other"]], "this", [round(x, 2) for x in times["this"]])
     print(f"median other {o:.2f} this {t:.2f}: this / other {t / o:.2f}")
 
+
 if __name__ == "__main__":
     main()
