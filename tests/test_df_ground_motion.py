@@ -219,3 +219,41 @@ def test_a_depth_in_place_of_the_plane_gives_the_planes_motion_where_the_ground_
     for bad in (Zs[:, :, :10], Zs.clone().fill_(float("nan")), -Zs):
         with pytest.raises(ValueError, match="depth"):
             fit_ground_motion_direct(earlier, later, K, E, 12.0, depth=bad)
+
+
+@pytest.mark.parametrize("keep", [1.0, 0.75])
+def test_the_search_picks_the_grid_value_its_definition_ranks_lowest(keep: float) -> None:
+    """The search's cost reads the later image through one folded matrix a camera (a faster path than
+    :func:`plane_flow` and :func:`_sample`): with no Gauss-Newton step the fit's forward translation
+    is the grid value that the definition, computed here the plain way, ranks lowest. Half of one
+    camera is weighted out, so the cameras' prior pixels differ in number and the padding counts."""
+    K, E = _rig()
+    K = K.clone()
+    K[:, :2] *= 2.0                                                        # 32 x 56 images
+    theta = torch.tensor([0.0, 0.0, 0.01, 0.7, 0.03, 0.0], dtype=torch.float64)
+    earlier = _render_ground(K, E, torch.eye(4, dtype=torch.float64), 32, 56)
+    later = _render_ground(K, E, se3_exp(theta[:3], theta[3:]), 32, 56)
+    cap, tau, search = 12.0, 0.05, (-3.0, 3.0, 61)
+    weight = torch.ones(3, 1, 32, 56, dtype=torch.float64)
+    weight[1, :, :, :28] = 0
+    fit = fit_ground_motion_direct(earlier, later, K, E, cap, levels=(1,), iters=0, search=search, keep=keep, tau=tau,
+                                   weight=weight)
+    Z = ground_prior_depth(K, E, 32, 56, cap)
+    uv, X = ground_points(K, Z)
+    used = ((Z < cap) & (weight > 0)).reshape(3, -1)
+    a, b = earlier.mean(1).reshape(3, -1), later.mean(1, keepdim=True)
+
+    def cost(tx: float) -> float:
+        th = torch.zeros(6, dtype=torch.float64)
+        th[3] = tx
+        s, inside = _sample(b, uv + plane_flow(th, K, E, uv, X))
+        e = torch.where(inside, (s[:, 0] - a).abs().clamp(max=tau), torch.full_like(a, tau))[used]
+        k = max(1, int(keep * e.numel()))
+        return float(e.sort().values[:k].mean())
+
+    grid = torch.linspace(*search[:2], search[2], dtype=torch.float64).tolist()
+    best = min(grid, key=cost)
+    step = (search[1] - search[0]) / (search[2] - 1)
+    best = min(torch.linspace(best - step, best + step, 21, dtype=torch.float64).tolist() + [best], key=cost)
+    assert abs(cost(float(fit[0, 3])) - cost(best)) < 1e-12, (float(fit[0, 3]), best)
+    assert abs(float(fit[0, 3]) - 0.7) < 0.1                               # and it is near the motion
