@@ -143,17 +143,24 @@ def test_direct_fit_without_a_ground_pixel_returns_no_motion() -> None:
     assert torch.equal(M, torch.eye(4, dtype=torch.float64))
 
 
+def _ground_pair(theta: list[float]):
+    """The rig at 32 x 56 and its ground rendered before and after the motion ``theta`` (rotation,
+    translation): ``(K, E, earlier, later)``."""
+    K, E = _rig()
+    K = K.clone()
+    K[:, :2] *= 2.0                                                        # 32 x 56 images
+    t = torch.tensor(theta, dtype=torch.float64)
+    earlier = _render_ground(K, E, torch.eye(4, dtype=torch.float64), 32, 56)
+    later = _render_ground(K, E, se3_exp(t[:3], t[3:]), 32, 56)
+    return K, E, earlier, later
+
+
 def test_keep_trims_pixels_that_keep_pace_with_the_ego_so_a_crawl_is_not_read_short() -> None:
     """A crawl (0.15 m) over a low-contrast ground, a fifth of whose pixels show a pattern that keeps
     pace with the ego (a car driving alongside: fixed in the image, so the plane's flow misplaces it
     at the true motion and not at zero). The plain mean reads the crawl short (toward standing);
     ``keep`` 0.75 drops the misfit pixels from the search and the refinement and reads it."""
-    K, E = _rig()
-    K = K.clone()
-    K[:, :2] *= 2.0                                                        # 32 x 56 images
-    theta = torch.tensor([0.0, 0.0, 0.0, 0.15, 0.0, 0.0], dtype=torch.float64)
-    earlier = _render_ground(K, E, torch.eye(4, dtype=torch.float64), 32, 56)
-    later = _render_ground(K, E, se3_exp(theta[:3], theta[3:]), 32, 56)
+    K, E, earlier, later = _ground_pair([0.0, 0.0, 0.0, 0.15, 0.0, 0.0])
     ground = ground_prior_depth(K, E, 32, 56, 12.0) < 12.0                 # [3, 1, 32, 56]
     car = torch.zeros_like(ground)
     car[..., 20:32] = True
@@ -227,12 +234,7 @@ def test_the_search_picks_the_grid_value_its_definition_ranks_lowest(keep: float
     :func:`plane_flow` and :func:`_sample`): with no Gauss-Newton step the fit's forward translation
     is the grid value that the definition, computed here the plain way, ranks lowest. Half of one
     camera is weighted out, so the cameras' prior pixels differ in number and the padding counts."""
-    K, E = _rig()
-    K = K.clone()
-    K[:, :2] *= 2.0                                                        # 32 x 56 images
-    theta = torch.tensor([0.0, 0.0, 0.01, 0.7, 0.03, 0.0], dtype=torch.float64)
-    earlier = _render_ground(K, E, torch.eye(4, dtype=torch.float64), 32, 56)
-    later = _render_ground(K, E, se3_exp(theta[:3], theta[3:]), 32, 56)
+    K, E, earlier, later = _ground_pair([0.0, 0.0, 0.01, 0.7, 0.03, 0.0])
     cap, tau, search = 12.0, 0.05, (-3.0, 3.0, 61)
     weight = torch.ones(3, 1, 32, 56, dtype=torch.float64)
     weight[1, :, :, :28] = 0
