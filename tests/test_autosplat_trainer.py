@@ -448,3 +448,38 @@ def test_pose_translation_only_learns_the_translation_and_holds_the_rotation(str
     assert TINY.pose_translation_only is False
     with pytest.raises(ValueError, match=r"pose_translation_only: expected True or False"):
         TINY.replace(pose_translation_only=1)
+
+
+def _step_rows(t: Trainer, step: int) -> set[tuple[int, int]]:
+    """The (track, frame) rows of the pose table that ``step``'s samples render."""
+    frames = {t.frame_of(step * t.batch_size + j) for j in range(t.batch_size)}
+    return {(k, f) for f in frames for k in range(len(t.tracks)) if bool(t.model.present[k, f])}
+
+
+@pytest.mark.slow   # trains the tiny preset through fusion, twice, one step at a time
+def test_pose_selective_adam_moves_only_the_rows_a_step_renders(street, tmp_path):
+    data = prepare_data(street, CAMS, holdout=4)
+    fusion = [s for s in range(TINY_STEPS) if Trainer(data, TINY, Switches(), tmp_path / "x",
+                                                      progress=False).stage_of(s)[0] == "fusion"]
+    outside = {}
+    for name, preset in (("plain", TINY), ("selective", TINY.replace(pose_selective_adam=True))):
+        t = Trainer(data, preset, Switches(), tmp_path / name, progress=False)
+        t.fit(stop_at=fusion[0] + 1)
+        moved_outside = 0
+        for s in fusion[1:]:
+            before = t.model.pose.delta.detach().clone()
+            t = Trainer(data, preset, Switches(), tmp_path / name, progress=False)
+            t.fit(resume=True, stop_at=s + 1)
+            changed = (t.model.pose.delta.detach() != before).any(-1)
+            rows = {(int(k), int(f)) for k, f in torch.nonzero(changed)}
+            assert rows, f"{name}: step {s} moved no pose row"
+            moved_outside += len(rows - _step_rows(t, s))
+        outside[name] = moved_outside
+    assert outside["plain"] > 0                  # Adam's momentum moves rows the step never rendered
+    assert outside["selective"] == 0
+
+
+def test_pose_selective_adam_is_named_and_off_where_not_chosen():
+    with pytest.raises(ValueError, match=r"pose_selective_adam: expected True or False"):
+        TINY.replace(pose_selective_adam=1)
+    assert TINY.pose_selective_adam is False

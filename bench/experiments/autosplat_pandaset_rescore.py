@@ -31,7 +31,8 @@ Prints one markdown row per run (held-out PSNR, dB; ``--frames train``: on the f
 on, against ``metrics.json``'s ``train`` image PSNR, so that an object gap there reads as underfitting),
 then, for runs named
 ``PREFIX_<street>_<config>_s<seed>``, the mean (min..max) over seeds per street and config.
-``--from-json`` reads the ``--json`` files of earlier calls instead of runs (tables only).
+``--from-json`` reads the ``--json`` files of earlier calls instead of runs (tables only). Each
+run's learnt pose corrections are sized too (:func:`correction_size`: on exact boxes they should be 0).
 """
 from __future__ import annotations
 
@@ -195,7 +196,31 @@ def analyse(run: Path, world: str, cache: dict, frames: str = "test") -> dict:
             "tracks": {str(t): {"class": kind_true[t], "speed_mps": _track_speed(gen, t), "pixels": track_n[t],
                                 "psnr": _psnr(track_sse[t], 3 * track_n[t])} for t in sorted(track_n)},
             "moving": {"true": len(true_moving), "run": len(run_moving),
-                       "run_not_true": len({to_gen.get(t) for t in run_moving} - true_moving)}}
+                       "run_not_true": len({to_gen.get(t) for t in run_moving} - true_moving)},
+            "correction": correction_size(tr, d.test_frames if frames == "test" else d.train_frames)}
+
+
+def correction_size(tr, frames: list[int]) -> dict | None:
+    """The learnt per-object pose corrections' size over the decomposed tracks' boxes at ``frames``
+    (interpolated at held-out frames): median and 90th percentile of the translation (m) and of the
+    rotation angle (degrees). On exact boxes the right correction is zero, so this is how far the
+    optimiser moved the objects off their boxes. None without pose correction or tracks."""
+    m = tr.model
+    if not tr.switches.pose_correction or not tr.tracks:
+        return None
+    t, r = [], []
+    with torch.no_grad():
+        for k in range(len(tr.tracks)):
+            for i in frames:
+                if bool(m.present[k, i]):
+                    d = m.pose(k, i).double()
+                    t.append(float(d[3:].norm()))
+                    r.append(float(np.degrees(d[:3].norm())))
+    if not t:
+        return None
+    q = lambda v, p: float(np.percentile(v, p))  # noqa: E731
+    return {"boxes": len(t), "translation_m_median": q(t, 50), "translation_m_p90": q(t, 90),
+            "rotation_deg_median": q(r, 50), "rotation_deg_p90": q(r, 90)}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -236,6 +261,12 @@ def main(argv: list[str] | None = None) -> None:
               + " / ".join(f(p[f'box/{k}']) for k in ("car", "pedestrian", "other", "objects"))
               + " | " + " / ".join(f(j.get(k)) for k in ("car", "pedestrian", "other", "objects"))
               + f" | {mv['true']} / {mv['run']} ({mv['run_not_true']}) | {o['inside']:.3f} |")
+    for o in out:
+        c = o.get("correction")
+        if c:
+            print(f"{o['run']}: pose corrections over {c['boxes']} boxes: translation median {c['translation_m_median']:.3f} m "
+                  f"(p90 {c['translation_m_p90']:.3f}), rotation median {c['rotation_deg_median']:.2f} deg "
+                  f"(p90 {c['rotation_deg_p90']:.2f})")
     if a.tracks:
         for o in out:
             print("\n" + track_table(o))

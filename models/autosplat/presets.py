@@ -117,6 +117,11 @@ class AutoSplatPreset(Preset):
     # at 0 (the photometric gradient on a box's yaw was found uncorrelated with its error). False: as
     # before. Not adopted either (with fg_pose_correction and 5x lr_pose: exact-box cars -1.07 dB)
     pose_translation_only: bool = False
+    # issue 36 (exact boxes): True steps the pose corrections with a selective Adam
+    # (models/common/optim.py): a (track, frame) row moves only on the steps that give it a gradient,
+    # where plain Adam's momentum moves every row at every step, about ten learning rates per visit
+    # whatever the gradient's size. False: plain Adam, bit for bit the runs before.
+    pose_selective_adam: bool = False
     # issue 36 (small objects): the object sets' learning rates (means, quats, scales, opacity, SH)
     # are the background's times object_lr_scale; their densification threshold is
     # object_grad_threshold (0: grad_threshold, as before). 1.0 / 0.0: bit for bit the runs before.
@@ -152,7 +157,7 @@ class AutoSplatPreset(Preset):
 
     #: what a checkpoint written before a field existed ran with, where that differs from the
     #: field's default (issue 19 added both; an older run resumed keeps its road as it trained it)
-    BEFORE_FIELD = {"road_init": "flat", "road_classes": ["road"]}
+    BEFORE_FIELD = {"road_init": "flat", "road_classes": ["road"], "pose_selective_adam": False}
 
     @classmethod
     def upgrade(cls, saved: dict) -> dict:
@@ -182,7 +187,7 @@ class AutoSplatPreset(Preset):
             v = getattr(self, f)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < float("inf"):
                 raise bad(f, "expected a finite number >= 0")
-        for f in ("fg_pose_correction", "pose_translation_only"):
+        for f in ("fg_pose_correction", "pose_translation_only", "pose_selective_adam"):
             if not isinstance(getattr(self, f), bool):
                 raise bad(f, "expected True or False")
         if self.object_lr_scale == 0:

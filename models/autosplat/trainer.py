@@ -39,6 +39,7 @@ import numpy as np
 import torch
 
 from ..common.gaussians import GaussianSet
+from ..common.optim import SelectiveAdam
 from ..common.train import LoopHooks, TrainSpec, distributed_info, sample_generator, seed_everything, train
 from .background import reference_frames
 from .densify import Densifier, GaussianParams
@@ -201,7 +202,8 @@ class Trainer(LoopHooks):
         add("residuals", m.residuals.parameters(), p.lr_residual)
         add("pose", [m.pose.delta], p.lr_pose)
         add("sky", [m.sky_color], p.lr_sky)
-        self.opt = torch.optim.Adam(groups, eps=1e-15)
+        selective = [self.group_owner.index("pose")] if p.pose_selective_adam else []
+        self.opt = SelectiveAdam(groups, selective=selective, eps=1e-15)
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.opt, decays)
         self.densifier = Densifier(p, m.sizes(), SKY, self._object_caps())
 
