@@ -215,7 +215,7 @@ def correction_size(tr, frames: list[int]) -> dict | None:
                 if bool(m.present[k, i]):
                     d = m.pose(k, i).double()
                     t.append(float(d[3:].norm()))
-                    r.append(float(np.degrees(d[:3].norm())))
+                    r.append(float(np.degrees(float(d[:3].norm()))))
     if not t:
         return None
     q = lambda v, p: float(np.percentile(v, p))  # noqa: E731
