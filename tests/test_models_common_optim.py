@@ -93,6 +93,18 @@ def test_resume_from_state_dict_is_bitwise():
     assert torch.equal(full, a2.detach())
 
 
+def test_amsgrad_and_a_first_step_without_gradient_keep_idle_rows_at_zero():
+    p = torch.nn.Parameter(torch.zeros(3, 6))
+    opt = SelectiveAdam([p], selective=[0], lr=1e-2, amsgrad=True)
+    for s in range(5):
+        g = torch.zeros(3, 6)
+        g[s % 2] = 1.0                                     # rows 0 and 1 alternate, row 2 never
+        p.grad = g
+        opt.step()
+    assert torch.count_nonzero(p[2]) == 0
+    assert all(torch.count_nonzero(opt.state[p][k][2]) == 0 for k in ("exp_avg", "exp_avg_sq", "max_exp_avg_sq"))
+
+
 def test_a_group_out_of_range_is_named():
     p = torch.nn.Parameter(torch.zeros(2, 6))
     with pytest.raises(ValueError, match="selective: group 3 is out of range"):

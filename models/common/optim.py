@@ -21,6 +21,9 @@ import torch
 
 __all__ = ["SelectiveAdam"]
 
+#: the per-entry state Adam keeps (amsgrad adds the last), restored with the parameter on idle rows
+_MOMENTS = ("exp_avg", "exp_avg_sq", "max_exp_avg_sq")
+
 
 class SelectiveAdam(torch.optim.Adam):
     """``torch.optim.Adam`` whose groups in ``selective`` (indices into ``param_groups``) update
@@ -57,15 +60,15 @@ class SelectiveAdam(torch.optim.Adam):
                 if not bool(idle.any()):
                     continue
                 st = self.state.get(p, {})
-                saved = {k: st[k][idle].clone() for k in ("exp_avg", "exp_avg_sq") if k in st}
+                saved = {k: st[k][idle].clone() for k in _MOMENTS if k in st}
                 kept.append((p, idle, p.data[idle].clone(), saved))
         loss = super().step(closure)
         for p, idle, value, saved in kept:
             p.data[idle] = value
             st = self.state[p]
-            for k in ("exp_avg", "exp_avg_sq"):
+            for k in _MOMENTS:
                 if k in saved:
                     st[k][idle] = saved[k]
-                else:                                            # the first step: moments start at 0
+                elif k in st:                                    # the first step: moments start at 0
                     st[k][idle] = 0
         return loss
