@@ -52,3 +52,20 @@ def test_an_unfinished_run_fails_in_one_line(tmp_path, capsys):
         rs.main([str(tmp_path)])
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].endswith(f"runs: {tmp_path / 'metrics.json'} not found (a finished run folder expected)")
+
+
+def test_both_frame_sets_of_one_run_stay_apart_in_the_tables(tmp_path, capsys):
+    rs = _script()
+    parts = {p: 20.0 for p in rs.PARTS}
+
+    def rec(frames: str, image: float) -> dict:
+        return {"run": "i36_pbusy_M_s0", "frames": frames, "metrics": parts, "pixels": {p: 1 for p in rs.PARTS},
+                "inside": 1.0, "metrics_json": {"image": image, "objects": 20.0}, "tracks": {},
+                "moving": {"true": 1, "run": 1, "run_not_true": 0}, "correction": None}
+    j = tmp_path / "out.json"
+    import json
+    j.write_text(json.dumps([rec("test", 30.0), rec("train", 32.0)]))
+    rs.main(["--from-json", str(j)])
+    out = capsys.readouterr().out
+    assert "| i36_pbusy_M_s0 [train] | 32.00" in out and "| i36_pbusy_M_s0 | 30.00" in out
+    assert "| pbusy | M | 1 | 30.00 |" in out and "| pbusy | M [train] | 1 | 32.00 |" in out

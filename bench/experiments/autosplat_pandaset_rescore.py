@@ -24,7 +24,7 @@ instance-pixel class PSNR.
 Instance ids are the generator's track ids; the run's track ids are matched through the cuboids'
 ``uuid`` (``synthetic-<seed>-<track>``, written by :func:`clsplat.data.pandaset.write_pandaset`).
 
-    .venv/bin/python bench/experiments/autosplat_pandaset_rescore.py RUN [RUN ...] [--json OUT.json] [--frames train] [--tracks]
+    .venv/bin/python bench/experiments/autosplat_pandaset_rescore.py RUN [RUN ...] [--json OUT.json] [--frames test train] [--tracks]
     .venv/bin/python bench/experiments/autosplat_pandaset_rescore.py --from-json OUT.json [...]
 
 Prints one markdown row per run (held-out PSNR, dB; ``--frames train``: on the frames the run trained
@@ -230,8 +230,9 @@ def main(argv: list[str] | None = None) -> None:
                     "classic where the folder's name holds 'classic')")
     ap.add_argument("--json", type=Path, default=None, help="write the figures here too")
     ap.add_argument("--from-json", action="store_true", help="RUNS are --json files of earlier calls: tables only")
-    ap.add_argument("--frames", choices=("test", "train"), default="test",
-                    help="score the held-out frames (default) or the training frames (underfit or not)")
+    ap.add_argument("--frames", choices=("test", "train"), nargs="+", default=["test"],
+                    help="score the held-out frames (default), the training frames (underfit or not), or both "
+                         "(one street generation for both)")
     ap.add_argument("--tracks", action="store_true",
                     help="also each run's moving tracks by PSNR, and its cars pooled by size and by speed")
     a = ap.parse_args(argv)
@@ -245,7 +246,8 @@ def main(argv: list[str] | None = None) -> None:
         out = [o for fj in a.runs for o in json.loads(fj.read_text())]
     else:
         try:
-            out = [analyse(r, a.world or ("classic" if "classic" in r.name else "busy"), cache, a.frames) for r in a.runs]
+            out = [analyse(r, a.world or ("classic" if "classic" in r.name else "busy"), cache, fr)
+                   for fr in dict.fromkeys(a.frames) for r in a.runs]
         except ValueError as e:
             sys.exit(f"autosplat_pandaset_rescore.py: {e}")
     f = lambda x: "–" if x is None else f"{x:.2f}"  # noqa: E731
@@ -256,7 +258,7 @@ def main(argv: list[str] | None = None) -> None:
     for o in out:
         p, j, mv = o["metrics"], o["metrics_json"], o["moving"]
         gap = lambda k: "–" if p[k] is None else f"{j['image'] - p[k]:.2f}"  # noqa: E731
-        print(f"| {o['run']} | {f(j['image'])} ({f(p['image'])}) | " + " / ".join(f(p[f'inst/{k}']) for k in ("car", "pedestrian", "other", "objects", "parked"))
+        print(f"| {_label(o)} | {f(j['image'])} ({f(p['image'])}) | " + " / ".join(f(p[f'inst/{k}']) for k in ("car", "pedestrian", "other", "objects", "parked"))
               + f" | {gap('inst/car')} / {gap('inst/pedestrian')} | "
               + " / ".join(f(p[f'box/{k}']) for k in ("car", "pedestrian", "other", "objects"))
               + " | " + " / ".join(f(j.get(k)) for k in ("car", "pedestrian", "other", "objects"))
@@ -264,7 +266,7 @@ def main(argv: list[str] | None = None) -> None:
     for o in out:
         c = o.get("correction")
         if c:
-            print(f"{o['run']}: pose corrections over {c['boxes']} boxes: translation median {c['translation_m_median']:.3f} m "
+            print(f"{_label(o)}: pose corrections over {c['boxes']} boxes: translation median {c['translation_m_median']:.3f} m "
                   f"(p90 {c['translation_m_p90']:.3f}), rotation median {c['rotation_deg_median']:.2f} deg "
                   f"(p90 {c['rotation_deg_p90']:.2f})")
     if a.tracks:
@@ -273,6 +275,11 @@ def main(argv: list[str] | None = None) -> None:
     if a.json:
         a.json.write_text(json.dumps(out, indent=1))
     _seeds(out)
+
+
+def _label(o: dict) -> str:
+    """A run's name, with ``[train]`` when it was scored on its training frames."""
+    return o["run"] + (" [train]" if o.get("frames") == "train" else "")
 
 
 def _seeds(out: list[dict]) -> None:
@@ -285,7 +292,8 @@ def _seeds(out: list[dict]) -> None:
     for o in out:
         g = name.match(o["run"])
         if g:
-            groups.setdefault((g["street"], g["config"]), []).append(o)
+            cfg = g["config"] + (" [train]" if o.get("frames") == "train" else "")
+            groups.setdefault((g["street"], cfg), []).append(o)
 
     def agg(v: list) -> str:
         v = [x for x in v if x is not None]
