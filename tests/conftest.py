@@ -150,6 +150,21 @@ def weighted_loss_grads(fn, sc: dict, absgrad: bool = False, **kw) -> dict:
 
 
 @pytest.fixture(scope="session")
+def bench_script():
+    """``load(name)``: the module of ``bench/experiments/<name>.py`` (scripts, not a package)."""
+    import importlib.util
+    from pathlib import Path
+    root = Path(__file__).resolve().parents[1] / "bench" / "experiments"
+
+    def load(name: str):
+        spec = importlib.util.spec_from_file_location(name, root / f"{name}.py")
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        return mod
+    return load
+
+
+@pytest.fixture(scope="session")
 def loss_grads():
     """:func:`weighted_loss_grads`: images and gradients of one fixed loss, for comparing two renderers."""
     return weighted_loss_grads

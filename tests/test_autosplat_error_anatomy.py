@@ -2,20 +2,8 @@
 pixel checkerboard as fine error, the edge's pixels as the band; bad input fails in one line."""
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _mod():
-    spec = importlib.util.spec_from_file_location("anatomy", ROOT / "bench" / "experiments" / "autosplat_error_anatomy.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def _square():
@@ -24,8 +12,8 @@ def _square():
     return mask
 
 
-def test_an_offset_is_coarse_and_a_checkerboard_is_fine():
-    a, mask = _mod(), _square()
+def test_an_offset_is_coarse_and_a_checkerboard_is_fine(bench_script):
+    a, mask = bench_script("autosplat_error_anatomy"), _square()
     offset = np.zeros((40, 50, 3)) + 0.1 * mask[..., None]
     o = a.split(offset, mask, 2, 5)
     assert o["coarse"][0] == pytest.approx(o["interior"][0], rel=1e-9)
@@ -37,8 +25,8 @@ def test_an_offset_is_coarse_and_a_checkerboard_is_fine():
     assert c["fine"][0] > 0.9 * c["interior"][0]
 
 
-def test_the_band_is_the_edge_and_the_parts_count_their_pixels():
-    a, mask = _mod(), _square()
+def test_the_band_is_the_edge_and_the_parts_count_their_pixels(bench_script):
+    a, mask = bench_script("autosplat_error_anatomy"), _square()
     e = np.zeros((40, 50, 3))
     e[5:7, 10:40] = 0.2                                   # the top two rows: inside the 2-pixel band
     o = a.split(e, mask, 2, 5)
@@ -53,7 +41,7 @@ def test_the_band_is_the_edge_and_the_parts_count_their_pixels():
     (["{d}", "--band", "0"], "--band: expected an integer >= 1"),
     (["{d}"], "run: no checkpoint.pt"),
 ])
-def test_bad_input_fails_in_one_line(tmp_path, argv, needle):
+def test_bad_input_fails_in_one_line(tmp_path, argv, needle, bench_script):
     with pytest.raises(SystemExit) as e:
-        _mod().main([x.format(d=tmp_path) if "{d}" in x else x for x in argv])
+        bench_script("autosplat_error_anatomy").main([x.format(d=tmp_path) if "{d}" in x else x for x in argv])
     assert needle in str(e.value) and "\n" not in str(e.value)

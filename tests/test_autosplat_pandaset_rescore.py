@@ -3,23 +3,12 @@ model's own table (interpolated at held-out frames, only where the track is pres
 folder that is not finished fails in one line."""
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
 import torch
 
 from clsplat.models.autosplat.fusion import PoseCorrection
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _script():
-    spec = importlib.util.spec_from_file_location("rescore", ROOT / "bench" / "experiments" / "autosplat_pandaset_rescore.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def _trainer(on: bool = True):
@@ -34,8 +23,8 @@ def _trainer(on: bool = True):
     return SimpleNamespace(model=model, tracks=[0, 1], switches=SimpleNamespace(pose_correction=on))
 
 
-def test_correction_size_reads_the_table_where_the_tracks_are():
-    rs = _script()
+def test_correction_size_reads_the_table_where_the_tracks_are(bench_script):
+    rs = bench_script("autosplat_pandaset_rescore")
     c = rs.correction_size(_trainer(), [0, 2, 3])
     assert c["boxes"] == 4                                   # frame 3 has no track present
     assert c["translation_m_median"] == pytest.approx(0.05, abs=1e-6)   # 0.5, 0.1, 0, 0
@@ -46,16 +35,16 @@ def test_correction_size_reads_the_table_where_the_tracks_are():
     assert rs.correction_size(_trainer(on=False), [0]) is None
 
 
-def test_an_unfinished_run_fails_in_one_line(tmp_path, capsys):
-    rs = _script()
+def test_an_unfinished_run_fails_in_one_line(tmp_path, capsys, bench_script):
+    rs = bench_script("autosplat_pandaset_rescore")
     with pytest.raises(SystemExit):
         rs.main([str(tmp_path)])
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].endswith(f"runs: {tmp_path / 'metrics.json'} not found (a finished run folder expected)")
 
 
-def test_both_frame_sets_of_one_run_stay_apart_in_the_tables(tmp_path, capsys):
-    rs = _script()
+def test_both_frame_sets_of_one_run_stay_apart_in_the_tables(tmp_path, capsys, bench_script):
+    rs = bench_script("autosplat_pandaset_rescore")
     parts = {p: 20.0 for p in rs.PARTS}
 
     def rec(frames: str, image: float) -> dict:

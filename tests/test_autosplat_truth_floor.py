@@ -2,24 +2,12 @@
 (the folder's JPEG and the regenerated render agree to JPEG's error), and its bad input fails in one line."""
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import pytest
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _script(name: str):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "bench" / "experiments" / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 @pytest.mark.slow
-def test_the_regenerated_street_is_the_written_one(tmp_path):
-    writer, floor = _script("autosplat_pandaset"), _script("autosplat_truth_floor")
+def test_the_regenerated_street_is_the_written_one(tmp_path, bench_script):
+    writer, floor = bench_script("autosplat_pandaset"), bench_script("autosplat_truth_floor")
     folder = writer.write(tmp_path / "busy_s3", 3, 3, 54, 96, 0.3, 2, ("CAM_FRONT", "CAM_BACK_LEFT"), "busy")
     o = floor.floors(folder, "busy", [1], 2, 4)
     assert o["pixels"]["image"] == 2 * 54 * 96
@@ -30,8 +18,8 @@ def test_the_regenerated_street_is_the_written_one(tmp_path):
 
 
 @pytest.mark.slow
-def test_a_wrong_seed_reads_as_another_street(tmp_path):
-    writer, floor = _script("autosplat_pandaset"), _script("autosplat_truth_floor")
+def test_a_wrong_seed_reads_as_another_street(tmp_path, bench_script):
+    writer, floor = bench_script("autosplat_pandaset"), bench_script("autosplat_truth_floor")
     folder = writer.write(tmp_path / "busy_s3", 3, 2, 54, 96, 0.3, 2, ("CAM_FRONT",), "busy")
     wrong = folder.rename(tmp_path / "busy_s4")
     assert floor.floors(wrong, "busy", [1], 2, 4)["jpeg"]["image"] < 25.0
@@ -42,8 +30,8 @@ def test_a_wrong_seed_reads_as_another_street(tmp_path):
     (["{d}", "--reference-supersample", "2"], "--reference-supersample: must exceed"),
     (["{d}", "--written-supersample", "0"], "--written-supersample: expected an integer >= 1"),
 ])
-def test_bad_input_fails_in_one_line(tmp_path, capsys, argv, needle):
-    floor = _script("autosplat_truth_floor")
+def test_bad_input_fails_in_one_line(tmp_path, capsys, argv, needle, bench_script):
+    floor = bench_script("autosplat_truth_floor")
     (tmp_path / "x_s0").mkdir()
     with pytest.raises(SystemExit) as e:
         floor.main([a.format(d=tmp_path / "x_s0") if "{d}" in a else a for a in argv])
