@@ -483,3 +483,7 @@ def test_pose_selective_adam_is_named_and_off_where_not_chosen():
     with pytest.raises(ValueError, match=r"pose_selective_adam: expected True or False"):
         TINY.replace(pose_selective_adam=1)
     assert TINY.pose_selective_adam is False
+    from clsplat.models.common.presets import preset_from_saved
+    saved = TINY.replace(pose_selective_adam=True).to_dict()
+    del saved["pose_selective_adam"]                 # a record written before the field existed
+    assert preset_from_saved("autosplat", saved).pose_selective_adam is False
