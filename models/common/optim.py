@@ -10,8 +10,9 @@ same reason; TensorFlow calls this "lazy" Adam.
 
 :class:`SelectiveAdam` is ``torch.optim.Adam`` (same state, same checkpoint format) in which the
 groups named by ``selective`` keep, for every row (a vector along the last dimension; an entry of a
-1-D parameter) whose gradient is all zero, the parameter and both moments exactly as before the step. The step counter is the
-group's one count, as in gsplat's.
+1-D parameter) whose gradient is all zero, the parameter and its moments exactly as they were
+before the step. The step counter stays the group's one count, as in gsplat's. A non-finite
+gradient counts as a gradient (the training loop skips such steps before the optimiser).
 """
 from __future__ import annotations
 
