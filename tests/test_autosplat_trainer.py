@@ -456,7 +456,7 @@ def _step_rows(t: Trainer, step: int) -> set[tuple[int, int]]:
     return {(k, f) for f in frames for k in range(len(t.tracks)) if bool(t.model.present[k, f])}
 
 
-@pytest.mark.slow   # trains the tiny preset through fusion, twice, one step at a time
+@pytest.mark.slow   # trains the tiny preset through fusion four times, twice one step at a time
 def test_pose_selective_adam_moves_only_the_rows_a_step_renders(street, tmp_path):
     data = prepare_data(street, CAMS, holdout=4)
     fusion = [s for s in range(TINY_STEPS) if Trainer(data, TINY, Switches(), tmp_path / "x",
@@ -475,6 +475,12 @@ def test_pose_selective_adam_moves_only_the_rows_a_step_renders(street, tmp_path
             assert rows, f"{name}: step {s} moved no pose row"
             moved_outside += len(rows - _step_rows(t, s))
         outside[name] = moved_outside
+        # resumed at every fusion step, bitwise the run that was never stopped (table and moments)
+        whole = Trainer(data, preset, Switches(), tmp_path / f"{name}_whole", progress=False)
+        whole.fit(stop_at=fusion[-1] + 1)
+        assert torch.equal(whole.model.pose.delta, t.model.pose.delta)
+        a, b = whole.opt.state[whole.model.pose.delta], t.opt.state[t.model.pose.delta]
+        assert torch.equal(a["exp_avg"], b["exp_avg"]) and torch.equal(a["exp_avg_sq"], b["exp_avg_sq"])
     assert outside["plain"] > 0                  # Adam's momentum moves rows the step never rendered
     assert outside["selective"] == 0
 
