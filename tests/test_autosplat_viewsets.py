@@ -135,6 +135,7 @@ def test_the_straight_world_is_reachable_as_data_synthetic_straight():
     assert load_sequence("synthetic", ["CAM_FRONT"], (0, 3), 0.1).metadata["world"].world == "classic"
 
 
+@pytest.mark.slow   # trains a tiny run
 def test_the_divided_world_is_reachable_as_data_synthetic_divided(tmp_path, capsys):
     """``--data synthetic:divided`` (issue 33): a street of the ``divided`` world (a median wall
     beside the ego's lane) for ``train autosplat``; a misspelt name is refused naming ``--data``."""
