@@ -57,7 +57,7 @@ __all__ = [
     "BuildError", "DeviceError", "Runtime", "DeviceArray", "get_runtime", "list_devices",
     "describe_devices", "read_back", "LOCAL_MEM_BUDGET", "INT32_MAX", "available_host_memory",
     "PLAN_CACHE_SIZE", "POOL_ARRAY_BYTES", "POOL_PER_SHAPE", "POOL_BYTES", "POOL_SHAPES",
-    "KEEP_INPUTS", "STAGE_COPY_BYTES",
+    "KEEP_INPUTS", "STAGE_COPY_BYTES", "BUILD_RETRIES",
 ]
 
 _BASE_OPTIONS = ("-cl-std=CL1.2", "-cl-denorms-are-zero")
@@ -94,6 +94,9 @@ STAGE_COPY_BYTES = 64 << 10
 #: input arrays kept at most (:meth:`Runtime.array` with ``keep``): a render's six projection
 #: inputs and its colours, for a couple of scenes in turn
 KEEP_INPUTS = 16
+#: builds of a program that failed on PoCL made again before the failure counts (Runtime.program:
+#: PoCL's kernel cache races between processes); each retry found the finished cache entry
+BUILD_RETRIES = 2
 _MISSING = object()
 
 
@@ -346,11 +349,19 @@ class Runtime:
         key = (hashlib.sha256(source.encode()).hexdigest(), tuple(options))
         prog = self._programs.get(key)
         if prog is None:
-            try:
-                prog = cl.Program(self.context, source).build(options=options)
-            except (cl.RuntimeError, cl.LogicError) as exc:
-                # pyopencl puts the device's build log into the message.
-                raise BuildError(stage, options, str(exc), self.name) from None
+            # PoCL 3.0's on-disk kernel cache is not safe across processes: two processes building
+            # the same program at once can each fail with an empty log (pocl/pocl#1480; reproduced
+            # here: 1-2 failures in 900 builds of six processes, every one gone when built again).
+            # A failure on PoCL is therefore built again before it counts; a real compile error
+            # fails every time and is reported with its log, a few builds later.
+            retries = BUILD_RETRIES if "portable computing language" in self.device.platform.name.lower() else 0
+            for attempt in range(retries + 1):
+                try:
+                    prog = cl.Program(self.context, source).build(options=options)
+                    break
+                except (cl.RuntimeError, cl.LogicError) as exc:
+                    if attempt == retries:   # pyopencl puts the device's build log into the message
+                        raise BuildError(stage, options, str(exc), self.name) from None
             self._programs[key] = prog
         return prog
 

@@ -90,6 +90,45 @@ def test_program_and_kernel_cache(rt):
     assert (len(rt._programs), len(rt._kernels)) == (n_prog, n_kern)
 
 
+def _failing_builds(monkeypatch, fails: int) -> list[int]:
+    """Make the next ``fails`` program builds of clsplat.runtime fail as PoCL's kernel-cache race
+    does (BUILD_PROGRAM_FAILURE, no compiler diagnostic); returns the list the builds are counted in."""
+    import pyopencl as cl
+
+    from clsplat import runtime
+
+    calls: list[int] = []
+
+    class Flaky(cl.Program):
+        def build(self, *args, **kwargs):
+            calls.append(1)
+            if len(calls) <= fails:
+                raise cl.RuntimeError(cl._cl._ErrorRecord("clBuildProgram failed: BUILD_PROGRAM_FAILURE",
+                                                          cl.status_code.BUILD_PROGRAM_FAILURE,
+                                                          "Device failed to build the program"))
+            return super().build(*args, **kwargs)
+
+    monkeypatch.setattr(runtime.cl, "Program", Flaky)
+    return calls
+
+
+def test_a_build_that_fails_as_pocls_cache_race_does_is_built_again(monkeypatch):
+    """PoCL 3.0's kernel cache races between processes (pocl/pocl#1480): a build fails with an empty
+    log and succeeds when made again. On PoCL a failed build is made up to BUILD_RETRIES more times
+    before it counts; one more failure than that is reported as the BuildError it is."""
+    from clsplat.runtime import BUILD_RETRIES
+
+    rt = clsplat.get_runtime(POCL)
+    d = {"SORT_LOCAL": 64, "UNUSED_TAG": "retried"}   # a program no other test has built here
+    calls = _failing_builds(monkeypatch, BUILD_RETRIES)
+    assert rt.program("sort", d) is rt.program("sort", d)
+    assert len(calls) == BUILD_RETRIES + 1
+    calls = _failing_builds(monkeypatch, BUILD_RETRIES + 1)
+    with pytest.raises(clsplat.BuildError, match="failed to build"):
+        rt.program("sort", dict(d, UNUSED_TAG="failed"))
+    assert len(calls) == BUILD_RETRIES + 1
+
+
 def test_renders_reuse_programs(make_scene):
     scene = make_scene(0, N=20, C=1, width=32, height=24, dtype=torch.float32)
     rt = clsplat.get_runtime()
