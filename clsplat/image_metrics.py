@@ -25,6 +25,7 @@ from __future__ import annotations
 from typing import Literal, Optional
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 __all__ = ["SSIM_WINDOW", "check_image_pair", "psnr", "ssim", "ssim_map"]
@@ -32,6 +33,9 @@ __all__ = ["SSIM_WINDOW", "check_image_pair", "psnr", "ssim", "ssim_map"]
 #: side of SSIM's Gaussian window: images must be at least this high and wide ('valid'), or more
 #: than half of it ('same').
 SSIM_WINDOW = 11
+SSIM_SIGMA = 1.5                 # the window's standard deviation, pixels (Wang et al.)
+SSIM_C1 = (0.01 * 1.0) ** 2      # the stabilisers for a data range of 1, as kornia forms them
+SSIM_C2 = (0.03 * 1.0) ** 2
 
 
 def check_image_pair(a: Tensor, b: Tensor, name_a: str = "a", name_b: str = "b", channels: int | None = None,
@@ -98,9 +102,43 @@ def ssim_map(pred: Tensor, target: Tensor, padding: Literal["same", "valid"] = "
     if min(pred.shape[-2:]) < need:
         raise ValueError(f"pred: SSIM's 11x11 window with padding={padding!r} needs H, W >= {need}, "
                          f"got {list(pred.shape[-2:])}")
-    from kornia.metrics import ssim as kornia_ssim
+    return _ssim_map(pred, target, padding)
 
-    return kornia_ssim(pred, target, SSIM_WINDOW, max_val=1.0, eps=0.0, padding=padding)
+
+def _ssim_map(a: Tensor, b: Tensor, padding: str) -> Tensor:
+    """:func:`ssim_map` without the checks: ``kornia.metrics.ssim(a, b, 11, max_val=1, eps=0,
+    padding=padding)`` with its five local moments (means, second moments, cross moment) stacked as
+    one [B, 5C, H, W] image and filtered by one pair of depthwise convolutions, not five. The map is
+    kornia's bit for bit on colour images (the same products, sums and filter; tested; one
+    single-channel image differs by ~1e-6, where oneDNN convolves kornia's one channel another way);
+    gradients agree to float rounding (~1e-7 relative: autograd sums the three paths into ``a`` in
+    another order), so training runs from before this change are not reproduced bit for bit. On the CPU
+    in float32 the stack is filtered channels-last (oneDNN otherwise copies an NCHW image into
+    channel blocks around each depthwise convolution). A 480x270 six-camera AutoSplat frame,
+    forward and backward: 0.55x kornia's time (bench/notes/shared_nets_losses_metrics.md).
+
+    a, b: [B, C, H, W] floating -> [B, C, H, W] ('same') or [B, C, H - 10, W - 10] ('valid')."""
+    from kornia.filters import get_gaussian_kernel1d
+
+    out_dtype = torch.promote_types(a.dtype, b.dtype)
+    dtype = torch.float32 if out_dtype in (torch.float16, torch.bfloat16) else out_dtype
+    a, b = a.to(dtype), b.to(dtype)
+    C, r = a.shape[1], SSIM_WINDOW // 2
+    kernel = get_gaussian_kernel1d(SSIM_WINDOW, SSIM_SIGMA, device=a.device, dtype=dtype)
+    x = torch.cat([a, b, a**2, b**2, a * b], 1)
+    if a.device.type == "cpu" and dtype == torch.float32:
+        x = x.contiguous(memory_format=torch.channels_last)
+    n = 5 * C
+    x = F.conv2d(F.pad(x, [r, r, 0, 0], mode="reflect"), kernel.view(1, 1, 1, -1).expand(n, 1, 1, -1), groups=n)
+    x = F.conv2d(F.pad(x, [0, 0, r, r], mode="reflect"), kernel.view(1, 1, -1, 1).expand(n, 1, -1, 1), groups=n)
+    if padding == "valid":
+        x = x[..., r:-r, r:-r]
+    mu1, mu2, m11, m22, m12 = x.contiguous().split(C, 1)
+    # kornia's arithmetic, term for term, so that the map is its own
+    mu1_sq, mu2_sq, mu1_mu2 = mu1**2, mu2**2, mu1 * mu2
+    num = (2.0 * mu1_mu2 + SSIM_C1) * (2.0 * (m12 - mu1_mu2) + SSIM_C2)
+    den = (mu1_sq + mu2_sq + SSIM_C1) * ((m11 - mu1_sq) + (m22 - mu2_sq) + SSIM_C2)
+    return (num / (den + 0.0)).to(out_dtype)
 
 
 def ssim(pred: Tensor, target: Tensor) -> Tensor:

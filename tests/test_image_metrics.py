@@ -94,6 +94,41 @@ def test_ssim_map_is_differentiable_and_passes_nan_to_the_caller():
     assert torch.isnan(ssim_map(bad, b, "same")).any()     # a loss leaves NaN to the trainer's guard
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("padding", ["valid", "same"])
+def test_ssim_map_is_kornias_map_bit_for_bit_and_its_gradient_to_rounding(padding, dtype):
+    """The five moments filtered as one stacked image give kornia's map exactly (RGB frames, the
+    sizes the models render, one camera and six), and the gradient kornia's to float rounding."""
+    from kornia.metrics import ssim as kornia_ssim
+
+    gen = torch.Generator().manual_seed(2)
+    for shape in ((1, 3, 48, 64), (6, 3, 67, 121)):
+        a = torch.rand(shape, dtype=dtype, generator=gen)
+        b = (a + 0.2 * torch.randn(shape, dtype=dtype, generator=gen)).clamp(0, 1)
+        want = kornia_ssim(a, b, SSIM_WINDOW, max_val=1.0, eps=0.0, padding=padding)
+        assert torch.equal(ssim_map(a, b, padding), want)
+        g = torch.rand(want.shape, dtype=dtype, generator=gen)
+        grads = []
+        for f in (lambda x: kornia_ssim(x, b, SSIM_WINDOW, max_val=1.0, eps=0.0, padding=padding),
+                  lambda x: ssim_map(x, b, padding)):
+            x = a.clone().requires_grad_()
+            (f(x) * g).sum().backward()
+            grads.append(x.grad)
+        rel = float((grads[0] - grads[1]).norm() / grads[0].norm())
+        assert rel < (1e-6 if dtype == torch.float32 else 1e-13), rel
+
+
+def test_ssim_map_gradcheck_and_mixed_precision():
+    gen = torch.Generator().manual_seed(3)
+    a = torch.rand(1, 2, 7, 8, dtype=torch.float64, generator=gen, requires_grad=True)
+    b = torch.rand(1, 2, 7, 8, dtype=torch.float64, generator=gen, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda x, y: ssim_map(x, y, "same"), (a, b))
+    half = a.detach().to(torch.float16)
+    assert ssim_map(half, half, "same").dtype == torch.float16                # computed in float32
+    mixed = ssim_map(a.detach().float(), b.detach(), "same")
+    assert mixed.dtype == torch.float64
+
+
 def test_errors_name_the_argument():
     ok = torch.rand(1, 3, 16, 16)
     with pytest.raises(ValueError, match=r"^pred: expected a torch.Tensor"):

@@ -4,6 +4,10 @@ straightforward way to write it, interleaved run by run so that machine load hit
 - ``ssim3``: monodepth2's 3x3 SSIM map (``ssim_map3``, box statistics as shifted sums) against
   the same statistics from ``kornia.filters.box_blur(x, 3, border_type="reflect")``; forward and
   forward+backward on 6-camera batches.
+- ``ssim11``: the engine's 11x11 Gaussian SSIM map (``clsplat.image_metrics.ssim_map``: the five
+  moments stacked and filtered at once) against ``kornia.metrics.ssim``, the same map; 'same'
+  forward+backward (AutoSplat's loss: six 480x270 cameras, and ``demo``'s 88x160), 'valid'
+  forward+backward (PGT's loss) and 'valid' forward without gradient (the metric).
 - ``chamfer``: ``chamfer_distance`` (one pass over the distances for both directions) against a
   per-direction search of the expanded form ``|p|² + |q|² - 2 p.q``; forward+backward at
   10k x 10k points (GPS-Gaussian+'s sample size).
@@ -81,6 +85,31 @@ def bench_ssim3(repeats: int) -> list[dict]:
     return rows
 
 
+def bench_ssim11(repeats: int) -> list[dict]:
+    from kornia.metrics import ssim as kornia_ssim
+
+    from clsplat.image_metrics import ssim_map
+
+    rows = []
+    for shape, padding, grad in [((6, 3, 270, 480), "same", True), ((6, 3, 88, 160), "same", True),
+                                 ((4, 3, 128, 224), "valid", True), ((6, 3, 270, 480), "valid", False)]:
+        g = torch.Generator().manual_seed(0)
+        a, b = torch.rand(shape, generator=g), torch.rand(shape, generator=g)
+        assert torch.equal(ssim_map(a, b, padding), kornia_ssim(a, b, 11, max_val=1.0, eps=0.0, padding=padding))
+        x = a.clone().requires_grad_(grad)
+
+        def call(f):
+            if grad:
+                return lambda: f(x).mean().backward()
+            return lambda: f(x)
+        with torch.set_grad_enabled(grad):
+            t = _side_by_side({"ours": call(lambda x: ssim_map(x, b, padding)),
+                               "kornia": call(lambda x: kornia_ssim(x, b, 11, max_val=1.0, eps=0.0, padding=padding))},
+                              repeats)
+        rows.append(dict(shape=list(shape), padding=padding, grad=grad, ms={k: v * 1e3 for k, v in t.items()}))
+    return rows
+
+
 def bench_chamfer(repeats: int) -> list[dict]:
     from clsplat.models.common.losses import chamfer_distance
 
@@ -106,7 +135,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     result = dict(threads=1, repeats=args.repeats, ssim3=bench_ssim3(args.repeats),
-                  chamfer=bench_chamfer(args.repeats))
+                  ssim11=bench_ssim11(args.repeats), chamfer=bench_chamfer(args.repeats))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "common_nets.json").write_text(json.dumps(result, indent=1))
@@ -115,6 +144,10 @@ def main(argv=None) -> int:
         print(f"ssim3 {r['shape']}: fwd {f['ours']:.1f} vs kornia {f['kornia']:.1f} ms "
               f"(x{f['kornia'] / f['ours']:.2f}); fwd+bwd {fb['ours']:.1f} vs {fb['kornia']:.1f} ms "
               f"(x{fb['kornia'] / fb['ours']:.2f})")
+    for r in result["ssim11"]:
+        t = r["ms"]
+        print(f"ssim11 {r['shape']} {r['padding']} {'fwd+bwd' if r['grad'] else 'fwd, no grad'}: "
+              f"{t['ours']:.1f} vs kornia {t['kornia']:.1f} ms (x{t['ours'] / t['kornia']:.2f} the time)")
     for r in result["chamfer"]:
         t = r["fwd_bwd_ms"]
         print(f"chamfer B={r['batch']} 10k x 10k fwd+bwd: {t['ours']:.0f} vs per-direction "
