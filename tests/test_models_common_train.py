@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from clsplat.models.common import presets
-from clsplat.models.common.train import (JsonlLog, TrainSpec, atomic_write, clip_and_measure, load_checkpoint,
+from clsplat.models.common.train import (JsonlLog, TrainSpec, atomic_write, clip_and_measure, gradient_norm, load_checkpoint,
                                          sample_generator, train)
 
 # The toy family lives in a module the DDP subprocess can import too.
@@ -229,6 +229,34 @@ def test_gradient_norm_is_measured_without_touching_unclipped_gradients():
     q.grad = torch.tensor([3.0, 4.0])
     assert clip_and_measure([q], 1.0) == 5.0 and torch.allclose(q.grad.norm(), torch.tensor(1.0))
     assert clip_and_measure([torch.nn.Parameter(torch.zeros(1))], None) == 0.0
+
+
+def test_gradient_norm_tells_non_finite_gradients_from_an_overflowing_norm_and_clips_as_torch_does():
+    """One pass measures the norm and, when it is finite, vouches for every gradient; a NaN or an
+    inf gradient is found, while finite gradients whose norm overflows still count as finite. The
+    clip with the measured norm is ``clip_grad_norm_``'s, bit for bit."""
+    def params(*grads):
+        out = []
+        for g in grads:
+            q = torch.nn.Parameter(torch.zeros_like(g))
+            q.grad = g.clone()
+            out.append(q)
+        return out
+    gen = torch.Generator().manual_seed(0)
+    ps = params(torch.randn(1000, generator=gen), torch.randn(7, 3, generator=gen))
+    total, ok = gradient_norm(ps)
+    assert ok and float(total) == float(torch.nn.utils.get_total_norm([q.grad for q in ps]))
+    twins = params(*[q.grad for q in ps])
+    assert clip_and_measure(ps, 0.5, total) == float(torch.nn.utils.clip_grad_norm_(twins, 0.5))
+    assert all(torch.equal(a.grad, b.grad) for a, b in zip(ps, twins))
+    for bad in (float("nan"), float("inf")):
+        g = torch.ones(5)
+        g[2] = bad
+        assert gradient_norm(params(torch.ones(3), g))[1] is False
+    total, ok = gradient_norm(params(torch.tensor([1e20, 1e20, 1.0])))
+    assert ok and float(total) == float("inf")
+    total, ok = gradient_norm([torch.nn.Parameter(torch.zeros(2))])     # no gradient at all
+    assert ok and float(total) == 0.0
 
 
 def test_a_log_line_that_cannot_be_written_names_the_log(tmp_path, monkeypatch):
